@@ -1,0 +1,1 @@
+"""lodserver: decimate once, serve every level of detail."""
