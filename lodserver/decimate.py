@@ -1,0 +1,670 @@
+"""Greedy quadric-error edge collapse, recording every collapse.
+
+Implements Garland & Heckbert, "Surface Simplification Using Quadric Error
+Metrics" (SIGGRAPH 1997) with the topology rules of Hoppe, "Progressive
+Meshes" (SIGGRAPH 1996) and Dey et al., "Topology preserving edge contraction"
+(1999): a collapse is taken only when it keeps the mesh a manifold and flips
+no triangle, so that every collapse, reversed, is a vertex split.
+
+Pipeline, in the order of this file:
+
+1. classify vertices (interior, border, locked) from edge-face counts and fans;
+2. build vertex quadrics (``quadrics.vertex_quadrics``);
+3. in a compiled kernel: corner lists per vertex, a lazy binary heap of edge
+   collapses keyed on quadric error, then pop / check / perform / re-rank until
+   no legal collapse is left, in passes (a collapse refused now may become
+   legal once its neighbourhood has moved, so each pass re-ranks all edges);
+4. return the collapse log as parallel arrays, one row per collapse.
+
+Positions are rescaled to the unit box inside the kernel so its tolerances
+are scale-free; logged positions are mapped back to mesh units.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from dataclasses import dataclass
+
+import numpy as np
+from numba import njit
+
+from .mesh import Mesh
+from .quadrics import optimal_position, quadric_error, vertex_quadrics
+
+# Vertex kinds. The rules, as in meshoptimizer's kCanCollapse table:
+#   interior-interior : any collapse, optimal placement;
+#   interior-border   : the border vertex survives (the boundary planes keep it on the border);
+#   border-border     : only along a border edge (an interior edge joining two
+#                       border vertices would pinch the surface into a bow tie);
+#   locked            : never removed and never moved; it may absorb an unlocked neighbour.
+INTERIOR = 0
+BORDER = 1
+LOCKED = 2
+
+# A collapse is refused if it turns any surviving triangle's normal by more
+# than arccos(DEFAULT_FLIP_COS) (about 78 degrees): larger turns are fold-overs
+# in the making, and a strict 90 degree test lets slivers through.
+DEFAULT_FLIP_COS = 0.2
+# New triangles with twice-area below this (in the unit-box frame) are degenerate.
+DEGENERATE_AREA = 1e-20
+
+# How often (in collapses) the kernel reports progress and checks for cancellation.
+_PROGRESS_STRIDE = 1024
+
+# Reasons a popped candidate is refused, counted for diagnostics.
+REJECT_REASONS = ("stale", "not_an_edge", "non_manifold_edge", "pinch", "link",
+                  "tetrahedron", "last_face", "flip")
+
+
+@dataclass(frozen=True)
+class CollapseLog:
+    """Every collapse, in order; row ``i`` is collapse ``i``. Vertex and face
+    ids are those of the input mesh.
+
+    Attributes
+    ----------
+    survivor : (k,) int64
+        The vertex that stays (``vs`` of the split that undoes it).
+    removed : (k,) int64
+        The vertex that goes (``vt``); it is never used again.
+    position : (k, 3) float64
+        The survivor's position after the collapse, mesh units.
+    error : (k,) float64
+        sqrt(Q(p) / area) of the collapse: an RMS distance in mesh units.
+    killed_offsets : (k + 1,) int64
+        ``killed_faces[killed_offsets[i]:killed_offsets[i+1]]`` are the faces collapse i removes.
+    killed_faces : (f,) int64
+    moved_offsets : (k + 1,) int64
+        ``moved_corners[moved_offsets[i]:moved_offsets[i+1]]`` are the corners
+        (``3 * face + slot``) that collapse i relabels from ``removed`` to ``survivor``.
+    moved_corners : (c,) int64
+    rejected : dict
+        How many popped candidates were refused, by reason.
+    passes : int
+    """
+
+    survivor: np.ndarray
+    removed: np.ndarray
+    position: np.ndarray
+    error: np.ndarray
+    killed_offsets: np.ndarray
+    killed_faces: np.ndarray
+    moved_offsets: np.ndarray
+    moved_corners: np.ndarray
+    rejected: dict
+    passes: int
+
+    def __len__(self) -> int:
+        return len(self.survivor)
+
+
+# --------------------------------------------------------------------------
+# 1. Vertex classification
+# --------------------------------------------------------------------------
+
+@njit(cache=True, nogil=True)
+def _count_fans(faces, vf_offsets, vf_faces, n):
+    """Number of edge-connected triangle fans around each vertex.
+
+    A manifold vertex has exactly one fan; two or more (a bow tie, two cones
+    touching) make it non-manifold, and a collapse there cannot be undone as
+    a Hoppe vertex split, so such vertices are locked.
+    """
+    fans = np.zeros(n, np.int64)
+    local = np.full(n, -1, np.int64)   # link vertex -> slot in the union-find
+    parent = np.empty(2 * faces.shape[0] + 2, np.int64)
+    for v in range(n):
+        start, end = vf_offsets[v], vf_offsets[v + 1]
+        used = 0
+        # Link vertices of v's faces; faces sharing an edge at v share a link vertex.
+        for k in range(start, end):
+            f = vf_faces[k]
+            for s in range(3):
+                w = faces[f, s]
+                if w != v and local[w] < 0:
+                    local[w] = used
+                    parent[used] = used
+                    used += 1
+        components = used
+        for k in range(start, end):
+            f = vf_faces[k]
+            x = -1
+            y = -1
+            for s in range(3):
+                w = faces[f, s]
+                if w != v:
+                    if x < 0:
+                        x = local[w]
+                    else:
+                        y = local[w]
+            while parent[x] != x:
+                x = parent[x]
+            while parent[y] != y:
+                y = parent[y]
+            if x != y:
+                parent[x] = y
+                components -= 1
+        fans[v] = components
+        for k in range(start, end):
+            f = vf_faces[k]
+            for s in range(3):
+                local[faces[f, s]] = -1
+    return fans
+
+
+def classify_vertices(faces, n, locked=None):
+    """Kind of every vertex: INTERIOR, BORDER or LOCKED.
+
+    Parameters
+    ----------
+    faces : (m, 3) int64
+    n : int
+        Vertex count.
+    locked : (n,) bool, optional
+        Vertices the caller wants kept exactly (e.g. tile borders).
+
+    Returns
+    -------
+    kind : (n,) int8
+    """
+    kind = np.zeros(n, dtype=np.int8)
+    undirected = np.sort(np.stack([faces, np.roll(faces, -1, axis=1)], axis=2).reshape(-1, 2), axis=1)
+    edges, counts = np.unique(undirected, axis=0, return_counts=True)
+    kind[edges[counts == 1].ravel()] = BORDER
+    kind[edges[counts > 2].ravel()] = LOCKED
+
+    order = np.argsort(faces.ravel(), kind="stable")
+    vf_offsets = np.zeros(n + 1, dtype=np.int64)
+    np.cumsum(np.bincount(faces.ravel(), minlength=n), out=vf_offsets[1:])
+    fans = _count_fans(faces, vf_offsets, order // 3, n)
+    kind[fans > 1] = LOCKED
+    if locked is not None:
+        locked = np.asarray(locked, dtype=bool)
+        if locked.shape != (n,):
+            raise ValueError(f"locked must be a boolean mask of shape ({n},), got {locked.shape}")
+        kind[locked] = LOCKED
+    return kind
+
+
+# --------------------------------------------------------------------------
+# 2. The kernel: heap, checks, collapses
+# --------------------------------------------------------------------------
+
+@njit(cache=True, nogil=True)
+def _heap_push(keys, items, size, key, item):
+    i = size
+    keys[i] = key
+    items[i] = item
+    while i > 0:
+        p = (i - 1) >> 1
+        if keys[p] <= keys[i]:
+            break
+        keys[p], keys[i] = keys[i], keys[p]
+        items[p], items[i] = items[i], items[p]
+        i = p
+    return size + 1
+
+
+@njit(cache=True, nogil=True)
+def _heap_pop(keys, items, size):
+    """Remove the root; returns the new size (root's key/item must be read before)."""
+    size -= 1
+    keys[0] = keys[size]
+    items[0] = items[size]
+    i = 0
+    while True:
+        left = 2 * i + 1
+        if left >= size:
+            break
+        c = left
+        if left + 1 < size and keys[left + 1] < keys[left]:
+            c = left + 1
+        if keys[i] <= keys[c]:
+            break
+        keys[c], keys[i] = keys[i], keys[c]
+        items[c], items[i] = items[i], items[c]
+        i = c
+    return size
+
+
+@njit(cache=True, nogil=True)
+def _grow(a, need):
+    if need <= a.shape[0]:
+        return a
+    b = np.empty(max(need, 2 * a.shape[0]), a.dtype)
+    b[:a.shape[0]] = a
+    return b
+
+
+@njit(cache=True, nogil=True)
+def _plan(a, b, pos, quadrics, kind, q, p):
+    """Cost of collapsing edge (a, b); writes the placement into ``p``.
+
+    Returns (cost, survivor); cost is inf when the collapse is never legal.
+    """
+    if kind[a] == LOCKED and kind[b] == LOCKED:
+        return np.inf, a
+    for j in range(11):
+        q[j] = quadrics[a, j] + quadrics[b, j]
+    if kind[a] == LOCKED or kind[b] == LOCKED:
+        s = a if kind[a] == LOCKED else b
+        p[0] = pos[s, 0]; p[1] = pos[s, 1]; p[2] = pos[s, 2]
+        return max(quadric_error(q, p[0], p[1], p[2]), 0.0), s
+    cost = optimal_position(q, pos[a], pos[b], p)
+    # The border vertex survives an interior-border collapse; otherwise either may.
+    s = b if kind[b] > kind[a] else a
+    return max(cost, 0.0), s
+
+
+@njit(cache=True, nogil=True)
+def _triangle_normal(ax, ay, az, bx, by, bz, cx, cy, cz, out):
+    ux = bx - ax; uy = by - ay; uz = bz - az
+    vx = cx - ax; vy = cy - ay; vz = cz - az
+    out[0] = uy * vz - uz * vy
+    out[1] = uz * vx - ux * vz
+    out[2] = ux * vy - uy * vx
+
+
+@njit(cache=True, nogil=True)
+def _flips(v, p, pos, faces, face_alive, vhead, cnext, other, flip_cos, n0, n1):
+    """True if moving ``v`` to ``p`` flips or degenerates one of its faces
+    that does not also contain ``other`` (those die with the collapse)."""
+    c = vhead[v]
+    while c >= 0:
+        f = c // 3
+        if face_alive[f]:
+            slot = c - 3 * f
+            x = faces[f, (slot + 1) % 3]
+            y = faces[f, (slot + 2) % 3]
+            if x != other and y != other:
+                _triangle_normal(pos[v, 0], pos[v, 1], pos[v, 2], pos[x, 0], pos[x, 1], pos[x, 2],
+                                 pos[y, 0], pos[y, 1], pos[y, 2], n0)
+                _triangle_normal(p[0], p[1], p[2], pos[x, 0], pos[x, 1], pos[x, 2],
+                                 pos[y, 0], pos[y, 1], pos[y, 2], n1)
+                l1 = n1[0] * n1[0] + n1[1] * n1[1] + n1[2] * n1[2]
+                if l1 <= DEGENERATE_AREA:
+                    return True
+                l0 = n0[0] * n0[0] + n0[1] * n0[1] + n0[2] * n0[2]
+                if l0 > DEGENERATE_AREA:
+                    d = n0[0] * n1[0] + n0[1] * n1[1] + n0[2] * n1[2]
+                    if d <= flip_cos * np.sqrt(l0 * l1):
+                        return True
+        c = cnext[c]
+    return False
+
+
+@njit(cache=True, nogil=True)
+def _decimate_kernel(pos, faces, quadrics, kind, min_vertices, max_collapses, flip_cos, progress):
+    """Collapse edges cheapest first until none is legal or a limit is hit.
+
+    ``pos`` and ``quadrics`` are updated in place (unit-box frame).
+    ``progress[0]`` receives the collapse count as it goes; a non-zero
+    ``progress[1]`` asks the kernel to stop early.
+    """
+    n = pos.shape[0]
+    m = faces.shape[0]
+    faces = faces.copy()
+
+    # Corner lists: vhead[v] -> corner -> cnext[corner] ... of the faces at v.
+    # Dead faces are unlinked lazily, when the survivor's list is next rebuilt.
+    vhead = np.full(n, -1, np.int64)
+    cnext = np.full(3 * m, -1, np.int64)
+    for c in range(3 * m - 1, -1, -1):
+        v = faces[c // 3, c % 3]
+        cnext[c] = vhead[v]
+        vhead[v] = c
+    face_alive = np.ones(m, np.bool_)
+    vertex_alive = np.zeros(n, np.bool_)
+    for c in range(3 * m):
+        vertex_alive[faces[c // 3, c % 3]] = True
+    alive_count = 0
+    for v in range(n):
+        if vertex_alive[v]:
+            alive_count += 1
+
+    # A heap entry is stale once either endpoint's version has moved on.
+    version = np.zeros(n, np.int64)
+    mark = np.zeros(n, np.int64)
+    mark2 = np.zeros(n, np.int64)
+    stamp = 0
+
+    cap = 3 * m + 16
+    keys = np.empty(cap, np.float64)
+    items = np.empty(cap, np.int64)
+    ent_a = np.empty(cap, np.int64)
+    ent_b = np.empty(cap, np.int64)
+    ent_va = np.empty(cap, np.int64)
+    ent_vb = np.empty(cap, np.int64)
+
+    log_s = np.empty(n, np.int64)
+    log_r = np.empty(n, np.int64)
+    log_p = np.empty((n, 3), np.float64)
+    log_cost = np.empty(n, np.float64)
+    log_area = np.empty(n, np.float64)
+    killed_off = np.zeros(n + 1, np.int64)
+    killed = np.empty(m, np.int64)
+    moved_off = np.zeros(n + 1, np.int64)
+    moved = np.empty(3 * m, np.int64)
+    nk = 0
+    nkilled = 0
+    nmoved = 0
+
+    rejected = np.zeros(8, np.int64)
+    q = np.empty(11)
+    p = np.empty(3)
+    n0 = np.empty(3)
+    n1 = np.empty(3)
+    shared_opp = np.empty(64, np.int64)
+    passes = 0
+
+    while True:
+        passes += 1
+        collapses_before = nk
+        # ---- rank every live edge once ----
+        size = 0
+        nent = 0
+        for a in range(n):
+            if not vertex_alive[a]:
+                continue
+            stamp += 1
+            c = vhead[a]
+            while c >= 0:
+                f = c // 3
+                if face_alive[f]:
+                    slot = c - 3 * f
+                    for t in range(1, 3):
+                        b = faces[f, (slot + t) % 3]
+                        if b > a and mark[b] != stamp:
+                            mark[b] = stamp
+                            cost, _s = _plan(a, b, pos, quadrics, kind, q, p)
+                            if cost < np.inf:
+                                if nent >= ent_a.shape[0]:
+                                    ent_a = _grow(ent_a, nent + 1); ent_b = _grow(ent_b, nent + 1)
+                                    ent_va = _grow(ent_va, nent + 1); ent_vb = _grow(ent_vb, nent + 1)
+                                    keys = _grow(keys, nent + 1); items = _grow(items, nent + 1)
+                                ent_a[nent] = a; ent_b[nent] = b
+                                ent_va[nent] = version[a]; ent_vb[nent] = version[b]
+                                size = _heap_push(keys, items, size, cost, nent)
+                                nent += 1
+                c = cnext[c]
+
+        # ---- pop cheapest, check, collapse, re-rank the neighbourhood ----
+        stop = False
+        while size > 0:
+            if alive_count <= min_vertices or nk >= max_collapses or progress[1] != 0:
+                stop = True
+                break
+            e = items[0]
+            size = _heap_pop(keys, items, size)
+            a = ent_a[e]
+            b = ent_b[e]
+            if (not vertex_alive[a] or not vertex_alive[b]
+                    or version[a] != ent_va[e] or version[b] != ent_vb[e]):
+                rejected[0] += 1
+                continue
+            cost, s = _plan(a, b, pos, quadrics, kind, q, p)
+            r = b if s == a else a
+
+            # Faces on the edge, and the vertex opposite it in each.
+            n_shared = 0
+            deg_r = 0
+            c = vhead[r]
+            while c >= 0:
+                f = c // 3
+                if face_alive[f]:
+                    deg_r += 1
+                    has_s = False
+                    opp = -1
+                    for t in range(3):
+                        w = faces[f, t]
+                        if w == s:
+                            has_s = True
+                        elif w != r:
+                            opp = w
+                    if has_s:
+                        if n_shared < shared_opp.shape[0]:
+                            shared_opp[n_shared] = opp
+                        n_shared += 1
+                c = cnext[c]
+            if n_shared == 0:
+                rejected[1] += 1
+                continue
+            if n_shared > 2:
+                rejected[2] += 1
+                continue
+            # Only a border edge may join two border vertices; an interior
+            # edge between them would leave a vertex with two fans.
+            both_border = kind[s] != INTERIOR and kind[r] != INTERIOR
+            if (n_shared == 2) == both_border:
+                rejected[3] += 1
+                continue
+
+            # Link condition: the common neighbours of s and r must be exactly
+            # the vertices opposite the edge, or the collapse pinches a handle.
+            stamp += 1
+            deg_s = 0
+            c = vhead[s]
+            while c >= 0:
+                f = c // 3
+                if face_alive[f]:
+                    deg_s += 1
+                    for t in range(3):
+                        mark[faces[f, t]] = stamp
+                c = cnext[c]
+            common = 0
+            c = vhead[r]
+            while c >= 0:
+                f = c // 3
+                if face_alive[f]:
+                    for t in range(3):
+                        w = faces[f, t]
+                        if w != s and w != r and mark[w] == stamp and mark2[w] != stamp:
+                            mark2[w] = stamp
+                            common += 1
+                c = cnext[c]
+            if common != n_shared:
+                rejected[4] += 1
+                continue
+            # Edges count in the link too: if both s and r already have a face
+            # on the two opposite vertices, the collapse makes a duplicate
+            # face (the last step of squashing a tetrahedron).
+            if n_shared == 2:
+                x = shared_opp[0]
+                y = shared_opp[1]
+                hits = 0
+                for v in (s, r):
+                    c = vhead[v]
+                    while c >= 0:
+                        f = c // 3
+                        if face_alive[f]:
+                            hx = False
+                            hy = False
+                            for t in range(3):
+                                w = faces[f, t]
+                                if w == x:
+                                    hx = True
+                                elif w == y:
+                                    hy = True
+                            if hx and hy:
+                                hits += 1
+                                break
+                        c = cnext[c]
+                if hits == 2:
+                    rejected[5] += 1
+                    continue
+            if deg_s + deg_r - 2 * n_shared <= 0:
+                rejected[6] += 1
+                continue
+            if (_flips(r, p, pos, faces, face_alive, vhead, cnext, s, flip_cos, n0, n1)
+                    or _flips(s, p, pos, faces, face_alive, vhead, cnext, r, flip_cos, n0, n1)):
+                rejected[7] += 1
+                continue
+
+            # ---- perform: r's faces die (if on the edge) or move to s ----
+            c = vhead[r]
+            while c >= 0:
+                nxt = cnext[c]
+                f = c // 3
+                if face_alive[f]:
+                    on_edge = False
+                    for t in range(3):
+                        if faces[f, t] == s:
+                            on_edge = True
+                    if on_edge:
+                        face_alive[f] = False
+                        killed[nkilled] = f
+                        nkilled += 1
+                    else:
+                        faces[f, c - 3 * f] = s
+                        if nmoved >= moved.shape[0]:
+                            moved = _grow(moved, nmoved + 1)
+                        moved[nmoved] = c
+                        nmoved += 1
+                        cnext[c] = vhead[s]
+                        vhead[s] = c
+                c = nxt
+            vhead[r] = -1
+            # Drop the dead corners from s's list now, while it is short.
+            c = vhead[s]
+            vhead[s] = -1
+            while c >= 0:
+                nxt = cnext[c]
+                if face_alive[c // 3]:
+                    cnext[c] = vhead[s]
+                    vhead[s] = c
+                c = nxt
+
+            area = quadrics[s, 10] + quadrics[r, 10]
+            for j in range(11):
+                quadrics[s, j] += quadrics[r, j]
+            pos[s, 0] = p[0]; pos[s, 1] = p[1]; pos[s, 2] = p[2]
+            if kind[r] > kind[s]:
+                kind[s] = kind[r]
+            vertex_alive[r] = False
+            alive_count -= 1
+            version[s] += 1
+            version[r] += 1
+
+            log_s[nk] = s
+            log_r[nk] = r
+            log_p[nk, 0] = p[0]; log_p[nk, 1] = p[1]; log_p[nk, 2] = p[2]
+            log_cost[nk] = cost
+            log_area[nk] = area
+            nk += 1
+            killed_off[nk] = nkilled
+            moved_off[nk] = nmoved
+            if nk % _PROGRESS_STRIDE == 0:
+                progress[0] = nk
+
+            # Re-rank the edges around s: its quadric and position changed.
+            stamp += 1
+            c = vhead[s]
+            while c >= 0:
+                f = c // 3
+                slot = c - 3 * f
+                for t in range(1, 3):
+                    w = faces[f, (slot + t) % 3]
+                    if mark[w] != stamp:
+                        mark[w] = stamp
+                        cost2, _s = _plan(s, w, pos, quadrics, kind, q, p)
+                        if cost2 < np.inf:
+                            if nent >= ent_a.shape[0]:
+                                ent_a = _grow(ent_a, nent + 1); ent_b = _grow(ent_b, nent + 1)
+                                ent_va = _grow(ent_va, nent + 1); ent_vb = _grow(ent_vb, nent + 1)
+                                keys = _grow(keys, nent + 1); items = _grow(items, nent + 1)
+                            ent_a[nent] = s; ent_b[nent] = w
+                            ent_va[nent] = version[s]; ent_vb[nent] = version[w]
+                            size = _heap_push(keys, items, size, cost2, nent)
+                            nent += 1
+                c = cnext[c]
+        if stop or nk == collapses_before:
+            break
+
+    progress[0] = nk
+    return (log_s[:nk], log_r[:nk], log_p[:nk], log_cost[:nk], log_area[:nk],
+            killed_off[:nk + 1], killed[:nkilled], moved_off[:nk + 1], moved[:nmoved],
+            rejected, passes)
+
+
+# --------------------------------------------------------------------------
+# 3. Public entry point
+# --------------------------------------------------------------------------
+
+def decimate(mesh: Mesh, *, boundary_weight: float = 1.0, locked=None, min_vertices: int = 0,
+             max_collapses: int | None = None, flip_cos: float = DEFAULT_FLIP_COS,
+             progress=None, cancel: threading.Event | None = None) -> CollapseLog:
+    """Collapse edges of ``mesh`` cheapest first and log every collapse.
+
+    Parameters
+    ----------
+    mesh : Mesh
+        Welded, clean input (see ``io.clean_mesh``).
+    boundary_weight : float
+        Weight of the border constraint planes; 0 lets borders shrink.
+    locked : (n,) bool, optional
+        Vertices that must neither move nor vanish.
+    min_vertices : int
+        Stop when this few vertices remain (0: run until no legal collapse is left).
+    max_collapses : int, optional
+        Stop after this many collapses.
+    flip_cos : float
+        A collapse that turns a surviving face's normal by more than
+        ``arccos(flip_cos)`` is refused.
+    progress : callable(done: int, expected: int), optional
+        Called from this thread about ten times a second while the kernel runs.
+    cancel : threading.Event, optional
+        When set, the kernel stops at the next progress check.
+
+    Returns
+    -------
+    CollapseLog
+    """
+    positions = np.asarray(mesh.positions, dtype=np.float64)
+    faces = np.ascontiguousarray(mesh.faces, dtype=np.int64)
+    n = len(positions)
+    kind = classify_vertices(faces, n, locked)
+
+    # Work in the unit box: tolerances become scale-free and quadric
+    # coefficients stay in a range where float64 cancellation is harmless.
+    lo = positions.min(axis=0)
+    scale = float((positions.max(axis=0) - lo).max()) or 1.0
+    unit = (positions - lo) / scale
+    quadrics = vertex_quadrics(unit, faces, boundary_weight=boundary_weight)
+
+    limit = n if max_collapses is None else int(max_collapses)
+    state = np.zeros(2, dtype=np.int64)
+    result = {}
+
+    def run():
+        result["log"] = _decimate_kernel(unit, faces, quadrics, kind, int(min_vertices), limit,
+                                         float(flip_cos), state)
+
+    if progress is None and cancel is None:
+        run()
+    else:
+        # The kernel releases the GIL (nogil=True); this thread polls its counter.
+        worker = threading.Thread(target=run, daemon=True)
+        worker.start()
+        while worker.is_alive():
+            worker.join(0.1)
+            if cancel is not None and cancel.is_set():
+                state[1] = 1
+            if progress is not None:
+                progress(int(state[0]), n)
+        if progress is not None:
+            progress(int(state[0]), n)
+    if "log" not in result:
+        raise RuntimeError("the decimation kernel failed")
+    (s, r, p, cost, area, killed_off, killed, moved_off, moved, rejected, passes) = result["log"]
+
+    position = p * scale + lo
+    # A locked survivor keeps its exact input position (tiles must stitch bit for bit).
+    lock_kept = kind[s] == LOCKED
+    position[lock_kept] = positions[s[lock_kept]]
+    error = np.sqrt(cost / np.maximum(area, np.finfo(float).tiny)) * scale
+    return CollapseLog(
+        survivor=s.copy(), removed=r.copy(), position=position, error=error,
+        killed_offsets=killed_off.copy(), killed_faces=killed.copy(),
+        moved_offsets=moved_off.copy(), moved_corners=moved.copy(),
+        rejected=dict(zip(REJECT_REASONS, (int(x) for x in rejected))), passes=int(passes))
