@@ -30,7 +30,7 @@ import numpy as np
 from numba import njit
 
 from .mesh import Mesh
-from .quadrics import optimal_position, quadric_error, vertex_quadrics
+from .quadrics import edge_keys, optimal_position, quadric_error, vertex_quadrics
 
 # Vertex kinds. The rules, as in meshoptimizer's kCanCollapse table:
 #   interior-interior : any collapse, optimal placement;
@@ -169,10 +169,11 @@ def classify_vertices(faces, n, locked=None):
     kind : (n,) int8
     """
     kind = np.zeros(n, dtype=np.int8)
-    undirected = np.sort(np.stack([faces, np.roll(faces, -1, axis=1)], axis=2).reshape(-1, 2), axis=1)
-    edges, counts = np.unique(undirected, axis=0, return_counts=True)
-    kind[edges[counts == 1].ravel()] = BORDER
-    kind[edges[counts > 2].ravel()] = LOCKED
+    keys, counts = np.unique(edge_keys(np.stack([faces, np.roll(faces, -1, axis=1)], axis=2)
+                                       .reshape(-1, 2)), return_counts=True)
+    ends = np.stack([keys >> 32, keys & 0xFFFFFFFF], axis=1)
+    kind[ends[counts == 1].ravel()] = BORDER
+    kind[ends[counts > 2].ravel()] = LOCKED
 
     order = np.argsort(faces.ravel(), kind="stable")
     vf_offsets = np.zeros(n + 1, dtype=np.int64)

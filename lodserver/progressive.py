@@ -155,7 +155,18 @@ class ProgressiveMesh:
         if not (0 <= n0 <= n and len(self.parent) == n and len(self.coarse_position) == k
                 and len(self.error) == k and len(self.face_counts) == k + 1
                 and len(self.moved_offsets) == k + 1 and self.face_counts[-1] == len(self.faces)):
-            raise ValueError("inconsistent progressive mesh arrays")
+            raise ValueError("inconsistent progressive mesh arrays: sizes disagree")
+        # The kernels index with these arrays unchecked, so a bad artefact must
+        # stop here rather than read out of bounds.
+        t = np.arange(n0, n)
+        if (np.any(self.parent[n0:] < 0) or np.any(self.parent[n0:] >= t)
+                or (len(self.faces) and (self.faces.min() < 0 or self.faces.max() >= n))
+                or np.any(np.diff(self.face_counts) < 0) or self.face_counts[0] < 0
+                or np.any(np.diff(self.moved_offsets) < 0) or self.moved_offsets[0] != 0
+                or self.moved_offsets[-1] != len(self.moved_corners)
+                or (len(self.moved_corners) and (self.moved_corners.min() < 0
+                                                 or self.moved_corners.max() >= 3 * len(self.faces)))):
+            raise ValueError("inconsistent progressive mesh arrays: indices out of range")
         for name in ("positions", "faces", "parent", "coarse_position", "error", "face_counts",
                      "moved_offsets", "moved_corners"):
             getattr(self, name).setflags(write=False)

