@@ -494,7 +494,27 @@ def _decimate_kernel(pos, faces, quadrics, kind, min_vertices, max_collapses, fl
                 if hits == 2:
                     rejected[5] += 1
                     continue
-            if deg_s + deg_r - 2 * n_shared <= 0:
+            # No vertex may be left without faces: not the survivor, nor a
+            # vertex whose only faces are the ones this collapse removes.
+            orphan = deg_s + deg_r - 2 * n_shared <= 0
+            for i in range(n_shared):
+                if orphan:
+                    break
+                x = shared_opp[i]
+                left = 0
+                c = vhead[x]
+                while c >= 0 and left <= n_shared:
+                    f = c // 3
+                    if face_alive[f]:
+                        left += 1
+                    c = cnext[c]
+                # faces at x that die: those on the edge (s, r) and opposite x
+                dying = 0
+                for j in range(n_shared):
+                    if shared_opp[j] == x:
+                        dying += 1
+                orphan = left <= dying
+            if orphan:
                 rejected[6] += 1
                 continue
             if (_flips(r, p, pos, faces, face_alive, vhead, cnext, s, flip_cos, n0, n1)
