@@ -37,9 +37,9 @@ def _cmd_build(args) -> int:
     mesh, report = load_mesh(args.mesh)
     locked = None
     if args.lock_border:
-        from .quadrics import boundary_edges
+        from .topology import census
         locked = np.zeros(mesh.vertex_count, dtype=bool)
-        locked[boundary_edges(mesh.faces)[0].ravel()] = True
+        locked[census(mesh.faces, mesh.vertex_count).on_boundary] = True
     bar, update = _progress_bar(mesh.vertex_count)
     start = time.perf_counter()
     try:

@@ -30,7 +30,8 @@ import numpy as np
 from numba import njit
 
 from .mesh import Mesh
-from .quadrics import edge_keys, optimal_position, quadric_error, vertex_quadrics
+from .quadrics import optimal_position, quadric_error, vertex_quadrics
+from .topology import Census, census
 
 # Vertex kinds. The rules, as in meshoptimizer's kCanCollapse table:
 #   interior-interior : any collapse, optimal placement;
@@ -103,62 +104,13 @@ class CollapseLog:
 # 1. Vertex classification
 # --------------------------------------------------------------------------
 
-@njit(cache=True, nogil=True)
-def _count_fans(faces, vf_offsets, vf_faces, n):
-    """Number of edge-connected triangle fans around each vertex.
-
-    A manifold vertex has exactly one fan; two or more (a bow tie, two cones
-    touching) make it non-manifold, and a collapse there cannot be undone as
-    a Hoppe vertex split, so such vertices are locked.
-    """
-    fans = np.zeros(n, np.int64)
-    local = np.full(n, -1, np.int64)   # link vertex -> slot in the union-find
-    parent = np.empty(2 * faces.shape[0] + 2, np.int64)
-    for v in range(n):
-        start, end = vf_offsets[v], vf_offsets[v + 1]
-        used = 0
-        # Link vertices of v's faces; faces sharing an edge at v share a link vertex.
-        for k in range(start, end):
-            f = vf_faces[k]
-            for s in range(3):
-                w = faces[f, s]
-                if w != v and local[w] < 0:
-                    local[w] = used
-                    parent[used] = used
-                    used += 1
-        components = used
-        for k in range(start, end):
-            f = vf_faces[k]
-            x = -1
-            y = -1
-            for s in range(3):
-                w = faces[f, s]
-                if w != v:
-                    if x < 0:
-                        x = local[w]
-                    else:
-                        y = local[w]
-            while parent[x] != x:
-                x = parent[x]
-            while parent[y] != y:
-                y = parent[y]
-            if x != y:
-                parent[x] = y
-                components -= 1
-        fans[v] = components
-        for k in range(start, end):
-            f = vf_faces[k]
-            for s in range(3):
-                local[faces[f, s]] = -1
-    return fans
-
-
-def classify_vertices(faces, n, locked=None):
+def classify_vertices(found: Census, n, locked=None):
     """Kind of every vertex: INTERIOR, BORDER or LOCKED.
 
     Parameters
     ----------
-    faces : (m, 3) int64
+    found : Census
+        The mesh's connectivity facts (``topology.census``).
     n : int
         Vertex count.
     locked : (n,) bool, optional
@@ -169,17 +121,10 @@ def classify_vertices(faces, n, locked=None):
     kind : (n,) int8
     """
     kind = np.zeros(n, dtype=np.int8)
-    keys, counts = np.unique(edge_keys(np.stack([faces, np.roll(faces, -1, axis=1)], axis=2)
-                                       .reshape(-1, 2)), return_counts=True)
-    ends = np.stack([keys >> 32, keys & 0xFFFFFFFF], axis=1)
-    kind[ends[counts == 1].ravel()] = BORDER
-    kind[ends[counts > 2].ravel()] = LOCKED
-
-    order = np.argsort(faces.ravel(), kind="stable")
-    vf_offsets = np.zeros(n + 1, dtype=np.int64)
-    np.cumsum(np.bincount(faces.ravel(), minlength=n), out=vf_offsets[1:])
-    fans = _count_fans(faces, vf_offsets, order // 3, n)
-    kind[fans > 1] = LOCKED
+    kind[found.on_boundary] = BORDER
+    # Non-manifold edges and bow-tie vertices (two or more fans) cannot be
+    # collapsed and split back as a Hoppe vertex split: lock them.
+    kind[found.on_nonmanifold_edge | (found.fans > 1)] = LOCKED
     if locked is not None:
         locked = np.asarray(locked, dtype=bool)
         if locked.shape != (n,):
@@ -644,14 +589,16 @@ def decimate(mesh: Mesh, *, boundary_weight: float = 1.0, locked=None, min_verti
     positions = np.asarray(mesh.positions, dtype=np.float64)
     faces = np.ascontiguousarray(mesh.faces, dtype=np.int64)
     n = len(positions)
-    kind = classify_vertices(faces, n, locked)
+    found = census(faces, n)
+    kind = classify_vertices(found, n, locked)
 
     # Work in the unit box: tolerances become scale-free and quadric
     # coefficients stay in a range where float64 cancellation is harmless.
     lo = positions.min(axis=0)
     scale = float((positions.max(axis=0) - lo).max()) or 1.0
     unit = (positions - lo) / scale
-    quadrics = vertex_quadrics(unit, faces, boundary_weight=boundary_weight)
+    quadrics = vertex_quadrics(unit, faces, boundary_weight=boundary_weight,
+                               boundary=(found.boundary_edges, found.boundary_faces))
 
     limit = n if max_collapses is None else int(max_collapses)
     state = np.zeros(2, dtype=np.int64)

@@ -29,13 +29,16 @@ from numba import njit
 
 QUADRIC_SIZE = 11
 
-# A 3x3 system is solved directly only when |det(A)| > DET_RELATIVE_EPS * trace(A)^3.
-# det/trace^3 is scale-free and at most 1/27 (isotropic A); below this the
-# optimum slides along a flat region or a crease and the direct solve amplifies noise.
+# Placement solves (A + eps I) p = eps m - b with eps = REGULARIZATION * trace(A):
+# a Tikhonov pull towards the edge midpoint m. Where A has curvature (eigenvalue
+# >> eps) the optimum is unchanged to ~1e-6 relative; along directions where it
+# has none (a flat patch, a crease line) p stays at m instead of running off to
+# where rounding noise puts it. Same effect as Lindstrom's truncated-SVD
+# placement, at the cost of one 3x3 Cramer solve and no eigen-decomposition.
+REGULARIZATION = 1e-6
+# Below this det(A) / trace(A)^3 (scale-free, at most 1/27) the system counts as
+# singular and G&H's candidates (endpoints, midpoint) are compared as well.
 DET_RELATIVE_EPS = 1e-7
-# Eigenvalues below this fraction of the largest are treated as zero in the
-# pseudo-inverse fallback (Lindstrom 2000's truncated-SVD placement).
-EIGEN_RELATIVE_EPS = 1e-6
 
 
 def plane_quadrics(normals, offsets, weights, areas):
@@ -72,61 +75,7 @@ def plane_quadrics(normals, offsets, weights, areas):
     return q
 
 
-def face_quadrics(positions, faces):
-    """Area-weighted plane quadric of every face.
-
-    Parameters
-    ----------
-    positions : (n, 3) float
-    faces : (m, 3) int
-
-    Returns
-    -------
-    quadrics : (m, 11) float64
-        Degenerate faces (zero area) give all-zero rows.
-    normals : (m, 3) float64
-        Unit face normals (zero for degenerate faces).
-    """
-    tri = positions[faces]
-    cross = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-    double_area = np.linalg.norm(cross, axis=1)
-    normals = np.zeros_like(cross)
-    ok = double_area > 0
-    normals[ok] = cross[ok] / double_area[ok, None]
-    area = 0.5 * double_area
-    offsets = -np.einsum("ij,ij->i", normals, tri[:, 0])
-    return plane_quadrics(normals, offsets, area, area), normals
-
-
-def boundary_edges(faces):
-    """Directed edges ``(a, b)`` used by exactly one face, and that face.
-
-    Returns
-    -------
-    edges : (k, 2) int64
-        Boundary edges in their face's winding.
-    edge_faces : (k,) int64
-    """
-    faces = np.asarray(faces, dtype=np.int64)
-    directed = np.stack([faces, np.roll(faces, -1, axis=1)], axis=2).reshape(-1, 2)
-    _, inverse, counts = np.unique(edge_keys(directed), return_inverse=True, return_counts=True)
-    once = counts[inverse] == 1
-    return directed[once], np.nonzero(once)[0] // 3
-
-
-def edge_keys(edges):
-    """One int64 per undirected edge, ``min * 2^32 + max``: sorting and
-    ``np.unique`` on 1-D keys is several times faster than on rows.
-
-    edges : (k, 2) int, vertex ids below 2^31.
-    """
-    edges = np.asarray(edges, dtype=np.int64)
-    lo = np.minimum(edges[:, 0], edges[:, 1])
-    hi = np.maximum(edges[:, 0], edges[:, 1])
-    return (lo << 32) | hi
-
-
-def vertex_quadrics(positions, faces, *, boundary_weight=1.0):
+def vertex_quadrics(positions, faces, *, boundary_weight=1.0, boundary=None):
     """Sum of face and boundary-constraint quadrics at every vertex.
 
     Parameters
@@ -136,27 +85,33 @@ def vertex_quadrics(positions, faces, *, boundary_weight=1.0):
     boundary_weight : float
         Weight of the plane perpendicular to each boundary edge, relative to a
         face of area ``|edge|^2``. 0 leaves borders free to shrink.
+    boundary : (edges (k, 2), faces (k,)), optional
+        Boundary edges in face winding and their faces, if already known
+        (``topology.census``); found here otherwise.
 
     Returns
     -------
     (n, 11) float64
     """
-    positions = np.asarray(positions, dtype=np.float64)
-    n = len(positions)
-    fq, normals = face_quadrics(positions, faces)
+    positions = np.ascontiguousarray(positions, dtype=np.float64)
+    faces = np.ascontiguousarray(faces, dtype=np.int64)
+    q = np.zeros((len(positions), QUADRIC_SIZE), dtype=np.float64)
     # Each face's quadric goes to its three corners (G&H sum over incident planes).
-    q = np.zeros((n, QUADRIC_SIZE), dtype=np.float64)
-    _scatter_add(q, faces[:, 0], fq)
-    _scatter_add(q, faces[:, 1], fq)
-    _scatter_add(q, faces[:, 2], fq)
+    _accumulate_face_quadrics(positions, faces, q)
     if boundary_weight > 0:
-        edges, edge_faces = boundary_edges(faces)
+        if boundary is None:
+            from .topology import census
+            found = census(faces, len(positions))
+            boundary = (found.boundary_edges, found.boundary_faces)
+        edges, edge_faces = boundary
         if len(edges):
             a, b = positions[edges[:, 0]], positions[edges[:, 1]]
             along = b - a
+            tri = positions[faces[edge_faces]]
+            normals = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
             # The constraint plane contains the edge and the face normal, so it
             # penalises motion across the border but not along it or off the surface.
-            perp = np.cross(along, normals[edge_faces])
+            perp = np.cross(along, normals)
             length = np.linalg.norm(perp, axis=1)
             ok = length > 0
             perp = perp[ok] / length[ok, None]
@@ -166,6 +121,43 @@ def vertex_quadrics(positions, faces, *, boundary_weight=1.0):
             _scatter_add(q, edges[ok, 0], bq)
             _scatter_add(q, edges[ok, 1], bq)
     return q
+
+
+@njit(cache=True, nogil=True)
+def _accumulate_face_quadrics(positions, faces, out):
+    """Add every face's area-weighted plane quadric to its three vertices' rows
+    of ``out`` (n, 11); one pass, no (m, 11) temporary. Zero-area faces add nothing."""
+    for f in range(faces.shape[0]):
+        i, j, k = faces[f, 0], faces[f, 1], faces[f, 2]
+        ux = positions[j, 0] - positions[i, 0]
+        uy = positions[j, 1] - positions[i, 1]
+        uz = positions[j, 2] - positions[i, 2]
+        vx = positions[k, 0] - positions[i, 0]
+        vy = positions[k, 1] - positions[i, 1]
+        vz = positions[k, 2] - positions[i, 2]
+        nx = uy * vz - uz * vy
+        ny = uz * vx - ux * vz
+        nz = ux * vy - uy * vx
+        double_area = np.sqrt(nx * nx + ny * ny + nz * nz)
+        if double_area == 0.0:
+            continue
+        nx /= double_area
+        ny /= double_area
+        nz /= double_area
+        area = 0.5 * double_area
+        d = -(nx * positions[i, 0] + ny * positions[i, 1] + nz * positions[i, 2])
+        for v in (i, j, k):
+            out[v, 0] += area * nx * nx
+            out[v, 1] += area * nx * ny
+            out[v, 2] += area * nx * nz
+            out[v, 3] += area * ny * ny
+            out[v, 4] += area * ny * nz
+            out[v, 5] += area * nz * nz
+            out[v, 6] += area * d * nx
+            out[v, 7] += area * d * ny
+            out[v, 8] += area * d * nz
+            out[v, 9] += area * d * d
+            out[v, 10] += area
 
 
 @njit(cache=True, nogil=True)
@@ -186,67 +178,47 @@ def quadric_error(q, x, y, z):
 
 
 @njit(cache=True, nogil=True)
-def _pseudo_inverse_position(q, mx, my, mz, out):
-    """Minimise Q nearest to ``m`` when A is (nearly) singular.
-
-    Truncated eigen-decomposition: along directions where A has no curvature
-    (a flat patch, a crease line) the point stays at ``m`` instead of running
-    off to where rounding noise puts it.
-    """
-    a = np.empty((3, 3))
-    a[0, 0] = q[0]; a[0, 1] = q[1]; a[0, 2] = q[2]
-    a[1, 0] = q[1]; a[1, 1] = q[3]; a[1, 2] = q[4]
-    a[2, 0] = q[2]; a[2, 1] = q[4]; a[2, 2] = q[5]
-    # Residual gradient at m: -(A m + b)
-    r0 = -(a[0, 0] * mx + a[0, 1] * my + a[0, 2] * mz + q[6])
-    r1 = -(a[1, 0] * mx + a[1, 1] * my + a[1, 2] * mz + q[7])
-    r2 = -(a[2, 0] * mx + a[2, 1] * my + a[2, 2] * mz + q[8])
-    w, v = np.linalg.eigh(a)
-    top = max(abs(w[0]), abs(w[1]), abs(w[2]))
-    out[0] = mx
-    out[1] = my
-    out[2] = mz
-    if top <= 0.0:
-        return
-    for i in range(3):
-        if w[i] > EIGEN_RELATIVE_EPS * top:
-            s = (v[0, i] * r0 + v[1, i] * r1 + v[2, i] * r2) / w[i]
-            out[0] += s * v[0, i]
-            out[1] += s * v[1, i]
-            out[2] += s * v[2, i]
-
-
-@njit(cache=True, nogil=True)
 def optimal_position(q, pa, pb, out):
     """Write into ``out`` the point minimising ``q`` for collapsing edge (pa, pb).
 
-    Solves A p = -b directly when A is well conditioned. Otherwise takes the
-    best of the pseudo-inverse point nearest the midpoint, the two endpoints
-    and the midpoint (G&H's fallback, made stronger by the first candidate).
+    Solves the regularised system (see REGULARIZATION). When A itself is
+    singular or ill-conditioned, the endpoints and the midpoint are tried too
+    and the best of the four is kept (G&H's fallback).
 
     Returns the quadric error at ``out``.
     """
-    a00 = q[0]; a01 = q[1]; a02 = q[2]; a11 = q[3]; a12 = q[4]; a22 = q[5]
+    mx = 0.5 * (pa[0] + pb[0])
+    my = 0.5 * (pa[1] + pb[1])
+    mz = 0.5 * (pa[2] + pb[2])
+    trace = q[0] + q[3] + q[5]
+    eps = REGULARIZATION * trace
+    a00 = q[0] + eps; a01 = q[1]; a02 = q[2]
+    a11 = q[3] + eps; a12 = q[4]; a22 = q[5] + eps
+    r0 = eps * mx - q[6]
+    r1 = eps * my - q[7]
+    r2 = eps * mz - q[8]
     c00 = a11 * a22 - a12 * a12
     c01 = a02 * a12 - a01 * a22
     c02 = a01 * a12 - a02 * a11
     det = a00 * c00 + a01 * c01 + a02 * c02
-    trace = a00 + a11 + a22
-    if trace > 0.0 and abs(det) > DET_RELATIVE_EPS * trace * trace * trace:
+    if trace <= 0.0 or det <= 0.0:
+        # no planes at all (or a non-PSD sum from rounding): stay at the midpoint
+        out[0] = mx; out[1] = my; out[2] = mz
+        best = quadric_error(q, mx, my, mz)
+    else:
         c11 = a00 * a22 - a02 * a02
         c12 = a01 * a02 - a00 * a12
         c22 = a00 * a11 - a01 * a01
-        inv = -1.0 / det
-        out[0] = (c00 * q[6] + c01 * q[7] + c02 * q[8]) * inv
-        out[1] = (c01 * q[6] + c11 * q[7] + c12 * q[8]) * inv
-        out[2] = (c02 * q[6] + c12 * q[7] + c22 * q[8]) * inv
-        return quadric_error(q, out[0], out[1], out[2])
-
-    mx = 0.5 * (pa[0] + pb[0])
-    my = 0.5 * (pa[1] + pb[1])
-    mz = 0.5 * (pa[2] + pb[2])
-    _pseudo_inverse_position(q, mx, my, mz, out)
-    best = quadric_error(q, out[0], out[1], out[2])
+        inv = 1.0 / det
+        out[0] = (c00 * r0 + c01 * r1 + c02 * r2) * inv
+        out[1] = (c01 * r0 + c11 * r1 + c12 * r2) * inv
+        out[2] = (c02 * r0 + c12 * r1 + c22 * r2) * inv
+        best = quadric_error(q, out[0], out[1], out[2])
+        # conditioning of A itself, not of the regularised system
+        raw_det = (q[0] * (q[3] * q[5] - q[4] * q[4]) + q[1] * (q[2] * q[4] - q[1] * q[5])
+                   + q[2] * (q[1] * q[4] - q[2] * q[3]))
+        if raw_det > DET_RELATIVE_EPS * trace * trace * trace:
+            return best
     e = quadric_error(q, mx, my, mz)
     if e < best:
         best = e

@@ -156,9 +156,9 @@ def test_level_selection():
 
 def test_locked_vertices_never_move_or_vanish():
     original = mesh("grid")
-    from lodserver.quadrics import boundary_edges
+    from lodserver.topology import census
     locked = np.zeros(original.vertex_count, bool)
-    locked[boundary_edges(original.faces)[0].ravel()] = True
+    locked[census(original.faces, original.vertex_count).on_boundary] = True
     pm = build(original, locked=locked)
     # locked input vertices, by position (the progressive mesh renumbers them)
     keys = {tuple(p) for p in original.positions[locked]}
