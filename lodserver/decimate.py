@@ -137,41 +137,125 @@ def classify_vertices(found: Census, n, locked=None):
 # 2. The kernel: heap, checks, collapses
 # --------------------------------------------------------------------------
 
+# The collapse queue. A binary heap of every candidate would hold millions of
+# entries, most of them stale (a collapse re-ranks ~10 edges and strands the
+# old entries), and each pop would walk ~22 cache-missing levels. So only the
+# cheapest slice lives in the heap (keys <= tau); the rest waits unsorted in a
+# reservoir and moves over, a slice at a time, when the heap runs dry. The pop
+# order is still exactly cheapest-first. An entry is (key, a << 32 | b,
+# version[a] + version[b]); versions only grow, so the sum matches iff both do.
+
+_REFILL_SAMPLE = 4096       # reservoir keys sampled to choose the next tau
+_REFILL_MIN = 8192          # smallest slice moved into the heap at a refill
+
+
 @njit(cache=True, nogil=True)
-def _heap_push(keys, items, size, key, item):
-    i = size
-    keys[i] = key
-    items[i] = item
-    while i > 0:
-        p = (i - 1) >> 1
-        if keys[p] <= keys[i]:
+def _sift_down(keys, ab, vs, size, i):
+    key = keys[i]
+    e_ab = ab[i]
+    e_vs = vs[i]
+    while True:
+        c = 2 * i + 1
+        if c >= size:
             break
-        keys[p], keys[i] = keys[i], keys[p]
-        items[p], items[i] = items[i], items[p]
-        i = p
+        if c + 1 < size and keys[c + 1] < keys[c]:
+            c += 1
+        if key <= keys[c]:
+            break
+        keys[i] = keys[c]
+        ab[i] = ab[c]
+        vs[i] = vs[c]
+        i = c
+    keys[i] = key
+    ab[i] = e_ab
+    vs[i] = e_vs
+
+
+@njit(cache=True, nogil=True)
+def _heap_push(keys, ab, vs, size, key, e_ab, e_vs):
+    i = size
+    while i > 0:
+        parent = (i - 1) >> 1
+        if keys[parent] <= key:
+            break
+        keys[i] = keys[parent]
+        ab[i] = ab[parent]
+        vs[i] = vs[parent]
+        i = parent
+    keys[i] = key
+    ab[i] = e_ab
+    vs[i] = e_vs
     return size + 1
 
 
 @njit(cache=True, nogil=True)
-def _heap_pop(keys, items, size):
-    """Remove the root; returns the new size (root's key/item must be read before)."""
+def _heap_pop(keys, ab, vs, size):
+    """Drop the root (read it first); returns the new size."""
     size -= 1
-    keys[0] = keys[size]
-    items[0] = items[size]
-    i = 0
-    while True:
-        left = 2 * i + 1
-        if left >= size:
-            break
-        c = left
-        if left + 1 < size and keys[left + 1] < keys[left]:
-            c = left + 1
-        if keys[i] <= keys[c]:
-            break
-        keys[c], keys[i] = keys[i], keys[c]
-        items[c], items[i] = items[i], items[c]
-        i = c
+    if size > 0:
+        keys[0] = keys[size]
+        ab[0] = ab[size]
+        vs[0] = vs[size]
+        _sift_down(keys, ab, vs, size, 0)
     return size
+
+
+@njit(cache=True, nogil=True)
+def _refill(hk, hab, hvs, rk, rab, rvs, rsize, version, vertex_alive):
+    """Move the cheapest slice of the reservoir into the (empty) heap,
+    dropping the stale entries of that slice on the way.
+
+    Returns (hk, hab, hvs, heap size, reservoir size, tau, dropped): the heap
+    arrays may have been reallocated; every reservoir key left is > tau.
+    """
+    want = max(_REFILL_MIN, rsize // 16)
+    if rsize <= want:
+        tau = np.inf
+    else:
+        stride = max(1, rsize // _REFILL_SAMPLE)
+        sample = np.sort(rk[:rsize:stride])
+        tau = sample[min(len(sample) - 1, (want * len(sample)) // rsize)]
+    if hk.shape[0] < rsize:
+        hk = np.empty(rsize, np.float64)
+        hab = np.empty(rsize, np.int64)
+        hvs = np.empty(rsize, np.int64)
+    hsize = 0
+    kept = 0
+    dropped = 0
+    for i in range(rsize):
+        if rk[i] <= tau:
+            a = rab[i] >> 32
+            b = rab[i] & 0xFFFFFFFF
+            if vertex_alive[a] and vertex_alive[b] and version[a] + version[b] == rvs[i]:
+                hk[hsize] = rk[i]
+                hab[hsize] = rab[i]
+                hvs[hsize] = rvs[i]
+                hsize += 1
+            else:
+                dropped += 1
+        else:
+            rk[kept] = rk[i]
+            rab[kept] = rab[i]
+            rvs[kept] = rvs[i]
+            kept += 1
+    for i in range(hsize // 2 - 1, -1, -1):
+        _sift_down(hk, hab, hvs, hsize, i)
+    return hk, hab, hvs, hsize, kept, tau, dropped
+
+
+@njit(cache=True, nogil=True)
+def _drop_stale(rk, rab, rvs, rsize, version, vertex_alive):
+    """Compact the reservoir, dropping entries whose endpoints have changed."""
+    kept = 0
+    for i in range(rsize):
+        a = rab[i] >> 32
+        b = rab[i] & 0xFFFFFFFF
+        if vertex_alive[a] and vertex_alive[b] and version[a] + version[b] == rvs[i]:
+            rk[kept] = rk[i]
+            rab[kept] = rab[i]
+            rvs[kept] = rvs[i]
+            kept += 1
+    return kept
 
 
 @njit(cache=True, nogil=True)
@@ -204,40 +288,32 @@ def _plan(a, b, pos, quadrics, kind, q, p):
 
 
 @njit(cache=True, nogil=True)
-def _triangle_normal(ax, ay, az, bx, by, bz, cx, cy, cz, out):
-    ux = bx - ax; uy = by - ay; uz = bz - az
-    vx = cx - ax; vy = cy - ay; vz = cz - az
-    out[0] = uy * vz - uz * vy
-    out[1] = uz * vx - ux * vz
-    out[2] = ux * vy - uy * vx
-
-
-@njit(cache=True, nogil=True)
-def _flips(v, p, pos, faces, face_alive, vhead, cnext, other, flip_cos, n0, n1):
-    """True if moving ``v`` to ``p`` flips or degenerates one of its faces
-    that does not also contain ``other`` (those die with the collapse)."""
-    c = vhead[v]
-    while c >= 0:
-        f = c // 3
-        if face_alive[f]:
-            slot = c - 3 * f
-            x = faces[f, (slot + 1) % 3]
-            y = faces[f, (slot + 2) % 3]
-            if x != other and y != other:
-                _triangle_normal(pos[v, 0], pos[v, 1], pos[v, 2], pos[x, 0], pos[x, 1], pos[x, 2],
-                                 pos[y, 0], pos[y, 1], pos[y, 2], n0)
-                _triangle_normal(p[0], p[1], p[2], pos[x, 0], pos[x, 1], pos[x, 2],
-                                 pos[y, 0], pos[y, 1], pos[y, 2], n1)
-                l1 = n1[0] * n1[0] + n1[1] * n1[1] + n1[2] * n1[2]
-                if l1 <= DEGENERATE_AREA:
-                    return True
-                l0 = n0[0] * n0[0] + n0[1] * n0[1] + n0[2] * n0[2]
-                if l0 > DEGENERATE_AREA:
-                    d = n0[0] * n1[0] + n0[1] * n1[1] + n0[2] * n1[2]
-                    if d <= flip_cos * np.sqrt(l0 * l1):
-                        return True
-        c = cnext[c]
-    return False
+def _face_flips(v, x, y, p, pos, flip_cos):
+    """True if moving corner ``v`` of face (v, x, y) to ``p`` flips the face,
+    turns its normal by more than arccos(flip_cos), or makes it degenerate."""
+    ex = pos[x, 0] - pos[y, 0]
+    ey = pos[x, 1] - pos[y, 1]
+    ez = pos[x, 2] - pos[y, 2]
+    # normals (v - y) x (x - y) before and after: the edge (x, y) stays put
+    ux = pos[v, 0] - pos[y, 0]
+    uy = pos[v, 1] - pos[y, 1]
+    uz = pos[v, 2] - pos[y, 2]
+    ax = uy * ez - uz * ey
+    ay = uz * ex - ux * ez
+    az = ux * ey - uy * ex
+    ux = p[0] - pos[y, 0]
+    uy = p[1] - pos[y, 1]
+    uz = p[2] - pos[y, 2]
+    bx = uy * ez - uz * ey
+    by = uz * ex - ux * ez
+    bz = ux * ey - uy * ex
+    lb = bx * bx + by * by + bz * bz
+    if lb <= DEGENERATE_AREA:
+        return True
+    la = ax * ax + ay * ay + az * az
+    if la <= DEGENERATE_AREA:
+        return False    # already degenerate: no orientation to keep
+    return ax * bx + ay * by + az * bz <= flip_cos * np.sqrt(la * lb)
 
 
 @njit(cache=True, nogil=True)
@@ -261,9 +337,10 @@ def _decimate_kernel(pos, faces, quadrics, kind, min_vertices, max_collapses, fl
         cnext[c] = vhead[v]
         vhead[v] = c
     face_alive = np.ones(m, np.bool_)
-    vertex_alive = np.zeros(n, np.bool_)
+    face_count = np.zeros(n, np.int64)     # live faces at each vertex
     for c in range(3 * m):
-        vertex_alive[faces[c // 3, c % 3]] = True
+        face_count[faces[c // 3, c % 3]] += 1
+    vertex_alive = face_count > 0
     alive_count = 0
     for v in range(n):
         if vertex_alive[v]:
@@ -275,13 +352,12 @@ def _decimate_kernel(pos, faces, quadrics, kind, min_vertices, max_collapses, fl
     mark2 = np.zeros(n, np.int64)
     stamp = 0
 
-    cap = 3 * m + 16
-    keys = np.empty(cap, np.float64)
-    items = np.empty(cap, np.int64)
-    ent_a = np.empty(cap, np.int64)
-    ent_b = np.empty(cap, np.int64)
-    ent_va = np.empty(cap, np.int64)
-    ent_vb = np.empty(cap, np.int64)
+    hk = np.empty(_REFILL_MIN, np.float64)
+    hab = np.empty(_REFILL_MIN, np.int64)
+    hvs = np.empty(_REFILL_MIN, np.int64)
+    rk = np.empty(3 * m // 2 + 16, np.float64)
+    rab = np.empty(3 * m // 2 + 16, np.int64)
+    rvs = np.empty(3 * m // 2 + 16, np.int64)
 
     log_s = np.empty(n, np.int64)
     log_r = np.empty(n, np.int64)
@@ -299,17 +375,14 @@ def _decimate_kernel(pos, faces, quadrics, kind, min_vertices, max_collapses, fl
     rejected = np.zeros(8, np.int64)
     q = np.empty(11)
     p = np.empty(3)
-    n0 = np.empty(3)
-    n1 = np.empty(3)
-    shared_opp = np.empty(64, np.int64)
+    shared_opp = np.empty(2, np.int64)
     passes = 0
 
     while True:
         passes += 1
         collapses_before = nk
-        # ---- rank every live edge once ----
-        size = 0
-        nent = 0
+        # ---- rank every live edge once, into the reservoir ----
+        rsize = 0
         for a in range(n):
             if not vertex_alive[a]:
                 continue
@@ -325,53 +398,61 @@ def _decimate_kernel(pos, faces, quadrics, kind, min_vertices, max_collapses, fl
                             mark[b] = stamp
                             cost, _s = _plan(a, b, pos, quadrics, kind, q, p)
                             if cost < np.inf:
-                                if nent >= ent_a.shape[0]:
-                                    ent_a = _grow(ent_a, nent + 1); ent_b = _grow(ent_b, nent + 1)
-                                    ent_va = _grow(ent_va, nent + 1); ent_vb = _grow(ent_vb, nent + 1)
-                                    keys = _grow(keys, nent + 1); items = _grow(items, nent + 1)
-                                ent_a[nent] = a; ent_b[nent] = b
-                                ent_va[nent] = version[a]; ent_vb[nent] = version[b]
-                                size = _heap_push(keys, items, size, cost, nent)
-                                nent += 1
+                                if rsize == rk.shape[0]:
+                                    rk = _grow(rk, rsize + 1); rab = _grow(rab, rsize + 1)
+                                    rvs = _grow(rvs, rsize + 1)
+                                rk[rsize] = cost
+                                rab[rsize] = (a << 32) | b
+                                rvs[rsize] = version[a] + version[b]
+                                rsize += 1
                 c = cnext[c]
+        hsize = 0
+        tau = -np.inf
 
         # ---- pop cheapest, check, collapse, re-rank the neighbourhood ----
         stop = False
-        while size > 0:
+        while True:
             if alive_count <= min_vertices or nk >= max_collapses or progress[1] != 0:
                 stop = True
                 break
-            e = items[0]
-            size = _heap_pop(keys, items, size)
-            a = ent_a[e]
-            b = ent_b[e]
+            if hsize == 0:
+                if rsize == 0:
+                    break
+                hk, hab, hvs, hsize, rsize, tau, dropped = _refill(hk, hab, hvs, rk, rab, rvs, rsize,
+                                                                    version, vertex_alive)
+                rejected[0] += dropped
+                continue
+            a = hab[0] >> 32
+            b = hab[0] & 0xFFFFFFFF
+            entry_version = hvs[0]
+            hsize = _heap_pop(hk, hab, hvs, hsize)
             if (not vertex_alive[a] or not vertex_alive[b]
-                    or version[a] != ent_va[e] or version[b] != ent_vb[e]):
+                    or version[a] + version[b] != entry_version):
                 rejected[0] += 1
                 continue
             cost, s = _plan(a, b, pos, quadrics, kind, q, p)
             r = b if s == a else a
 
-            # Faces on the edge, and the vertex opposite it in each.
+            # Scan s: mark its neighbours, find the faces on the edge (s, r)
+            # and the vertex opposite it in each, and test s's other faces for flips.
+            stamp += 1
             n_shared = 0
-            deg_r = 0
-            c = vhead[r]
+            flipped = False
+            c = vhead[s]
             while c >= 0:
                 f = c // 3
                 if face_alive[f]:
-                    deg_r += 1
-                    has_s = False
-                    opp = -1
-                    for t in range(3):
-                        w = faces[f, t]
-                        if w == s:
-                            has_s = True
-                        elif w != r:
-                            opp = w
-                    if has_s:
-                        if n_shared < shared_opp.shape[0]:
-                            shared_opp[n_shared] = opp
+                    slot = c - 3 * f
+                    x = faces[f, (slot + 1) % 3]
+                    y = faces[f, (slot + 2) % 3]
+                    mark[x] = stamp
+                    mark[y] = stamp
+                    if x == r or y == r:
+                        if n_shared < 2:
+                            shared_opp[n_shared] = y if x == r else x
                         n_shared += 1
+                    elif not flipped:
+                        flipped = _face_flips(s, x, y, p, pos, flip_cos)
                 c = cnext[c]
             if n_shared == 0:
                 rejected[1] += 1
@@ -386,84 +467,59 @@ def _decimate_kernel(pos, faces, quadrics, kind, min_vertices, max_collapses, fl
                 rejected[3] += 1
                 continue
 
-            # Link condition: the common neighbours of s and r must be exactly
-            # the vertices opposite the edge, or the collapse pinches a handle.
-            stamp += 1
-            deg_s = 0
-            c = vhead[s]
-            while c >= 0:
-                f = c // 3
-                if face_alive[f]:
-                    deg_s += 1
-                    for t in range(3):
-                        mark[faces[f, t]] = stamp
-                c = cnext[c]
+            # Scan r: count the common neighbours of s and r, look for a face
+            # (r, x, y) on the two opposite vertices, test r's faces for flips.
             common = 0
+            r_on_opposite = False
+            o0 = shared_opp[0]
+            o1 = shared_opp[1] if n_shared == 2 else -1
             c = vhead[r]
             while c >= 0:
                 f = c // 3
                 if face_alive[f]:
-                    for t in range(3):
-                        w = faces[f, t]
-                        if w != s and w != r and mark[w] == stamp and mark2[w] != stamp:
+                    slot = c - 3 * f
+                    x = faces[f, (slot + 1) % 3]
+                    y = faces[f, (slot + 2) % 3]
+                    if x != s and y != s:
+                        if (x == o0 and y == o1) or (x == o1 and y == o0):
+                            r_on_opposite = True
+                        if not flipped:
+                            flipped = _face_flips(r, x, y, p, pos, flip_cos)
+                    for w in (x, y):
+                        if w != s and mark[w] == stamp and mark2[w] != stamp:
                             mark2[w] = stamp
                             common += 1
                 c = cnext[c]
+            # Link condition: the common neighbours of s and r must be exactly
+            # the vertices opposite the edge, or the collapse pinches a handle.
             if common != n_shared:
                 rejected[4] += 1
                 continue
-            # Edges count in the link too: if both s and r already have a face
-            # on the two opposite vertices, the collapse makes a duplicate
-            # face (the last step of squashing a tetrahedron).
-            if n_shared == 2:
-                x = shared_opp[0]
-                y = shared_opp[1]
-                hits = 0
-                for v in (s, r):
-                    c = vhead[v]
-                    while c >= 0:
-                        f = c // 3
-                        if face_alive[f]:
-                            hx = False
-                            hy = False
-                            for t in range(3):
-                                w = faces[f, t]
-                                if w == x:
-                                    hx = True
-                                elif w == y:
-                                    hy = True
-                            if hx and hy:
-                                hits += 1
-                                break
-                        c = cnext[c]
-                if hits == 2:
-                    rejected[5] += 1
-                    continue
-            # No vertex may be left without faces: not the survivor, nor a
-            # vertex whose only faces are the ones this collapse removes.
-            orphan = deg_s + deg_r - 2 * n_shared <= 0
-            for i in range(n_shared):
-                if orphan:
-                    break
-                x = shared_opp[i]
-                left = 0
-                c = vhead[x]
-                while c >= 0 and left <= n_shared:
+            # Edges count in the link too: if s and r both have a face on the
+            # two opposite vertices, the collapse makes a duplicate face (the
+            # last step of squashing a tetrahedron). Rare, so s is rescanned.
+            if r_on_opposite:
+                s_on_opposite = False
+                c = vhead[s]
+                while c >= 0:
                     f = c // 3
                     if face_alive[f]:
-                        left += 1
+                        slot = c - 3 * f
+                        x = faces[f, (slot + 1) % 3]
+                        y = faces[f, (slot + 2) % 3]
+                        if (x == o0 and y == o1) or (x == o1 and y == o0):
+                            s_on_opposite = True
                     c = cnext[c]
-                # faces at x that die: those on the edge (s, r) and opposite x
-                dying = 0
-                for j in range(n_shared):
-                    if shared_opp[j] == x:
-                        dying += 1
-                orphan = left <= dying
-            if orphan:
+                if s_on_opposite:
+                    rejected[5] += 1
+                    continue
+            # No vertex may be left without faces: not the survivor, nor an
+            # opposite vertex whose only face is the one on the edge.
+            if (face_count[s] + face_count[r] - 2 * n_shared <= 0 or face_count[o0] <= 1
+                    or (o1 >= 0 and face_count[o1] <= 1)):
                 rejected[6] += 1
                 continue
-            if (_flips(r, p, pos, faces, face_alive, vhead, cnext, s, flip_cos, n0, n1)
-                    or _flips(s, p, pos, faces, face_alive, vhead, cnext, r, flip_cos, n0, n1)):
+            if flipped:
                 rejected[7] += 1
                 continue
 
@@ -481,6 +537,8 @@ def _decimate_kernel(pos, faces, quadrics, kind, min_vertices, max_collapses, fl
                         face_alive[f] = False
                         killed[nkilled] = f
                         nkilled += 1
+                        for t in range(3):
+                            face_count[faces[f, t]] -= 1
                     else:
                         faces[f, c - 3 * f] = s
                         if nmoved >= moved.shape[0]:
@@ -491,6 +549,8 @@ def _decimate_kernel(pos, faces, quadrics, kind, min_vertices, max_collapses, fl
                         vhead[s] = c
                 c = nxt
             vhead[r] = -1
+            face_count[s] += face_count[r]
+            face_count[r] = 0
             # Drop the dead corners from s's list now, while it is short.
             c = vhead[s]
             vhead[s] = -1
@@ -535,14 +595,24 @@ def _decimate_kernel(pos, faces, quadrics, kind, min_vertices, max_collapses, fl
                         mark[w] = stamp
                         cost2, _s = _plan(s, w, pos, quadrics, kind, q, p)
                         if cost2 < np.inf:
-                            if nent >= ent_a.shape[0]:
-                                ent_a = _grow(ent_a, nent + 1); ent_b = _grow(ent_b, nent + 1)
-                                ent_va = _grow(ent_va, nent + 1); ent_vb = _grow(ent_vb, nent + 1)
-                                keys = _grow(keys, nent + 1); items = _grow(items, nent + 1)
-                            ent_a[nent] = s; ent_b[nent] = w
-                            ent_va[nent] = version[s]; ent_vb[nent] = version[w]
-                            size = _heap_push(keys, items, size, cost2, nent)
-                            nent += 1
+                            e_ab = (s << 32) | w if s < w else (w << 32) | s
+                            e_vs = version[s] + version[w]
+                            if cost2 <= tau:
+                                if hsize == hk.shape[0]:
+                                    hk = _grow(hk, hsize + 1); hab = _grow(hab, hsize + 1)
+                                    hvs = _grow(hvs, hsize + 1)
+                                hsize = _heap_push(hk, hab, hvs, hsize, cost2, e_ab, e_vs)
+                            else:
+                                if rsize == rk.shape[0]:
+                                    # mostly stale entries by now: compact before growing
+                                    rsize = _drop_stale(rk, rab, rvs, rsize, version, vertex_alive)
+                                    if rsize > rk.shape[0] // 2:
+                                        rk = _grow(rk, rsize + 1); rab = _grow(rab, rsize + 1)
+                                        rvs = _grow(rvs, rsize + 1)
+                                rk[rsize] = cost2
+                                rab[rsize] = e_ab
+                                rvs[rsize] = e_vs
+                                rsize += 1
                 c = cnext[c]
         if stop or nk == collapses_before:
             break
