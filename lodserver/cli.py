@@ -1,4 +1,4 @@
-"""Command line: ``lodserver build | extract | info``.
+"""Command line: ``lodserver build | extract | info | serve``.
 
 Every failure ends with one sentence on stderr and a non-zero exit code:
 1 for bad input or a failed operation, 2 for a malformed command line.
@@ -83,6 +83,19 @@ def _cmd_info(args) -> int:
     return 0
 
 
+def _cmd_serve(args) -> int:
+    import os
+
+    import uvicorn
+
+    # The app reads its settings from LODSERVER_* variables; the flag is one of them.
+    if args.data is not None:
+        os.environ["LODSERVER_DATA_DIR"] = str(args.data)
+    uvicorn.run("lodserver.api.main:create_app", factory=True, host=args.host, port=args.port,
+                log_level=args.log_level)
+    return 0
+
+
 def _parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="lodserver", description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="command", required=True)
@@ -111,6 +124,15 @@ def _parser() -> argparse.ArgumentParser:
     p = sub.add_parser("info", help="print counts and the error curve of a .pm artefact as JSON")
     p.add_argument("asset")
     p.set_defaults(run=_cmd_info)
+
+    p = sub.add_parser("serve", help="run the HTTP API (settings: LODSERVER_* variables)")
+    p.add_argument("--data", type=Path, help="data directory (default: $LODSERVER_DATA_DIR or "
+                   "./lodserver-data)")
+    p.add_argument("--host", default="127.0.0.1", help="address to listen on (default 127.0.0.1)")
+    p.add_argument("--port", type=int, default=8000, help="port (default 8000)")
+    p.add_argument("--log-level", default="info",
+                   choices=["critical", "error", "warning", "info", "debug"])
+    p.set_defaults(run=_cmd_serve)
     return parser
 
 

@@ -1,0 +1,67 @@
+"""Dependencies routes declare in their signatures (``Annotated`` aliases)."""
+
+from __future__ import annotations
+
+import hmac
+from typing import Annotated
+
+from fastapi import Depends, HTTPException, Path, Request
+from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
+
+from ..jobs import JobRunner
+from ..store import ID_PATTERN, Store
+from .caching import BodyCache
+from .settings import Settings, get_settings
+from .upload import Upload, receive_upload
+
+SettingsDep = Annotated[Settings, Depends(get_settings)]
+
+
+def get_store(request: Request) -> Store:
+    return request.app.state.store
+
+
+def get_jobs(request: Request) -> JobRunner:
+    return request.app.state.jobs
+
+
+def get_cache(request: Request) -> BodyCache:
+    return request.app.state.cache
+
+
+StoreDep = Annotated[Store, Depends(get_store)]
+JobsDep = Annotated[JobRunner, Depends(get_jobs)]
+CacheDep = Annotated[BodyCache, Depends(get_cache)]
+
+_bearer = HTTPBearer(auto_error=False, description="Needed on write endpoints when the server "
+                     "has LODSERVER_TOKEN set.")
+
+
+def require_token(settings: SettingsDep,
+                  credentials: Annotated[HTTPAuthorizationCredentials | None,
+                                         Depends(_bearer)]) -> None:
+    """Refuse the request (401) unless it carries the configured bearer token."""
+    if settings.token is None:
+        return
+    expected = settings.token.get_secret_value().encode()
+    given = credentials.credentials.encode() if credentials else b""
+    if not hmac.compare_digest(given, expected):
+        raise HTTPException(401, "this endpoint needs the header 'Authorization: Bearer <token>' "
+                            "with the server's token" if credentials is None
+                            else "the bearer token is wrong",
+                            headers={"WWW-Authenticate": "Bearer"})
+
+
+TokenDep = Annotated[None, Depends(require_token)]
+
+
+async def get_upload(_: TokenDep, request: Request, settings: SettingsDep) -> Upload:
+    """The streamed upload; the token is checked first, so no body is read without it."""
+    return await receive_upload(request, limit=settings.max_upload_bytes)
+
+
+UploadDep = Annotated[Upload, Depends(get_upload)]
+# A malformed id is answered like an unknown one (404): the store checks every id
+# against ID_PATTERN before making a path of it.
+MeshId = Annotated[str, Path(description="The mesh id returned by POST /meshes "
+                             f"(matches {ID_PATTERN.pattern}).")]

@@ -1,0 +1,63 @@
+"""The FastAPI app: middleware, routers, error handlers, and the lifespan that
+opens the store and starts the job runner (not at import, so tests and the CLI
+stay light).
+
+Run it with ``lodserver serve`` or ``uvicorn --factory lodserver.api.main:create_app``.
+"""
+
+from __future__ import annotations
+
+from contextlib import asynccontextmanager
+
+from fastapi import FastAPI
+from fastapi.concurrency import run_in_threadpool
+from fastapi.middleware.cors import CORSMiddleware
+from fastapi.routing import APIRoute
+
+from ..jobs import JobRunner
+from ..store import LocalStore
+from .caching import BodyCache
+from .errors import add_error_handlers
+from .routes import health, lods, meshes
+from .settings import Settings, get_settings
+
+
+@asynccontextmanager
+async def lifespan(app: FastAPI):
+    settings: Settings = app.state.settings
+    store = LocalStore(settings.data_dir)
+    jobs = JobRunner(store, workers=settings.workers, max_triangles=settings.max_triangles)
+    jobs.start(warm=settings.warm_kernels)
+    app.state.store, app.state.jobs, app.state.cache = store, jobs, BodyCache()
+    try:
+        yield
+    finally:
+        await run_in_threadpool(jobs.shutdown)
+        store.close()
+
+
+def _operation_id(route: APIRoute) -> str:
+    """Stable OpenAPI operation ids (``meshes-create_mesh``) for generated clients."""
+    return f"{route.tags[0]}-{route.name}" if route.tags else route.name
+
+
+def create_app(settings: Settings | None = None) -> FastAPI:
+    """The app, configured by ``settings`` (default: ``get_settings()``, the environment).
+
+    Explicit settings also override the ``get_settings`` dependency, so every
+    part of the app sees the same ones.
+    """
+    settings = settings or get_settings()
+    app = FastAPI(title="lodserver", summary="Progressive-mesh level-of-detail service",
+                  lifespan=lifespan, generate_unique_id_function=_operation_id)
+    app.state.settings = settings
+    app.dependency_overrides[get_settings] = lambda: settings
+    if settings.cors_origins:
+        app.add_middleware(CORSMiddleware, allow_origins=settings.cors_origins,
+                           allow_methods=["GET", "POST", "DELETE"],
+                           allow_headers=["Authorization", "If-None-Match"],
+                           expose_headers=["ETag", "Location"])
+    add_error_handlers(app)
+    for module in (meshes, lods, health):
+        app.include_router(module.router)
+    return app

@@ -1,0 +1,1 @@
+"""One router per resource: meshes (catalogue), lods (levels and packets), health."""

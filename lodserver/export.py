@@ -1,0 +1,81 @@
+"""One level of a progressive mesh as the bytes of a response.
+
+``glb``, ``obj`` and ``ply`` carry the level's exact positions (as precise as
+the format allows, see ``io``). ``json`` carries its *quantized form*, the
+state a packet client starts from and ends in (``packets.py``)::
+
+    {"level": v, "vertex_count": v, "face_count": f, "error": e,
+     "grid": {"origin": [x, y, z], "step": s, "bits": b},
+     "positions": [[qx, qy, qz], ...],   # grid coordinates, position = origin + q * step
+     "faces": [[a, b, c], ...]}          # in prefix-layout slots
+"""
+
+from __future__ import annotations
+
+import json
+import tempfile
+from pathlib import Path
+
+from .io import save_mesh
+from .mesh import MeshError
+from .packets import check_bits, grid_of, quantized_level
+from .progressive import ProgressiveMesh
+
+FORMATS = {"glb": "model/gltf-binary", "obj": "model/obj", "ply": "application/octet-stream",
+           "json": "application/json"}
+
+
+class LevelError(MeshError):
+    """A level request is malformed or outside the mesh's levels."""
+
+
+def resolve_level(pm: ProgressiveMesh, *, vertices=None, faces=None, ratio=None,
+                  error=None) -> int:
+    """The level (vertex count) asked for by exactly one criterion (``level_for``)."""
+    try:
+        return pm.level_for(vertices=vertices, faces=faces, ratio=ratio, error=error)
+    except (ValueError, TypeError) as exc:
+        raise LevelError(str(exc)) from exc
+
+
+def check_level(pm: ProgressiveMesh, level: int, *, name: str = "level") -> int:
+    """``level`` if it is one of ``pm``'s levels, else :class:`LevelError`."""
+    if not pm.base_vertices <= level <= pm.vertex_count:
+        raise LevelError(f"{name} must be a level in [{pm.base_vertices}, {pm.vertex_count}] "
+                         f"(a vertex count), got {level}")
+    return int(level)
+
+
+def checked_bits(bits: int | None) -> int | None:
+    """``bits`` unchanged if None or in range, else :class:`LevelError`."""
+    if bits is None:
+        return None
+    try:
+        return check_bits(bits)
+    except ValueError as exc:
+        raise LevelError(str(exc)) from exc
+
+
+def encode_level(pm: ProgressiveMesh, level: int, *, file_type: str,
+                 bits: int | None = None) -> bytes:
+    """The bytes of ``level`` in ``file_type`` (one of :data:`FORMATS`).
+
+    ``bits`` sets the grid of the ``json`` form (default ``packets.default_bits``)
+    and must match the packets the client applies to it.
+    """
+    level = check_level(pm, level)
+    if file_type not in FORMATS:
+        raise LevelError(f"format must be one of {', '.join(FORMATS)}, got {file_type!r}")
+    if file_type == "json":
+        grid = grid_of(pm, bits=checked_bits(bits))
+        state = quantized_level(pm, level, grid)
+        document = {"level": level, "vertex_count": level, "face_count": len(state.faces),
+                    "error": pm.error_at_level(level), "grid": grid.as_dict(),
+                    "positions": state.positions.tolist(), "faces": state.faces.tolist()}
+        return json.dumps(document, separators=(",", ":")).encode()
+    # io.save_mesh writes files (atomically); a private temporary directory
+    # turns that into bytes without a second exporter.
+    with tempfile.TemporaryDirectory(prefix="lodserver-") as folder:
+        path = Path(folder) / f"level.{file_type}"
+        save_mesh(pm.at(level), path, file_type=file_type)
+        return path.read_bytes()
