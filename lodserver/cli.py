@@ -75,6 +75,26 @@ def _cmd_extract(args) -> int:
     return 0
 
 
+def _cmd_simplify(args) -> int:
+    from .io import load_mesh, save_mesh
+
+    mesh, _ = load_mesh(args.mesh)
+    target = args.faces if args.faces is not None else max(1, round(args.ratio * mesh.face_count))
+    if target < 1 or (args.ratio is not None and not 0 < args.ratio <= 1):
+        raise MeshError("the target must be a ratio in (0, 1] or at least one face")
+    start = time.perf_counter()
+    if args.method == "cluster":
+        from .cluster import cluster
+        lod = cluster(mesh, target_faces=target)
+    else:
+        from .build import build
+        lod = build(mesh).at(faces=target)
+    save_mesh(lod, args.output)
+    print(f"{args.output}: {lod.vertex_count} vertices, {lod.face_count} faces (target {target}) "
+          f"by {args.method} in {time.perf_counter() - start:.2f} s", file=sys.stderr)
+    return 0
+
+
 def _cmd_info(args) -> int:
     from .progressive import ProgressiveMesh
 
@@ -120,6 +140,17 @@ def _parser() -> argparse.ArgumentParser:
     group.add_argument("--error", type=float, help="coarsest level with at most this error (mesh units)")
     p.add_argument("-o", "--output", required=True, help="PLY, OBJ, GLB, OFF or STL file to write")
     p.set_defaults(run=_cmd_extract)
+
+    p = sub.add_parser("simplify", help="write one simplified copy of a mesh file (no .pm)")
+    p.add_argument("mesh", help="OBJ, PLY, STL, OFF, glTF or GLB file")
+    group = p.add_mutually_exclusive_group(required=True)
+    group.add_argument("--faces", type=int, help="at most this many faces")
+    group.add_argument("--ratio", type=float, help="this fraction of the faces, in (0, 1]")
+    p.add_argument("--method", choices=("qem", "cluster"), default="qem",
+                   help="qem: edge collapse (best quality); cluster: vertex clustering "
+                        "(fastest; may merge parts and change topology)")
+    p.add_argument("-o", "--output", required=True, help="PLY, OBJ, GLB, OFF or STL file to write")
+    p.set_defaults(run=_cmd_simplify)
 
     p = sub.add_parser("info", help="print counts and the error curve of a .pm artefact as JSON")
     p.add_argument("asset")

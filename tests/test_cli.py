@@ -77,3 +77,12 @@ def test_installed_entry_point(tmp_path):
                             text=True)
     assert result.returncode == 1
     assert "cannot read" in result.stderr
+
+
+@pytest.mark.parametrize("method", ["qem", "cluster"])
+def test_simplify_one_shot(tmp_path, method):
+    out = tmp_path / f"spot_{method}.obj"
+    assert main(["simplify", str(DATA / "spot.obj"), "--ratio", "0.1", "--method", method,
+                 "-o", str(out)]) == 0
+    mesh, _ = load_mesh(out)
+    assert 0.5 * 586 <= mesh.face_count <= 586
