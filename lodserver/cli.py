@@ -44,7 +44,8 @@ def _cmd_build(args) -> int:
     start = time.perf_counter()
     try:
         pm = build(mesh, boundary_weight=args.boundary_weight, locked=locked,
-                   min_vertices=args.min_vertices, progress=update)
+                   min_vertices=args.min_vertices, pair_threshold=args.pair_threshold,
+                   progress=update)
     finally:
         bar.close()
     pm.metadata["source"] = Path(args.mesh).name
@@ -129,6 +130,10 @@ def _parser() -> argparse.ArgumentParser:
                    help="never move or remove border vertices (tiles and parts keep stitching)")
     p.add_argument("--min-vertices", type=int, default=0,
                    help="stop decimating at this many vertices (default: as far as possible)")
+    p.add_argument("--pair-threshold", default="0", metavar="T",
+                   help="also contract vertices closer than T that share no edge, joining "
+                        "parts: mesh units, or a percentage of the bounding-box diagonal "
+                        "like 1%% (default 0: edges only)")
     p.set_defaults(run=_cmd_build)
 
     p = sub.add_parser("extract", help="write one level of a .pm artefact as a mesh file")

@@ -55,7 +55,13 @@ _PROGRESS_STRIDE = 1024
 
 # Reasons a popped candidate is refused, counted for diagnostics.
 REJECT_REASONS = ("stale", "not_an_edge", "non_manifold_edge", "pinch", "link",
-                  "tetrahedron", "last_face", "flip")
+                  "tetrahedron", "last_face", "flip", "pair_too_far", "pair_shares_neighbours")
+
+_REASON_COUNT = len(REJECT_REASONS)
+
+# Close pairs (G&H's "valid pairs" that share no edge): at most this many
+# candidates per vertex and per pass, so a dense cloud cannot blow up memory.
+MAX_PAIRS_PER_VERTEX = 8
 
 
 @dataclass(frozen=True)
@@ -317,10 +323,76 @@ def _face_flips(v, x, y, p, pos, flip_cos):
 
 
 @njit(cache=True, nogil=True)
-def _decimate_kernel(pos, faces, quadrics, kind, min_vertices, max_collapses, flip_cos, progress):
-    """Collapse edges cheapest first until none is legal or a limit is hit.
+def _close_pairs(pos, vertex_alive, faces, face_alive, vhead, cnext, radius, mark, stamp):
+    """Pairs (a < b) of live vertices at most ``radius`` apart that share no edge.
 
-    ``pos`` and ``quadrics`` are updated in place (unit-box frame).
+    A uniform grid of cells ``radius`` wide is the spatial index: rebuilt from
+    the current positions at each pass (vertices move as they absorb others),
+    every vertex looks at its 27 surrounding cells. At most
+    MAX_PAIRS_PER_VERTEX candidates per vertex, nearest cells first.
+
+    Returns (pairs (k, 2) int64, the last stamp used in ``mark``).
+    """
+    n = pos.shape[0]
+    cells = int(np.ceil(1.0 / radius)) + 3
+    keys = np.full(n, np.iinfo(np.int64).max, np.int64)
+    for v in range(n):
+        if vertex_alive[v]:
+            keys[v] = ((int(pos[v, 0] / radius) + 1) * cells
+                       + int(pos[v, 1] / radius) + 1) * cells + int(pos[v, 2] / radius) + 1
+    order = np.argsort(keys)
+    sorted_keys = keys[order]
+    pairs = np.empty((16, 2), np.int64)
+    count = 0
+    r2 = radius * radius
+    for a in range(n):
+        if not vertex_alive[a]:
+            continue
+        # mark a's neighbours: an existing edge is not a close pair
+        stamp += 1
+        c = vhead[a]
+        while c >= 0:
+            f = c // 3
+            if face_alive[f]:
+                for t in range(3):
+                    mark[faces[f, t]] = stamp
+            c = cnext[c]
+        found = 0
+        for dx in (0, -1, 1):
+            for dy in (0, -1, 1):
+                for dz in (0, -1, 1):
+                    key = keys[a] + (dx * cells + dy) * cells + dz
+                    i = np.searchsorted(sorted_keys, key)
+                    while i < n and sorted_keys[i] == key and found < MAX_PAIRS_PER_VERTEX:
+                        b = order[i]
+                        i += 1
+                        if b <= a or mark[b] == stamp:
+                            continue
+                        d0 = pos[a, 0] - pos[b, 0]
+                        d1 = pos[a, 1] - pos[b, 1]
+                        d2 = pos[a, 2] - pos[b, 2]
+                        if d0 * d0 + d1 * d1 + d2 * d2 <= r2:
+                            if count == pairs.shape[0]:
+                                grown = np.empty((2 * count, 2), np.int64)
+                                grown[:count] = pairs
+                                pairs = grown
+                            pairs[count, 0] = a
+                            pairs[count, 1] = b
+                            count += 1
+                            found += 1
+    return pairs[:count], stamp
+
+
+@njit(cache=True, nogil=True)
+def _decimate_kernel(pos, world, scale, origin, faces, quadrics, kind, min_vertices,
+                     max_collapses, flip_cos, pair_radius, progress):
+    """Collapse edges (and close pairs, if ``pair_radius`` > 0) cheapest first
+    until none is legal or a limit is hit.
+
+    ``pos`` and ``quadrics`` are updated in place (unit-box frame); ``world``
+    holds the same positions in mesh units (``origin + scale * pos``), kept
+    bit-exact for vertices that never move, so locked vertices log their input
+    position exactly.
     ``progress[0]`` receives the collapse count as it goes; a non-zero
     ``progress[1]`` asks the kernel to stop early.
     """
@@ -361,7 +433,7 @@ def _decimate_kernel(pos, faces, quadrics, kind, min_vertices, max_collapses, fl
 
     log_s = np.empty(n, np.int64)
     log_r = np.empty(n, np.int64)
-    log_p = np.empty((n, 3), np.float64)
+    log_p = np.empty((n, 3), np.float64)       # mesh units
     log_cost = np.empty(n, np.float64)
     log_area = np.empty(n, np.float64)
     killed_off = np.zeros(n + 1, np.int64)
@@ -372,7 +444,7 @@ def _decimate_kernel(pos, faces, quadrics, kind, min_vertices, max_collapses, fl
     nkilled = 0
     nmoved = 0
 
-    rejected = np.zeros(8, np.int64)
+    rejected = np.zeros(_REASON_COUNT, np.int64)
     q = np.empty(11)
     p = np.empty(3)
     shared_opp = np.empty(2, np.int64)
@@ -406,6 +478,21 @@ def _decimate_kernel(pos, faces, quadrics, kind, min_vertices, max_collapses, fl
                                 rvs[rsize] = version[a] + version[b]
                                 rsize += 1
                 c = cnext[c]
+        if pair_radius > 0.0:
+            pairs, stamp = _close_pairs(pos, vertex_alive, faces, face_alive, vhead, cnext,
+                                        pair_radius, mark, stamp)
+            for i in range(pairs.shape[0]):
+                a = pairs[i, 0]
+                b = pairs[i, 1]
+                cost, _s = _plan(a, b, pos, quadrics, kind, q, p)
+                if cost < np.inf:
+                    if rsize == rk.shape[0]:
+                        rk = _grow(rk, rsize + 1); rab = _grow(rab, rsize + 1)
+                        rvs = _grow(rvs, rsize + 1)
+                    rk[rsize] = cost
+                    rab[rsize] = (a << 32) | b
+                    rvs[rsize] = version[a] + version[b]
+                    rsize += 1
         hsize = 0
         tau = -np.inf
 
@@ -455,15 +542,23 @@ def _decimate_kernel(pos, faces, quadrics, kind, min_vertices, max_collapses, fl
                         flipped = _face_flips(s, x, y, p, pos, flip_cos)
                 c = cnext[c]
             if n_shared == 0:
-                rejected[1] += 1
-                continue
-            if n_shared > 2:
+                if pair_radius <= 0.0:
+                    rejected[1] += 1
+                    continue
+                # A close pair: never contract one that has drifted apart.
+                d0 = pos[s, 0] - pos[r, 0]
+                d1 = pos[s, 1] - pos[r, 1]
+                d2 = pos[s, 2] - pos[r, 2]
+                if d0 * d0 + d1 * d1 + d2 * d2 > pair_radius * pair_radius:
+                    rejected[8] += 1
+                    continue
+            elif n_shared > 2:
                 rejected[2] += 1
                 continue
             # Only a border edge may join two border vertices; an interior
             # edge between them would leave a vertex with two fans.
             both_border = kind[s] != INTERIOR and kind[r] != INTERIOR
-            if (n_shared == 2) == both_border:
+            if n_shared > 0 and (n_shared == 2) == both_border:
                 rejected[3] += 1
                 continue
 
@@ -471,7 +566,7 @@ def _decimate_kernel(pos, faces, quadrics, kind, min_vertices, max_collapses, fl
             # (r, x, y) on the two opposite vertices, test r's faces for flips.
             common = 0
             r_on_opposite = False
-            o0 = shared_opp[0]
+            o0 = shared_opp[0] if n_shared > 0 else -1
             o1 = shared_opp[1] if n_shared == 2 else -1
             c = vhead[r]
             while c >= 0:
@@ -492,6 +587,10 @@ def _decimate_kernel(pos, faces, quadrics, kind, min_vertices, max_collapses, fl
                 c = cnext[c]
             # Link condition: the common neighbours of s and r must be exactly
             # the vertices opposite the edge, or the collapse pinches a handle.
+            if n_shared == 0 and common > 0:
+                # a shared neighbour could turn into a duplicate face or a pinch
+                rejected[9] += 1
+                continue
             if common != n_shared:
                 rejected[4] += 1
                 continue
@@ -515,8 +614,8 @@ def _decimate_kernel(pos, faces, quadrics, kind, min_vertices, max_collapses, fl
                     continue
             # No vertex may be left without faces: not the survivor, nor an
             # opposite vertex whose only face is the one on the edge.
-            if (face_count[s] + face_count[r] - 2 * n_shared <= 0 or face_count[o0] <= 1
-                    or (o1 >= 0 and face_count[o1] <= 1)):
+            if (face_count[s] + face_count[r] - 2 * n_shared <= 0
+                    or (o0 >= 0 and face_count[o0] <= 1) or (o1 >= 0 and face_count[o1] <= 1)):
                 rejected[6] += 1
                 continue
             if flipped:
@@ -564,6 +663,14 @@ def _decimate_kernel(pos, faces, quadrics, kind, min_vertices, max_collapses, fl
             area = quadrics[s, 10] + quadrics[r, 10]
             for j in range(11):
                 quadrics[s, j] += quadrics[r, j]
+            # Placements at an endpoint copy its mesh-unit position bit for bit
+            # (locked vertices must not drift by a rounding).
+            if p[0] == pos[r, 0] and p[1] == pos[r, 1] and p[2] == pos[r, 2]:
+                for j in range(3):
+                    world[s, j] = world[r, j]
+            elif not (p[0] == pos[s, 0] and p[1] == pos[s, 1] and p[2] == pos[s, 2]):
+                for j in range(3):
+                    world[s, j] = origin[j] + scale * p[j]
             pos[s, 0] = p[0]; pos[s, 1] = p[1]; pos[s, 2] = p[2]
             if kind[r] > kind[s]:
                 kind[s] = kind[r]
@@ -574,7 +681,7 @@ def _decimate_kernel(pos, faces, quadrics, kind, min_vertices, max_collapses, fl
 
             log_s[nk] = s
             log_r[nk] = r
-            log_p[nk, 0] = p[0]; log_p[nk, 1] = p[1]; log_p[nk, 2] = p[2]
+            log_p[nk, 0] = world[s, 0]; log_p[nk, 1] = world[s, 1]; log_p[nk, 2] = world[s, 2]
             log_cost[nk] = cost
             log_area[nk] = area
             nk += 1
@@ -629,7 +736,8 @@ def _decimate_kernel(pos, faces, quadrics, kind, min_vertices, max_collapses, fl
 
 def decimate(mesh: Mesh, *, boundary_weight: float = 1.0, locked=None, min_vertices: int = 0,
              max_collapses: int | None = None, flip_cos: float = DEFAULT_FLIP_COS,
-             progress=None, cancel: threading.Event | None = None) -> CollapseLog:
+             pair_threshold: float = 0.0, progress=None,
+             cancel: threading.Event | None = None) -> CollapseLog:
     """Collapse edges of ``mesh`` cheapest first and log every collapse.
 
     Parameters
@@ -647,6 +755,13 @@ def decimate(mesh: Mesh, *, boundary_weight: float = 1.0, locked=None, min_verti
     flip_cos : float
         A collapse that turns a surviving face's normal by more than
         ``arccos(flip_cos)`` is refused.
+    pair_threshold : float
+        Also contract vertex pairs that share no edge but lie at most this far
+        apart (mesh units), joining separate parts and sheets (G&H's close
+        pairs). 0 (default) contracts edges only. A pair is contracted only if
+        the two vertices share no neighbour and are still that close; the
+        joined vertex then has two fans, and the link condition keeps every
+        later collapse from making a non-manifold edge.
     progress : callable(done: int, expected: int), optional
         Called from this thread about ten times a second while the kernel runs.
     cancel : threading.Event, optional
@@ -670,13 +785,18 @@ def decimate(mesh: Mesh, *, boundary_weight: float = 1.0, locked=None, min_verti
     quadrics = vertex_quadrics(unit, faces, boundary_weight=boundary_weight,
                                boundary=(found.boundary_edges, found.boundary_faces))
 
+    if not pair_threshold >= 0:
+        raise ValueError(f"pair_threshold must be a non-negative distance, got {pair_threshold}")
+    # cells of the pair search are this wide in the unit box; keep their count sane
+    radius = max(float(pair_threshold) / scale, 1e-6) if pair_threshold > 0 else 0.0
+    world = positions.copy()
     limit = n if max_collapses is None else int(max_collapses)
     state = np.zeros(2, dtype=np.int64)
     result = {}
 
     def run():
-        result["log"] = _decimate_kernel(unit, faces, quadrics, kind, int(min_vertices), limit,
-                                         float(flip_cos), state)
+        result["log"] = _decimate_kernel(unit, world, scale, lo, faces, quadrics, kind,
+                                         int(min_vertices), limit, float(flip_cos), radius, state)
 
     if progress is None and cancel is None:
         run()
@@ -696,13 +816,9 @@ def decimate(mesh: Mesh, *, boundary_weight: float = 1.0, locked=None, min_verti
         raise RuntimeError("the decimation kernel failed")
     (s, r, p, cost, area, killed_off, killed, moved_off, moved, rejected, passes) = result["log"]
 
-    position = p * scale + lo
-    # A locked survivor keeps its exact input position (tiles must stitch bit for bit).
-    lock_kept = kind[s] == LOCKED
-    position[lock_kept] = positions[s[lock_kept]]
     error = np.sqrt(cost / np.maximum(area, np.finfo(float).tiny)) * scale
     return CollapseLog(
-        survivor=s.copy(), removed=r.copy(), position=position, error=error,
+        survivor=s.copy(), removed=r.copy(), position=p.copy(), error=error,
         killed_offsets=killed_off.copy(), killed_faces=killed.copy(),
         moved_offsets=moved_off.copy(), moved_corners=moved.copy(),
         rejected=dict(zip(REJECT_REASONS, (int(x) for x in rejected))), passes=int(passes))

@@ -22,6 +22,10 @@ class MeshCreate(BaseModel):
     min_vertices: int = Field(0, ge=0, le=2**31 - 1,
                               description="Stop decimating at this many vertices.")
     lock_border: bool = Field(False, description="Never move or remove border vertices.")
+    pair_threshold: str = Field("0", pattern=r"^(\d+\.?\d*|\.\d+)(e[-+]?\d+)?%?$",
+                                description="Also contract vertices closer than this that share "
+                                "no edge (joins parts): mesh units, or a percentage of the "
+                                "bounding-box diagonal such as '1%'. 0: edges only.")
 
     def build_options(self) -> dict:
         return self.model_dump(exclude={"name"})
