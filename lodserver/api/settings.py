@@ -36,6 +36,9 @@ class Settings(BaseSettings):
     workers: int = Field(1, ge=1, le=64, description="Concurrent builds.")
     warm_kernels: bool = Field(True, description="Load the numba kernels at start-up, "
                                "before the first build needs them.")
+    static_dir: Path = Field(Path(__file__).resolve().parents[2] / "static",
+                             description="The browser viewer's files (default: the checkout's "
+                             "static/ folder).")
 
     @field_validator("token", mode="before")
     @classmethod
