@@ -62,11 +62,17 @@ def check_mesh_file(path, *, file_type: str, max_triangles: int) -> tuple[Mesh, 
 
 
 def warm_up() -> None:
-    """Build a tiny mesh so numba loads (or compiles) every kernel before a real build."""
+    """Build a tiny mesh and encode its packets both ways, so numba loads (or
+    compiles) every kernel before a real build or the first packet request."""
+    from .packets import encode_packet
+
     positions = np.array([[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1.0]])
     faces = np.array([[0, 2, 4], [2, 1, 4], [1, 3, 4], [3, 0, 4],
                       [2, 0, 5], [1, 2, 5], [3, 1, 5], [0, 3, 5]])
-    build(Mesh(positions, faces)).at(6)
+    pm = build(Mesh(positions, faces))
+    pm.at(6)
+    encode_packet(pm, pm.base_vertices, pm.vertex_count)
+    encode_packet(pm, pm.vertex_count, pm.base_vertices)
 
 
 class JobRunner:
