@@ -17,14 +17,14 @@ from __future__ import annotations
 
 import numpy as np
 
+from numba import njit
+
 from .mesh import Mesh, MeshError
 from .quadrics import REGULARIZATION, vertex_quadrics
 
-# Resolution search: cells along the longest axis, and how many refinement
-# steps the search for a face target may take (each costs one clustering).
+# Resolution search bounds: cells along the longest axis.
 _MIN_CELLS = 1
 _MAX_CELLS = 1 << 16
-_SEARCH_STEPS = 8
 
 
 def cluster(mesh: Mesh, *, cells: int | None = None, cell_size: float | None = None,
@@ -51,7 +51,9 @@ def cluster(mesh: Mesh, *, cells: int | None = None, cell_size: float | None = N
     positions = np.asarray(mesh.positions, dtype=np.float64)
     lo = positions.min(axis=0)
     extent = float((positions.max(axis=0) - lo).max()) or 1.0
-    quadrics = vertex_quadrics(positions, mesh.faces)
+    # Face planes only (Lindstrom 2000): representatives are kept inside their
+    # cells anyway, and skipping the border census saves a pass over the mesh.
+    quadrics = vertex_quadrics(positions, mesh.faces, boundary_weight=0)
     if cell_size is not None:
         if not cell_size > 0:
             raise ValueError(f"cell_size must be positive, got {cell_size}")
@@ -69,33 +71,74 @@ def cluster(mesh: Mesh, *, cells: int | None = None, cell_size: float | None = N
 
 
 def _search_resolution(positions, faces, quadrics, lo, extent, target):
-    """Largest tried grid with at most ``target`` faces.
+    """Cluster on the finest grid whose result has at most ``target`` faces.
 
-    A surface crosses about r^2 cells at r cells per side, and keeps about two
-    faces per cell, so faces ~ r^2: each step rescales r by sqrt(target / faces).
+    The search counts faces whose corners fall in three distinct cells (a
+    compiled pass, no clustering); that count bounds the result from above
+    (duplicates are dropped later), and it grows with the resolution, so a
+    binary search over the resolution needs only the final clustering.
     """
-    best = None
-    below, above = _MIN_CELLS, _MAX_CELLS
-    r = 64
-    for _ in range(_SEARCH_STEPS):
-        r = int(min(max(r, below), above))
-        result = _cluster_grid(positions, faces, quadrics, lo, extent, r)
-        if result is None or result.face_count <= target:
-            if result is not None and (best is None or result.face_count > best.face_count):
-                best = result
-            below = r + 1
+    faces = np.ascontiguousarray(faces, dtype=np.int64)
+    unit = np.ascontiguousarray((positions - lo) / extent)
+
+    def fits(r):
+        return _surviving_faces(unit, faces, r) <= target
+
+    # faces ~ r^2 for a surface: guess from one count, then gallop to a
+    # bracket [good, bad) and bisect it
+    guess = int(64 * np.sqrt(target / max(_surviving_faces(unit, faces, 64), 1)))
+    r = min(max(guess, _MIN_CELLS), _MAX_CELLS)
+    if fits(r):
+        good, bad = r, None
+        while bad is None and good < _MAX_CELLS:
+            step = min(_MAX_CELLS, max(good + 1, int(good * 1.25)))
+            if fits(step):
+                good = step
+            else:
+                bad = step
+        bad = bad or _MAX_CELLS + 1
+    else:
+        good, bad = None, r
+        while good is None and bad > _MIN_CELLS:
+            step = max(_MIN_CELLS, min(bad - 1, int(bad / 1.25)))
+            if fits(step):
+                good = step
+            else:
+                bad = step
+        if good is None:
+            raise MeshError(f"vertex clustering cannot reach {target} faces")
+    while bad - good > 1:
+        middle = (good + bad) // 2
+        if fits(middle):
+            good = middle
         else:
-            above = r - 1
-        if below > above or (best is not None and best.face_count >= 0.97 * target):
-            break
-        count = result.face_count if result is not None else 0
-        guess = r * np.sqrt(target / max(count, 1)) * (0.98 if count > target else 1.0)
-        # never re-try a resolution already known too coarse or too fine
-        r = int(np.clip(np.floor(guess), below, above))
-    if best is None:
-        # even one cell per side gives too many faces (cannot happen: it gives none)
+            bad = middle
+    best = good
+    result = _cluster_grid(positions, faces, quadrics, lo, extent, best)
+    if result is None:
         raise MeshError(f"vertex clustering cannot reach {target} faces")
-    return best
+    return result
+
+
+@njit(cache=True, nogil=True)
+def _surviving_faces(unit, faces, cells):
+    """Faces whose three corners lie in three different cells of a grid of
+    ``cells`` per side over the unit box (``unit`` = positions scaled into it)."""
+    n = unit.shape[0]
+    key = np.empty(n, np.int64)
+    for v in range(n):
+        x = min(int(unit[v, 0] * cells), cells - 1)
+        y = min(int(unit[v, 1] * cells), cells - 1)
+        z = min(int(unit[v, 2] * cells), cells - 1)
+        key[v] = (x * (cells + 1) + y) * (cells + 1) + z
+    count = 0
+    for f in range(faces.shape[0]):
+        a = key[faces[f, 0]]
+        b = key[faces[f, 1]]
+        c = key[faces[f, 2]]
+        if a != b and b != c and a != c:
+            count += 1
+    return count
 
 
 def _cluster_grid(positions, faces, quadrics, lo, extent, cells):
@@ -103,7 +146,7 @@ def _cluster_grid(positions, faces, quadrics, lo, extent, cells):
     size = extent / cells
     coords = np.minimum(((positions - lo) / size).astype(np.int64), cells - 1)
     keys = (coords[:, 0] * (cells + 1) + coords[:, 1]) * (cells + 1) + coords[:, 2]
-    used = np.unique(faces)
+    used = np.nonzero(np.bincount(faces.ravel(), minlength=len(positions)))[0]
     cell_keys, cell_of_used = np.unique(keys[used], return_inverse=True)
     cell_of = np.full(len(positions), -1, dtype=np.int64)
     cell_of[used] = cell_of_used
