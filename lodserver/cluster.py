@@ -25,6 +25,10 @@ from .quadrics import REGULARIZATION, vertex_quadrics
 # Resolution search bounds: cells along the longest axis.
 _MIN_CELLS = 1
 _MAX_CELLS = 1 << 16
+# Refinement when duplicates make the counted search undershoot.
+_REFINE_STEPS = 8
+_REFINE_GROWTH = 1.06
+_CLOSE_ENOUGH = 0.9
 
 
 def cluster(mesh: Mesh, *, cells: int | None = None, cell_size: float | None = None,
@@ -113,10 +117,21 @@ def _search_resolution(positions, faces, quadrics, lo, extent, target):
             good = middle
         else:
             bad = middle
-    best = good
-    result = _cluster_grid(positions, faces, quadrics, lo, extent, best)
+    result = _cluster_grid(positions, faces, quadrics, lo, extent, good)
     if result is None:
         raise MeshError(f"vertex clustering cannot reach {target} faces")
+    # The count includes faces that clustering then finds duplicated (parts
+    # lying on each other): if the result undershoots, refine a few times.
+    # The count is not monotone in r either, so try a few finer grids and
+    # keep the fullest result that still fits.
+    r = good
+    for _ in range(_REFINE_STEPS):
+        if result.face_count >= _CLOSE_ENOUGH * target or r >= _MAX_CELLS:
+            break
+        r = min(_MAX_CELLS, max(r + 1, int(r * _REFINE_GROWTH)))
+        finer = _cluster_grid(positions, faces, quadrics, lo, extent, r)
+        if finer is not None and result.face_count < finer.face_count <= target:
+            result = finer
     return result
 
 
