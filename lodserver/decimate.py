@@ -265,6 +265,25 @@ def _drop_stale(rk, rab, rvs, rsize, version, vertex_alive):
 
 
 @njit(cache=True, nogil=True)
+def _reservoir_push(rk, rab, rvs, rsize, key, e_ab, e_vs, version, vertex_alive):
+    """Append an entry to the reservoir; returns (rk, rab, rvs, new size).
+
+    When full, stale entries are dropped first and the arrays grow only if
+    that freed less than half of them.
+    """
+    if rsize == rk.shape[0]:
+        rsize = _drop_stale(rk, rab, rvs, rsize, version, vertex_alive)
+        if rsize > rk.shape[0] // 2:
+            rk = _grow(rk, rsize + 1)
+            rab = _grow(rab, rsize + 1)
+            rvs = _grow(rvs, rsize + 1)
+    rk[rsize] = key
+    rab[rsize] = e_ab
+    rvs[rsize] = e_vs
+    return rk, rab, rvs, rsize + 1
+
+
+@njit(cache=True, nogil=True)
 def _grow(a, need):
     if need <= a.shape[0]:
         return a
@@ -470,13 +489,9 @@ def _decimate_kernel(pos, world, scale, origin, faces, quadrics, kind, min_verti
                             mark[b] = stamp
                             cost, _s = _plan(a, b, pos, quadrics, kind, q, p)
                             if cost < np.inf:
-                                if rsize == rk.shape[0]:
-                                    rk = _grow(rk, rsize + 1); rab = _grow(rab, rsize + 1)
-                                    rvs = _grow(rvs, rsize + 1)
-                                rk[rsize] = cost
-                                rab[rsize] = (a << 32) | b
-                                rvs[rsize] = version[a] + version[b]
-                                rsize += 1
+                                rk, rab, rvs, rsize = _reservoir_push(
+                                    rk, rab, rvs, rsize, cost, (a << 32) | b,
+                                    version[a] + version[b], version, vertex_alive)
                 c = cnext[c]
         if pair_radius > 0.0:
             pairs, stamp = _close_pairs(pos, vertex_alive, faces, face_alive, vhead, cnext,
@@ -486,13 +501,9 @@ def _decimate_kernel(pos, world, scale, origin, faces, quadrics, kind, min_verti
                 b = pairs[i, 1]
                 cost, _s = _plan(a, b, pos, quadrics, kind, q, p)
                 if cost < np.inf:
-                    if rsize == rk.shape[0]:
-                        rk = _grow(rk, rsize + 1); rab = _grow(rab, rsize + 1)
-                        rvs = _grow(rvs, rsize + 1)
-                    rk[rsize] = cost
-                    rab[rsize] = (a << 32) | b
-                    rvs[rsize] = version[a] + version[b]
-                    rsize += 1
+                    rk, rab, rvs, rsize = _reservoir_push(rk, rab, rvs, rsize, cost, (a << 32) | b,
+                                                          version[a] + version[b], version,
+                                                          vertex_alive)
         hsize = 0
         tau = -np.inf
 
@@ -710,16 +721,8 @@ def _decimate_kernel(pos, world, scale, origin, faces, quadrics, kind, min_verti
                                     hvs = _grow(hvs, hsize + 1)
                                 hsize = _heap_push(hk, hab, hvs, hsize, cost2, e_ab, e_vs)
                             else:
-                                if rsize == rk.shape[0]:
-                                    # mostly stale entries by now: compact before growing
-                                    rsize = _drop_stale(rk, rab, rvs, rsize, version, vertex_alive)
-                                    if rsize > rk.shape[0] // 2:
-                                        rk = _grow(rk, rsize + 1); rab = _grow(rab, rsize + 1)
-                                        rvs = _grow(rvs, rsize + 1)
-                                rk[rsize] = cost2
-                                rab[rsize] = e_ab
-                                rvs[rsize] = e_vs
-                                rsize += 1
+                                rk, rab, rvs, rsize = _reservoir_push(
+                                    rk, rab, rvs, rsize, cost2, e_ab, e_vs, version, vertex_alive)
                 c = cnext[c]
         if stop or nk == collapses_before:
             break
