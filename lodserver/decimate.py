@@ -29,7 +29,7 @@ from dataclasses import dataclass
 import numpy as np
 from numba import njit
 
-from .mesh import Mesh
+from .mesh import Mesh, MeshError
 from .quadrics import optimal_position, quadric_error, vertex_quadrics
 from .topology import Census, census
 
@@ -417,12 +417,13 @@ def _decimate_kernel(pos, world, scale, origin, faces, quadrics, kind, min_verti
     """
     n = pos.shape[0]
     m = faces.shape[0]
-    faces = faces.copy()
+    # int32 ids halve the memory traffic of the corner walks, which dominate
+    faces = faces.astype(np.int32)
 
     # Corner lists: vhead[v] -> corner -> cnext[corner] ... of the faces at v.
     # Dead faces are unlinked lazily, when the survivor's list is next rebuilt.
-    vhead = np.full(n, -1, np.int64)
-    cnext = np.full(3 * m, -1, np.int64)
+    vhead = np.full(n, -1, np.int32)
+    cnext = np.full(3 * m, -1, np.int32)
     for c in range(3 * m - 1, -1, -1):
         v = faces[c // 3, c % 3]
         cnext[c] = vhead[v]
@@ -777,6 +778,9 @@ def decimate(mesh: Mesh, *, boundary_weight: float = 1.0, locked=None, min_verti
     positions = np.asarray(mesh.positions, dtype=np.float64)
     faces = np.ascontiguousarray(mesh.faces, dtype=np.int64)
     n = len(positions)
+    if 3 * len(faces) >= 2**31:
+        # the kernel stores vertex and corner ids as int32
+        raise MeshError(f"{len(faces)} faces is more than the 715 million decimation supports")
     found = census(faces, n)
     kind = classify_vertices(found, n, locked)
 
