@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from numba import njit
+from numba import njit, prange
 
 from .mesh import Mesh, MeshError
 from .quadrics import REGULARIZATION, vertex_quadrics
@@ -136,18 +136,38 @@ def _search_resolution(positions, faces, quadrics, lo, extent, target):
 
 
 @njit(cache=True, nogil=True)
+def _cell_sums(used, cell_of_used, quadrics, positions, k):
+    """Summed quadric (k, 11) and mean position (k, 3) of each cell's vertices."""
+    q = np.zeros((k, quadrics.shape[1]))
+    mean = np.zeros((k, 3))
+    count = np.zeros(k)
+    for i in range(used.shape[0]):
+        v = used[i]
+        c = cell_of_used[i]
+        for j in range(quadrics.shape[1]):
+            q[c, j] += quadrics[v, j]
+        for j in range(3):
+            mean[c, j] += positions[v, j]
+        count[c] += 1.0
+    for c in range(k):
+        for j in range(3):
+            mean[c, j] /= count[c]
+    return q, mean
+
+
+@njit(cache=True, nogil=True, parallel=True)
 def _surviving_faces(unit, faces, cells):
     """Faces whose three corners lie in three different cells of a grid of
     ``cells`` per side over the unit box (``unit`` = positions scaled into it)."""
     n = unit.shape[0]
     key = np.empty(n, np.int64)
-    for v in range(n):
+    for v in prange(n):
         x = min(int(unit[v, 0] * cells), cells - 1)
         y = min(int(unit[v, 1] * cells), cells - 1)
         z = min(int(unit[v, 2] * cells), cells - 1)
         key[v] = (x * (cells + 1) + y) * (cells + 1) + z
     count = 0
-    for f in range(faces.shape[0]):
+    for f in prange(faces.shape[0]):
         a = key[faces[f, 0]]
         b = key[faces[f, 1]]
         c = key[faces[f, 2]]
@@ -167,13 +187,7 @@ def _cluster_grid(positions, faces, quadrics, lo, extent, cells):
     cell_of[used] = cell_of_used
     k = len(cell_keys)
 
-    # Summed quadric and mean position of each cell (bincount per column is
-    # much faster than np.add.at).
-    q = np.stack([np.bincount(cell_of_used, weights=quadrics[used, j], minlength=k)
-                  for j in range(quadrics.shape[1])], axis=1)
-    count = np.bincount(cell_of_used, minlength=k).astype(np.float64)
-    mean = np.stack([np.bincount(cell_of_used, weights=positions[used, j], minlength=k)
-                     for j in range(3)], axis=1) / count[:, None]
+    q, mean = _cell_sums(used, cell_of_used, quadrics, positions, k)
 
     # Regularised solve (A + eps I) p = eps * mean - b, as in quadrics.optimal_position.
     a = np.empty((k, 3, 3))
