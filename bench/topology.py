@@ -98,8 +98,9 @@ def _child(method, positions, faces, target, repeats, queue):
 
 def run_isolated(method, positions, faces, target, repeats=1, timeout=600):
     """(positions, faces, seconds) from ``method`` in a child process, or a failure string."""
-    queue = mp.get_context("fork").Queue()
-    child = mp.get_context("fork").Process(target=_child,
+    context = mp.get_context("spawn")  # fork is unsafe once numba has started OpenMP threads
+    queue = context.Queue()
+    child = context.Process(target=_child,
                                            args=(method, positions, faces, target, repeats, queue))
     child.start()
     # Read before joining: a child blocks on putting a large result until the
