@@ -14,10 +14,8 @@ from __future__ import annotations
 
 import numpy as np
 import orjson
-import tempfile
-from pathlib import Path
 
-from .io import save_mesh
+from .io import encode_mesh
 from .mesh import MeshError
 from .packets import check_bits, grid_of, quantized_level
 from .progressive import ProgressiveMesh
@@ -77,9 +75,4 @@ def encode_level(pm: ProgressiveMesh, level: int, *, file_type: str,
         # orjson writes numpy arrays directly: the same bytes as json.dumps of
         # their lists, 7x faster on a million-face level.
         return orjson.dumps(document, option=orjson.OPT_SERIALIZE_NUMPY)
-    # io.save_mesh writes files (atomically); a private temporary directory
-    # turns that into bytes without a second exporter.
-    with tempfile.TemporaryDirectory(prefix="lodserver-") as folder:
-        path = Path(folder) / f"level.{file_type}"
-        save_mesh(pm.at(level), path, file_type=file_type)
-        return path.read_bytes()
+    return encode_mesh(pm.at(level), file_type)

@@ -31,8 +31,10 @@ more and within 5e-18 otherwise.
 
 from __future__ import annotations
 
+import json
 import os
 import re
+import struct
 import uuid
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -56,7 +58,6 @@ _EXPORT_OPTIONS = {
         "header": None,
         "digits": 17,
     },
-    "glb": {"include_normals": False},
     "off": {"digits": 17},
     "stl": {},
 }
@@ -251,11 +252,7 @@ def save_mesh(mesh: Mesh, path, *, file_type: str | None = None) -> None:
     """
     path = Path(path)
     kind = _file_kind(path, file_type, SUPPORTED_OUTPUT, "save")
-    data = trimesh.Trimesh(mesh.positions, mesh.faces, process=False).export(
-        file_type=kind, **_EXPORT_OPTIONS[kind]
-    )
-    if isinstance(data, str):
-        data = data.encode("utf-8")
+    data = encode_mesh(mesh, kind)
     temporary = path.with_name(f".{path.name}.{uuid.uuid4().hex}.tmp")
     try:
         with open(temporary, "xb") as file:
@@ -266,6 +263,54 @@ def save_mesh(mesh: Mesh, path, *, file_type: str | None = None) -> None:
     except BaseException:
         temporary.unlink(missing_ok=True)
         raise
+
+
+def encode_mesh(mesh: Mesh, file_type: str) -> bytes:
+    """The bytes of ``mesh`` as a file of ``file_type`` (one of :data:`SUPPORTED_OUTPUT`).
+
+    GLB is packed here (one float32 POSITION accessor, one uint32 index
+    accessor), straight from the arrays, without building a trimesh scene.
+    """
+    if file_type not in SUPPORTED_OUTPUT:
+        raise MeshError(f"cannot write {file_type!r}: supported are {', '.join(SUPPORTED_OUTPUT)}")
+    if file_type == "glb":
+        return _glb_bytes(mesh.positions, mesh.faces)
+    data = trimesh.Trimesh(mesh.positions, mesh.faces, process=False).export(
+        file_type=file_type, **_EXPORT_OPTIONS[file_type]
+    )
+    return data.encode("utf-8") if isinstance(data, str) else data
+
+
+def _glb_bytes(positions, faces) -> bytes:
+    """A binary glTF 2.0 file with one triangle mesh (positions float32, indices uint32)."""
+    vertices = np.ascontiguousarray(positions, dtype="<f4")
+    indices = np.ascontiguousarray(faces, dtype="<u4").ravel()
+    vertex_bytes, index_bytes = vertices.nbytes, indices.nbytes
+    document = {
+        "asset": {"version": "2.0", "generator": "lodserver"},
+        "scene": 0,
+        "scenes": [{"nodes": [0]}],
+        "nodes": [{"mesh": 0}],
+        "meshes": [{"primitives": [{"attributes": {"POSITION": 0}, "indices": 1, "mode": 4}]}],
+        "accessors": [
+            # glTF requires POSITION bounds, taken from the float32 values written
+            {"bufferView": 0, "componentType": 5126, "count": len(vertices), "type": "VEC3",
+             "min": vertices.min(axis=0).tolist(), "max": vertices.max(axis=0).tolist()},
+            {"bufferView": 1, "componentType": 5125, "count": len(indices), "type": "SCALAR"},
+        ],
+        "bufferViews": [
+            {"buffer": 0, "byteOffset": 0, "byteLength": vertex_bytes, "target": 34962},
+            {"buffer": 0, "byteOffset": vertex_bytes, "byteLength": index_bytes, "target": 34963},
+        ],
+        "buffers": [{"byteLength": vertex_bytes + index_bytes}],
+    }
+    header = json.dumps(document, separators=(",", ":")).encode()
+    header += b" " * (-len(header) % 4)         # chunks are 4-byte aligned
+    binary = vertices.tobytes() + indices.tobytes()  # both sizes are multiples of 4
+    total = 12 + 8 + len(header) + 8 + len(binary)
+    return b"".join([struct.pack("<4sII", b"glTF", 2, total),
+                     struct.pack("<I4s", len(header), b"JSON"), header,
+                     struct.pack("<I4s", len(binary), b"BIN\x00"), binary])
 
 
 def _first_occurrences(rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
