@@ -10,20 +10,25 @@ Pipeline, in the order of this file:
 
 1. classify vertices (interior, border, locked) from edge-face counts and fans;
 2. build vertex quadrics (``quadrics.vertex_quadrics``);
-3. in a compiled kernel: corner lists per vertex, a lazy binary heap of edge
-   collapses keyed on quadric error, then pop / check / perform / re-rank until
-   no legal collapse is left, in passes (a collapse refused now may become
-   legal once its neighbourhood has moved, so each pass re-ranks all edges);
+3. in a compiled kernel: corner lists per vertex, a collapse queue keyed on
+   quadric error (a small heap of the cheapest slice over an unsorted
+   reservoir, stale entries detected by vertex versions), then pop / check /
+   perform / re-rank until no legal collapse is left, in passes (a collapse
+   refused now may become legal once its neighbourhood has moved, so each
+   pass re-ranks all edges, and finds close pairs anew when they are asked for);
 4. return the collapse log as parallel arrays, one row per collapse.
 
+With a pair threshold, vertices closer than it that share no edge are
+candidates too (G&H's "valid pairs"): contracting one joins two parts and
+removes no face, which the log records like any other collapse.
+
 Positions are rescaled to the unit box inside the kernel so its tolerances
-are scale-free; logged positions are mapped back to mesh units.
+are scale-free; logged positions are kept in mesh units alongside.
 """
 
 from __future__ import annotations
 
 import threading
-import time
 from dataclasses import dataclass
 
 import numpy as np

@@ -29,7 +29,6 @@ def test_boundary_planes_pull_border_vertices_back():
     held = vertex_quadrics(m.positions, m.faces, boundary_weight=1)
     border = census(m.faces, m.vertex_count).on_boundary
     v = int(np.nonzero(border)[0][0])
-    inward = m.positions[v] + np.array([0.01, 0.01, 0.0])
     outward = m.positions[v] - np.array([0.01, 0.01, 0.0])
     # moving in the surface's plane costs nothing without constraint planes...
     assert quadric_error(free[v], *outward) < 1e-6
