@@ -444,3 +444,28 @@ def test_save_replaces_an_existing_file(tmp_path):
     path.write_text("old")
     save_mesh(mesh, path)
     assert load_mesh(path)[0].face_count == mesh.face_count
+
+
+def test_glb_is_a_well_formed_gltf_binary():
+    """Header, 4-byte aligned chunks, accessor counts and POSITION bounds."""
+    import json
+    import struct
+
+    from lodserver.io import encode_mesh
+
+    mesh, _ = load_mesh(SPOT)
+    data = encode_mesh(mesh, "glb")
+    magic, version, total = struct.unpack_from("<4sII", data)
+    assert (magic, version, total) == (b"glTF", 2, len(data))
+    json_length, json_type = struct.unpack_from("<I4s", data, 12)
+    assert json_type == b"JSON" and json_length % 4 == 0
+    document = json.loads(data[20:20 + json_length])
+    bin_length, bin_type = struct.unpack_from("<I4s", data, 20 + json_length)
+    assert bin_type == b"BIN\x00" and bin_length % 4 == 0
+    assert 28 + json_length + bin_length == len(data)
+    positions, indices = document["accessors"]
+    assert positions["count"] == mesh.vertex_count and indices["count"] == 3 * mesh.face_count
+    as_float32 = mesh.positions.astype(np.float32)
+    assert positions["min"] == as_float32.min(axis=0).tolist()
+    assert positions["max"] == as_float32.max(axis=0).tolist()
+    assert document["buffers"][0]["byteLength"] == bin_length
