@@ -178,7 +178,7 @@ class ProgressiveMesh:
         t = np.arange(n0, n)
         par = self.parent[n0:]
         # children of every vertex, ascending (CSR): the vertex hierarchy
-        order = np.lexsort((t, par))
+        order = np.argsort(par, kind="stable")     # t is ascending already
         children = t[order]
         child_offsets = np.zeros(n + 1, dtype=np.int64)
         np.cumsum(np.bincount(par, minlength=n), out=child_offsets[1:])
@@ -393,8 +393,13 @@ class Cursor:
 def _reverse_blocks(values, offsets):
     """Concatenate the blocks ``values[offsets[i]:offsets[i+1]]`` last block
     first, each block keeping its inner order (collapse order -> split order)."""
-    block = np.repeat(np.arange(len(offsets) - 1), np.diff(offsets))
-    return values[np.argsort(-block, kind="stable")]
+    counts = np.diff(offsets)
+    block = np.repeat(np.arange(len(counts)), counts)
+    # element j of block i lands at (total - end of block i) + (j - start of block i)
+    destination = (offsets[-1] - offsets[1:])[block] + (np.arange(len(values)) - offsets[:-1][block])
+    out = np.empty_like(values)
+    out[destination] = values
+    return out
 
 
 def from_collapse_log(mesh: Mesh, log: CollapseLog, metadata=None) -> ProgressiveMesh:
