@@ -35,7 +35,7 @@ import numpy as np
 from numba import njit
 
 from .mesh import Mesh, MeshError
-from .quadrics import optimal_position, quadric_error, vertex_quadrics
+from .quadrics import optimal_position_xyz, quadric_error, vertex_quadrics
 from .topology import Census, census
 
 # Vertex kinds. The rules, as in meshoptimizer's kCanCollapse table:
@@ -311,7 +311,8 @@ def _plan(a, b, pos, quadrics, kind, q, p):
         s = a if kind[a] == LOCKED else b
         p[0] = pos[s, 0]; p[1] = pos[s, 1]; p[2] = pos[s, 2]
         return max(quadric_error(q, p[0], p[1], p[2]), 0.0), s
-    cost = optimal_position(q, pos[a], pos[b], p)
+    cost = optimal_position_xyz(q, pos[a, 0], pos[a, 1], pos[a, 2], pos[b, 0], pos[b, 1],
+                                pos[b, 2], p)
     # The border vertex survives an interior-border collapse; otherwise either may.
     s = b if kind[b] > kind[a] else a
     return max(cost, 0.0), s

@@ -187,9 +187,16 @@ def optimal_position(q, pa, pb, out):
 
     Returns the quadric error at ``out``.
     """
-    mx = 0.5 * (pa[0] + pb[0])
-    my = 0.5 * (pa[1] + pb[1])
-    mz = 0.5 * (pa[2] + pb[2])
+    return optimal_position_xyz(q, pa[0], pa[1], pa[2], pb[0], pb[1], pb[2], out)
+
+
+@njit(cache=True, nogil=True)
+def optimal_position_xyz(q, ax, ay, az, bx, by, bz, out):
+    """``optimal_position`` with the endpoints as scalars: the kernel calls it
+    millions of times, and slicing rows into array views costs more than the solve."""
+    mx = 0.5 * (ax + bx)
+    my = 0.5 * (ay + by)
+    mz = 0.5 * (az + bz)
     trace = q[0] + q[3] + q[5]
     eps = REGULARIZATION * trace
     a00 = q[0] + eps; a01 = q[1]; a02 = q[2]
@@ -223,12 +230,12 @@ def optimal_position(q, pa, pb, out):
     if e < best:
         best = e
         out[0] = mx; out[1] = my; out[2] = mz
-    e = quadric_error(q, pa[0], pa[1], pa[2])
+    e = quadric_error(q, ax, ay, az)
     if e < best:
         best = e
-        out[0] = pa[0]; out[1] = pa[1]; out[2] = pa[2]
-    e = quadric_error(q, pb[0], pb[1], pb[2])
+        out[0] = ax; out[1] = ay; out[2] = az
+    e = quadric_error(q, bx, by, bz)
     if e < best:
         best = e
-        out[0] = pb[0]; out[1] = pb[1]; out[2] = pb[2]
+        out[0] = bx; out[1] = by; out[2] = bz
     return best
