@@ -307,13 +307,16 @@ class ProgressiveMesh:
         return Cursor(self, self.base_vertices if level is None else level)
 
     def summary(self) -> dict:
-        """Counts and the error curve at a few levels, JSON-able."""
+        """Counts and the error curve at 25 face ratios from 1 to 0.001
+        (log-spaced, finest first, repeated levels once), JSON-able."""
         n0, n = self.base_vertices, self.vertex_count
         curve = []
-        for ratio in (1.0, 0.5, 0.25, 0.1, 0.05, 0.02, 0.01, 0.005):
-            level = self.level_for(ratio=ratio)
-            curve.append({"ratio": ratio, "vertices": level, "faces": self.faces_at_level(level),
-                          "error": self.error_at_level(level)})
+        for ratio in np.geomspace(1.0, 1e-3, 25):
+            level = self.level_for(ratio=float(ratio))
+            if curve and curve[-1]["vertices"] == level:
+                continue
+            curve.append({"ratio": round(float(ratio), 6), "vertices": level,
+                          "faces": self.faces_at_level(level), "error": self.error_at_level(level)})
         return {"vertices": n, "faces": self.face_count, "base_vertices": n0,
                 "base_faces": int(self.face_counts[0]), "splits": n - n0,
                 "max_error": float(self.level_error[0]) if n > n0 else 0.0,
