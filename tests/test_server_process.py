@@ -1,7 +1,6 @@
 """A real ``lodserver serve`` process on a loopback port, driven over HTTP."""
 
 import os
-import shutil
 import socket
 import subprocess
 import sys
@@ -26,10 +25,9 @@ def _free_port() -> int:
 @contextmanager
 def _serve(data_dir):
     port = _free_port()
-    command = [shutil.which("lodserver") or sys.executable, "serve", "--data", str(data_dir),
+    # the interpreter running the tests, not whatever `lodserver` is first on PATH
+    command = [sys.executable, "-m", "lodserver.cli", "serve", "--data", str(data_dir),
                "--host", "127.0.0.1", "--port", str(port), "--log-level", "warning"]
-    if command[0] == sys.executable:
-        command[1:1] = ["-m", "lodserver.cli"]
     env = {**os.environ, "LODSERVER_TOKEN": "", "LODSERVER_WARM_KERNELS": "false"}
     process = subprocess.Popen(command, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
     base = f"http://127.0.0.1:{port}"
