@@ -182,11 +182,6 @@ def _put_varint(out: bytearray, value: int) -> None:
     out.append(value)
 
 
-def _zigzag(value: int) -> int:
-    """Signed -> unsigned, small magnitudes first: 0, -1, 1, -2, ... -> 0, 1, 2, 3, ..."""
-    return 2 * value if value >= 0 else -2 * value - 1
-
-
 class _Reader:
     """Sequential reads from one stream; running past its end is a PacketError."""
 
@@ -439,7 +434,7 @@ def _put(buf, used, value):
 
 @njit(cache=True, nogil=True)
 def _zz(value):
-    """Zigzag, as :func:`_zigzag`."""
+    """Signed -> unsigned, small magnitudes first: 0, -1, 1, -2, ... -> 0, 1, 2, 3, ..."""
     return 2 * value if value >= 0 else -2 * value - 1
 
 

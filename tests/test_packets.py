@@ -22,7 +22,7 @@ from lodserver.packets import (
     PacketError,
     _put_varint,
     _Reader,
-    _zigzag,
+    _zz as _zigzag,  # the compiled zigzag the encoder uses
     apply_packet,
     decode_packet,
     default_bits,
