@@ -8,7 +8,6 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from lodserver import build
-from lodserver.mesh import Mesh
 
 from .meshes import SHARED, canonical_faces, mesh, progressive
 
@@ -164,7 +163,6 @@ def test_locked_vertices_never_move_or_vanish():
     keys = {tuple(p) for p in original.positions[locked]}
     base = pm.at(pm.base_vertices)
     assert keys <= {tuple(p) for p in base.positions}
-    assert base.vertex_count == locked.sum() or base.vertex_count > locked.sum()
     for level in _sample_levels(pm):
         assert keys <= {tuple(p) for p in pm.at(level).positions}
 
@@ -187,4 +185,7 @@ def test_two_parts_are_decimated_separately():
     base = pm.at(pm.base_vertices)
     # each box ends as a tetrahedron at worst; nothing joins them
     assert base.face_count >= 8
-    assert isinstance(base, Mesh)
+    # no face spans the gap between the boxes (x < 1.5 and x > 1.5)
+    side = base.positions[base.faces][:, :, 0] > 1.5
+    assert np.all(side.all(axis=1) | ~side.any(axis=1))
+    assert side.any() and not side.all()
