@@ -42,16 +42,21 @@ from .decimate import CollapseLog
 from .mesh import Mesh
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _ancestor_below(parent, x, level):
+    """The vertex a full-detail corner ``x`` reads at ``level``: its first
+    ancestor in the vertex hierarchy below ``level``."""
+    while x >= level:
+        x = parent[x]
+    return x
+
+
 @njit(cache=True, nogil=True)
 def _faces_at(full_faces, parent, face_count, level, out):
-    """Corners of the first ``face_count`` faces at level ``level``: each
-    full-detail corner climbs the vertex hierarchy until it is below ``level``."""
+    """Corners of the first ``face_count`` faces at level ``level``."""
     for f in range(face_count):
         for k in range(3):
-            x = full_faces[f, k]
-            while x >= level:
-                x = parent[x]
-            out[f, k] = x
+            out[f, k] = _ancestor_below(parent, full_faces[f, k], level)
 
 
 @njit(cache=True, nogil=True)
@@ -338,12 +343,8 @@ def _faces_at_levels(full_faces, parent, start, levels, out):
     """Like ``_faces_at`` for faces ``start ..``, each at its own level."""
     for i in range(levels.shape[0]):
         f = start + i
-        level = levels[i]
         for k in range(3):
-            x = full_faces[f, k]
-            while x >= level:
-                x = parent[x]
-            out[f, k] = x
+            out[f, k] = _ancestor_below(parent, full_faces[f, k], levels[i])
 
 
 def _level_error(error):
