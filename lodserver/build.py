@@ -10,8 +10,9 @@ from .progressive import ProgressiveMesh, from_collapse_log
 
 
 def build(source, *, boundary_weight: float = 1.0, locked=None, min_vertices: int = 0,
-          flip_cos: float = DEFAULT_FLIP_COS, pair_threshold: float | str = 0.0, progress=None,
-          cancel=None) -> ProgressiveMesh:
+          flip_cos: float = DEFAULT_FLIP_COS, pair_threshold: float | str = 0.0,
+          attribute_weights: dict | None = None, preserve_volume: bool = True,
+          progress=None, cancel=None) -> ProgressiveMesh:
     """Build the progressive mesh of ``source``.
 
     Parameters
@@ -22,7 +23,8 @@ def build(source, *, boundary_weight: float = 1.0, locked=None, min_vertices: in
         Distance under which vertices that share no edge may be contracted
         (joining parts): mesh units, or a string like ``"1%"`` for a fraction
         of the bounding-box diagonal. 0 disables it.
-    boundary_weight, locked, min_vertices, flip_cos, progress, cancel
+    boundary_weight, locked, min_vertices, flip_cos, attribute_weights,
+    preserve_volume, progress, cancel
         See ``decimate.decimate``.
 
     Returns
@@ -41,10 +43,13 @@ def build(source, *, boundary_weight: float = 1.0, locked=None, min_vertices: in
     threshold = distance_from(pair_threshold, mesh)
     log = decimate(mesh, boundary_weight=boundary_weight, locked=locked,
                    min_vertices=min_vertices, flip_cos=flip_cos, pair_threshold=threshold,
+                   attribute_weights=attribute_weights, preserve_volume=preserve_volume,
                    progress=progress, cancel=cancel)
-    metadata["options"] = {"boundary_weight": boundary_weight, "min_vertices": min_vertices,
-                           "flip_cos": flip_cos, "pair_threshold": pair_threshold, "locked_vertices": 0 if locked is None
-                           else int(sum(bool(x) for x in locked))}
+    metadata["options"] = {
+        "boundary_weight": boundary_weight, "min_vertices": min_vertices, "flip_cos": flip_cos,
+        "pair_threshold": pair_threshold, "preserve_volume": bool(preserve_volume),
+        "attribute_weights": dict(attribute_weights or {}),
+        "locked_vertices": 0 if locked is None else int(sum(bool(x) for x in locked))}
     metadata["decimation"] = {"passes": log.passes, "rejected": log.rejected}
     return from_collapse_log(mesh, log, metadata)
 

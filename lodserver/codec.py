@@ -16,7 +16,11 @@ Byte layout (all integers little-endian)::
       8*d   uint64 shape
       ...   the array, C order, little-endian
 
-The ``meta`` block holds UTF-8 JSON (base_vertices and the metadata dict).
+The ``meta`` block holds UTF-8 JSON (base_vertices, the metadata dict and,
+with attributes, their layout). Version 2 adds optional blocks for
+appearance: the wedge arrays (``progressive.WEDGE_ARRAYS``), ``face_material``,
+``materials`` (UTF-8 JSON of the glTF material records) and ``image.<i>`` (the
+image files' bytes). Version 1 files (geometry only) are still read.
 Only the arrays ``ProgressiveMesh`` stores are written; everything derived
 (vertex hierarchy, split positions, birth faces) is rebuilt on load. Integer
 arrays whose values fit in int32 are stored as int32 (half the bytes).
@@ -36,11 +40,12 @@ from pathlib import Path
 
 import numpy as np
 
-from .mesh import MeshError
-from .progressive import ProgressiveMesh
+from .mesh import Materials, MeshError
+from .progressive import WEDGE_ARRAYS, ProgressiveMesh
 
 MAGIC = b"LODSRVPM"
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2
+READABLE_VERSIONS = (1, 2)
 _HEADER = struct.Struct("<8sIIQ")
 _DTYPES = {b"f": np.dtype("<f8"), b"i": np.dtype("<i8"), b"j": np.dtype("<i4"), b"u": np.dtype("u1")}
 _ARRAYS = ("positions", "faces", "parent", "coarse_position", "error", "face_counts",
@@ -68,11 +73,25 @@ def _encode_block(name: str, array: np.ndarray) -> bytes:
 
 def encode_progressive(pm: ProgressiveMesh) -> bytes:
     """The whole ``.pm`` file as bytes."""
-    meta = json.dumps({"base_vertices": pm.base_vertices, "metadata": pm.metadata}).encode()
-    blocks = [_encode_block("meta", np.frombuffer(meta, dtype=np.uint8))]
+    meta = {"base_vertices": pm.base_vertices, "metadata": pm.metadata}
+    if pm.has_attributes:
+        meta["attribute_layout"] = [list(item) for item in pm.attribute_layout]
+    blocks = [_encode_block("meta", _json_bytes(meta))]
     blocks += [_encode_block(name, getattr(pm, name)) for name in _ARRAYS]
+    if pm.has_attributes:
+        blocks += [_encode_block(name, getattr(pm, name)) for name in WEDGE_ARRAYS]
+    if pm.face_material is not None:
+        blocks.append(_encode_block("face_material", pm.face_material))
+    if pm.materials is not None:
+        blocks.append(_encode_block("materials", _json_bytes(pm.materials.gltf)))
+        blocks += [_encode_block(f"image.{i}", np.frombuffer(image, dtype=np.uint8))
+                   for i, image in enumerate(pm.materials.images)]
     payload = b"".join(blocks)
     return _HEADER.pack(MAGIC, FORMAT_VERSION, zlib.crc32(payload), len(payload)) + payload
+
+
+def _json_bytes(value) -> np.ndarray:
+    return np.frombuffer(json.dumps(value).encode(), dtype=np.uint8)
 
 
 def decode_progressive(data: bytes, *, source: str = "the artefact") -> ProgressiveMesh:
@@ -82,9 +101,9 @@ def decode_progressive(data: bytes, *, source: str = "the artefact") -> Progress
     magic, version, crc, length = _HEADER.unpack_from(data)
     if magic != MAGIC:
         raise ArtefactError(f"{source} is not a lodserver progressive mesh (bad magic bytes)")
-    if version != FORMAT_VERSION:
+    if version not in READABLE_VERSIONS:
         raise ArtefactError(f"{source} has format version {version}; this lodserver reads "
-                            f"version {FORMAT_VERSION}")
+                            f"versions {', '.join(map(str, READABLE_VERSIONS))}")
     payload = memoryview(data)[_HEADER.size:]
     if len(payload) != length:
         raise ArtefactError(f"{source} is truncated or padded: payload is {len(payload)} bytes, "
@@ -118,12 +137,27 @@ def decode_progressive(data: bytes, *, source: str = "the artefact") -> Progress
         raise ArtefactError(f"{source} lacks the blocks {', '.join(missing)}")
     try:
         meta = json.loads(blocks["meta"].tobytes())
-        arrays = {name: np.array(blocks[name], dtype=np.float64 if name in
-                                 ("positions", "coarse_position", "error") else np.int64)
+        floats = ("positions", "coarse_position", "error", "wedge_values", "wedge_coarse_value")
+        arrays = {name: np.array(blocks[name], dtype=np.float64 if name in floats else np.int64)
                   for name in _ARRAYS}
+        if "attribute_layout" in meta:
+            missing = [name for name in WEDGE_ARRAYS if name not in blocks]
+            if missing:
+                raise ArtefactError(f"{source} lacks the blocks {', '.join(missing)}")
+            arrays.update({name: np.array(blocks[name], dtype=np.float64 if name in floats
+                                          else np.int64) for name in WEDGE_ARRAYS})
+            arrays["attribute_layout"] = tuple(tuple(item) for item in meta["attribute_layout"])
+        if "face_material" in blocks:
+            arrays["face_material"] = np.array(blocks["face_material"], dtype=np.int32)
+        if "materials" in blocks:
+            images = []
+            while f"image.{len(images)}" in blocks:
+                images.append(blocks[f"image.{len(images)}"].tobytes())
+            arrays["materials"] = Materials(json.loads(blocks["materials"].tobytes()),
+                                            tuple(images))
         return ProgressiveMesh(base_vertices=int(meta["base_vertices"]),
                                metadata=meta.get("metadata", {}), **arrays)
-    except (ValueError, KeyError, IndexError) as exc:
+    except (ValueError, KeyError, IndexError, TypeError) as exc:
         raise ArtefactError(f"{source} holds inconsistent arrays ({exc})") from exc
 
 

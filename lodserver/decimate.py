@@ -35,7 +35,9 @@ import numpy as np
 from numba import njit
 
 from .mesh import Mesh, MeshError
-from .quadrics import optimal_position_xyz, quadric_error, vertex_quadrics
+from .quadrics import (add_fixed, add_reduced, best_attributes, constrain_to_plane,
+                       optimal_position_xyz, quadric_error, seam_edges, vertex_quadrics,
+                       wedge_quadrics)
 from .topology import Census, census
 
 # Vertex kinds. The rules, as in meshoptimizer's kCanCollapse table:
@@ -60,13 +62,25 @@ _PROGRESS_STRIDE = 1024
 
 # Reasons a popped candidate is refused, counted for diagnostics.
 REJECT_REASONS = ("stale", "not_an_edge", "non_manifold_edge", "pinch", "link",
-                  "tetrahedron", "last_face", "flip", "pair_too_far", "pair_shares_neighbours")
+                  "tetrahedron", "last_face", "flip", "pair_too_far", "pair_shares_neighbours",
+                  "seam", "deferred_by_volume")
 
 _REASON_COUNT = len(REJECT_REASONS)
 
 # Close pairs (G&H's "valid pairs" that share no edge): at most this many
 # candidates per vertex and per pass, so a dense cloud cannot blow up memory.
 MAX_PAIRS_PER_VERTEX = 8
+
+# Default weight of each attribute's squared error against squared distance in
+# the unit box (positions are scaled so the longest box side is 1): a UV error
+# of 0.01 then costs as much as a geometric error of 1% of the model's size.
+DEFAULT_ATTRIBUTE_WEIGHTS = {"NORMAL": 0.25, "TEXCOORD_0": 1.0, "TEXCOORD_1": 1.0, "COLOR_0": 0.5}
+
+# With volume preservation, a collapse popped from the queue is re-placed on
+# its volume plane, which can only raise its cost; if the cost rose past this
+# factor times the next key in the queue, it goes back into the queue (lazy
+# re-ranking keeps the order cheapest-first to within the factor).
+VOLUME_SLACK = 1.1
 
 
 @dataclass(frozen=True)
@@ -91,6 +105,13 @@ class CollapseLog:
         ``moved_corners[moved_offsets[i]:moved_offsets[i+1]]`` are the corners
         (``3 * face + slot``) that collapse i relabels from ``removed`` to ``survivor``.
     moved_corners : (c,) int64
+    merge_offsets : (k + 1,) int64
+        ``merge_*[merge_offsets[i]:merge_offsets[i+1]]`` are the wedge merges of collapse i.
+    merge_survivor, merge_removed : (g,) int64
+        Wedge ``merge_removed`` (of the removed vertex) merges into
+        ``merge_survivor`` (of the survivor); the removed wedge is never used again.
+    merge_value : (g, d) float64
+        The survivor wedge's attribute vector after the merge (input units).
     rejected : dict
         How many popped candidates were refused, by reason.
     passes : int
@@ -106,6 +127,10 @@ class CollapseLog:
     moved_corners: np.ndarray
     rejected: dict
     passes: int
+    merge_offsets: np.ndarray | None = None
+    merge_survivor: np.ndarray | None = None
+    merge_removed: np.ndarray | None = None
+    merge_value: np.ndarray | None = None
 
     def __len__(self) -> int:
         return len(self.survivor)
@@ -298,8 +323,104 @@ def _grow(a, need):
 
 
 @njit(cache=True, nogil=True)
-def _plan(a, b, pos, quadrics, kind, q, p):
-    """Cost of collapsing edge (a, b); writes the placement into ``p``.
+def _wedge_terms(a, b, q, faces, face_alive, vhead, cnext, cw, wq, wval, fv, groups):
+    """Add the attribute terms of collapsing (a, b) to ``q``.
+
+    The faces on the edge pair each wedge of ``a`` with one of ``b``; such a
+    pair merges into one wedge whose attributes are solved for (Hoppe's
+    reduced quadric). Every other wedge of ``a`` and ``b`` keeps its value
+    wherever the vertex goes (its fixed-value quadric, summed per vertex in
+    ``fv``). A seam along the edge keeps both sides (two pairs); a collapse
+    that would merge two wedges of one vertex, i.e. drag a seam across the
+    surface, is refused (returns False).
+
+    ``groups`` receives [pair count, a's wedge, b's wedge, a's wedge, b's wedge].
+    """
+    for j in range(10):
+        q[j] += fv[a, j] + fv[b, j]
+    n = 0
+    c = vhead[a]
+    while c >= 0:
+        f = c // 3
+        if face_alive[f]:
+            slot = c - 3 * f
+            for t in range(1, 3):
+                k = (slot + t) % 3
+                if faces[f, k] == b:
+                    if n == 2:
+                        return False        # non-manifold edge
+                    groups[1 + 2 * n] = cw[c]
+                    groups[2 + 2 * n] = cw[3 * f + k]
+                    n += 1
+        c = cnext[c]
+    if n == 2:
+        same_a = groups[1] == groups[3]
+        if same_a != (groups[2] == groups[4]):
+            return False
+        if same_a:
+            n = 1
+    groups[0] = n
+    d = wval.shape[1]
+    for g in range(n):
+        wa = groups[1 + 2 * g]
+        wb = groups[2 + 2 * g]
+        add_fixed(q, wq, wa, wval[wa], -1.0)
+        add_fixed(q, wq, wb, wval[wb], -1.0)
+        add_reduced(q, wq, wa, wb, d)
+    return True
+
+
+@njit(cache=True, nogil=True)
+def _vertex_fixed(v, faces, face_alive, vhead, cnext, cw, wq, wval, fv, wmark, stamp):
+    """fv[v] = the sum of the fixed-value quadrics of v's wedges; returns the new stamp."""
+    stamp += 1
+    for j in range(10):
+        fv[v, j] = 0.0
+    c = vhead[v]
+    while c >= 0:
+        if face_alive[c // 3]:
+            w = cw[c]
+            if wmark[w] != stamp:
+                wmark[w] = stamp
+                add_fixed(fv[v], wq, w, wval[w], 1.0)
+        c = cnext[c]
+    return stamp
+
+
+@njit(cache=True, nogil=True)
+def _volume_plane(a, b, pos, faces, face_alive, vhead, cnext, out):
+    """The plane ``N . p = h`` on which collapsing (a, b) to ``p`` keeps the
+    enclosed volume (signed tetrahedra against ``a``'s position, so a's own
+    faces add nothing before the move). Writes (Nx, Ny, Nz, h) into ``out``."""
+    ox = pos[a, 0]; oy = pos[a, 1]; oz = pos[a, 2]
+    nx = 0.0; ny = 0.0; nz = 0.0; h = 0.0
+    for v, other in ((a, b), (b, a)):
+        c = vhead[v]
+        while c >= 0:
+            f = c // 3
+            if face_alive[f]:
+                slot = c - 3 * f
+                x = faces[f, (slot + 1) % 3]
+                y = faces[f, (slot + 2) % 3]
+                if x != other and y != other:
+                    xx = pos[x, 0] - ox; xy = pos[x, 1] - oy; xz = pos[x, 2] - oz
+                    yx = pos[y, 0] - ox; yy = pos[y, 1] - oy; yz = pos[y, 2] - oz
+                    cx = xy * yz - xz * yy
+                    cy = xz * yx - xx * yz
+                    cz = xx * yy - xy * yx
+                    nx += cx; ny += cy; nz += cz
+                    if v == b:
+                        h += (pos[b, 0] - ox) * cx + (pos[b, 1] - oy) * cy + (pos[b, 2] - oz) * cz
+            c = cnext[c]
+    out[0] = nx; out[1] = ny; out[2] = nz
+    out[3] = h + nx * ox + ny * oy + nz * oz
+
+
+@njit(cache=True, nogil=True)
+def _plan(a, b, pos, quadrics, kind, q, p, faces, face_alive, vhead, cnext, cw, wq, wval, fv,
+          groups):
+    """Cost of collapsing edge (a, b); writes the placement into ``p`` and the
+    summed quadric into ``q``.
 
     Returns (cost, survivor); cost is inf when the collapse is never legal.
     """
@@ -307,6 +428,10 @@ def _plan(a, b, pos, quadrics, kind, q, p):
         return np.inf, a
     for j in range(11):
         q[j] = quadrics[a, j] + quadrics[b, j]
+    groups[0] = 0
+    if wq.shape[0] > 0 and not _wedge_terms(a, b, q, faces, face_alive, vhead, cnext, cw, wq,
+                                            wval, fv, groups):
+        return np.inf, a
     if kind[a] == LOCKED or kind[b] == LOCKED:
         s = a if kind[a] == LOCKED else b
         p[0] = pos[s, 0]; p[1] = pos[s, 1]; p[2] = pos[s, 2]
@@ -410,7 +535,8 @@ def _close_pairs(pos, vertex_alive, faces, face_alive, vhead, cnext, radius, mar
 
 @njit(cache=True, nogil=True)
 def _decimate_kernel(pos, world, scale, origin, faces, quadrics, kind, min_vertices,
-                     max_collapses, flip_cos, pair_radius, progress):
+                     max_collapses, flip_cos, pair_radius, progress, corner_wedge, wq, wval,
+                     normal_col, normal_len, color_col, color_max, volume):
     """Collapse edges (and close pairs, if ``pair_radius`` > 0) cheapest first
     until none is legal or a limit is hit.
 
@@ -420,6 +546,13 @@ def _decimate_kernel(pos, world, scale, origin, faces, quadrics, kind, min_verti
     position exactly.
     ``progress[0]`` receives the collapse count as it goes; a non-zero
     ``progress[1]`` asks the kernel to stop early.
+
+    Wedges (all empty for a geometry-only mesh): ``corner_wedge`` (3m,) the
+    wedge of every corner, ``wq`` (w, 11 + 4d) their attribute quadrics and
+    ``wval`` (w, d) their values, scaled by sqrt(weight); both updated in
+    place. Columns ``normal_col .. +3`` are renormalised to ``normal_len`` and
+    ``color_col .. +4`` clamped to [0, color_max] after a merge (-1: absent).
+    ``volume`` keeps interior collapses on their volume-preserving plane.
     """
     n = pos.shape[0]
     m = faces.shape[0]
@@ -435,6 +568,26 @@ def _decimate_kernel(pos, world, scale, origin, faces, quadrics, kind, min_verti
         cnext[c] = vhead[v]
         vhead[v] = c
     face_alive = np.ones(m, np.bool_)
+    # Wedges: fv[v] caches the fixed-value attribute quadrics of v's wedges
+    cw = corner_wedge.astype(np.int32)
+    d = wval.shape[1]
+    has_wedges = wq.shape[0] > 0
+    fv = np.zeros((n if has_wedges else 0, 10), np.float64)
+    wmark = np.zeros(wq.shape[0], np.int64)
+    wstamp = 0
+    if has_wedges:
+        for v in range(n):
+            wstamp = _vertex_fixed(v, faces, face_alive, vhead, cnext, cw, wq, wval, fv, wmark,
+                                   wstamp)
+    groups = np.zeros(5, np.int64)
+    value = np.empty(d, np.float64)
+    mg_off = np.zeros(n + 1, np.int64)
+    mg_s = np.empty(2 * n if has_wedges else 0, np.int64)
+    mg_r = np.empty(2 * n if has_wedges else 0, np.int64)
+    mg_v = np.empty((2 * n if has_wedges else 0, d), np.float64)
+    nmerged = 0
+    plane = np.empty(4, np.float64)
+    gq = np.empty(11, np.float64)
     face_count = np.zeros(n, np.int64)     # live faces at each vertex
     for c in range(3 * m):
         face_count[faces[c // 3, c % 3]] += 1
@@ -494,7 +647,8 @@ def _decimate_kernel(pos, world, scale, origin, faces, quadrics, kind, min_verti
                         b = faces[f, (slot + t) % 3]
                         if b > a and mark[b] != stamp:
                             mark[b] = stamp
-                            cost, _s = _plan(a, b, pos, quadrics, kind, q, p)
+                            cost, _s = _plan(a, b, pos, quadrics, kind, q, p, faces, face_alive,
+                                             vhead, cnext, cw, wq, wval, fv, groups)
                             if cost < np.inf:
                                 rk, rab, rvs, rsize = _reservoir_push(
                                     rk, rab, rvs, rsize, cost, (a << 32) | b,
@@ -506,7 +660,8 @@ def _decimate_kernel(pos, world, scale, origin, faces, quadrics, kind, min_verti
             for i in range(pairs.shape[0]):
                 a = pairs[i, 0]
                 b = pairs[i, 1]
-                cost, _s = _plan(a, b, pos, quadrics, kind, q, p)
+                cost, _s = _plan(a, b, pos, quadrics, kind, q, p, faces, face_alive, vhead, cnext,
+                                 cw, wq, wval, fv, groups)
                 if cost < np.inf:
                     rk, rab, rvs, rsize = _reservoir_push(rk, rab, rvs, rsize, cost, (a << 32) | b,
                                                           version[a] + version[b], version,
@@ -535,8 +690,36 @@ def _decimate_kernel(pos, world, scale, origin, faces, quadrics, kind, min_verti
                     or version[a] + version[b] != entry_version):
                 rejected[0] += 1
                 continue
-            cost, s = _plan(a, b, pos, quadrics, kind, q, p)
+            cost, s = _plan(a, b, pos, quadrics, kind, q, p, faces, face_alive, vhead, cnext,
+                            cw, wq, wval, fv, groups)
+            if cost == np.inf:
+                rejected[10] += 1
+                continue
+            if volume and kind[a] == INTERIOR and kind[b] == INTERIOR:
+                _volume_plane(a, b, pos, faces, face_alive, vhead, cnext, plane)
+                if constrain_to_plane(q, plane[0], plane[1], plane[2], plane[3], p):
+                    cost = max(quadric_error(q, p[0], p[1], p[2]), 0.0)
+                    next_key = hk[0] if hsize > 0 else tau
+                    if cost > VOLUME_SLACK * next_key:
+                        # dearer than what waits next: back into the queue at its true cost
+                        rejected[11] += 1
+                        if cost <= tau:
+                            if hsize == hk.shape[0]:
+                                hk = _grow(hk, hsize + 1); hab = _grow(hab, hsize + 1)
+                                hvs = _grow(hvs, hsize + 1)
+                            hsize = _heap_push(hk, hab, hvs, hsize, cost, (a << 32) | b,
+                                               entry_version)
+                        else:
+                            rk, rab, rvs, rsize = _reservoir_push(
+                                rk, rab, rvs, rsize, cost, (a << 32) | b, entry_version, version,
+                                vertex_alive)
+                        continue
             r = b if s == a else a
+            # wedge pairs as (survivor's, removed's)
+            n_groups = groups[0]
+            if s != a:
+                for g in range(n_groups):
+                    groups[1 + 2 * g], groups[2 + 2 * g] = groups[2 + 2 * g], groups[1 + 2 * g]
 
             # Scan s: mark its neighbours, find the faces on the edge (s, r)
             # and the vertex opposite it in each, and test s's other faces for flips.
@@ -658,6 +841,9 @@ def _decimate_kernel(pos, world, scale, origin, faces, quadrics, kind, min_verti
                             face_count[faces[f, t]] -= 1
                     else:
                         faces[f, c - 3 * f] = s
+                        for g in range(n_groups):
+                            if cw[c] == groups[2 + 2 * g]:
+                                cw[c] = groups[1 + 2 * g]
                         if nmoved >= moved.shape[0]:
                             moved = _grow(moved, nmoved + 1)
                         moved[nmoved] = c
@@ -678,9 +864,38 @@ def _decimate_kernel(pos, world, scale, origin, faces, quadrics, kind, min_verti
                     vhead[s] = c
                 c = nxt
 
+            # the logged error is geometric: distance to the planes, not attribute terms
+            for j in range(11):
+                gq[j] = quadrics[s, j] + quadrics[r, j]
+            geometric = max(quadric_error(gq, p[0], p[1], p[2]), 0.0)
             area = quadrics[s, 10] + quadrics[r, 10]
             for j in range(11):
                 quadrics[s, j] += quadrics[r, j]
+            for g in range(n_groups):
+                ws = groups[1 + 2 * g]
+                wr = groups[2 + 2 * g]
+                for j in range(wq.shape[1]):
+                    wq[ws, j] += wq[wr, j]
+                if wq[ws, 10] > 0.0:
+                    best_attributes(wq, ws, p[0], p[1], p[2], value)
+                else:
+                    for j in range(d):
+                        value[j] = 0.5 * (wval[ws, j] + wval[wr, j])
+                if normal_col >= 0:
+                    length = np.sqrt(value[normal_col] ** 2 + value[normal_col + 1] ** 2
+                                     + value[normal_col + 2] ** 2)
+                    if length > 0.0:
+                        for j in range(normal_col, normal_col + 3):
+                            value[j] *= normal_len / length
+                if color_col >= 0:
+                    for j in range(color_col, color_col + 4):
+                        value[j] = min(max(value[j], 0.0), color_max)
+                for j in range(d):
+                    wval[ws, j] = value[j]
+                    mg_v[nmerged, j] = value[j]
+                mg_s[nmerged] = ws
+                mg_r[nmerged] = wr
+                nmerged += 1
             # Placements at an endpoint copy its mesh-unit position bit for bit
             # (locked vertices must not drift by a rounding).
             if p[0] == pos[r, 0] and p[1] == pos[r, 1] and p[2] == pos[r, 2]:
@@ -700,11 +915,20 @@ def _decimate_kernel(pos, world, scale, origin, faces, quadrics, kind, min_verti
             log_s[nk] = s
             log_r[nk] = r
             log_p[nk, 0] = world[s, 0]; log_p[nk, 1] = world[s, 1]; log_p[nk, 2] = world[s, 2]
-            log_cost[nk] = cost
+            log_cost[nk] = geometric
             log_area[nk] = area
             nk += 1
             killed_off[nk] = nkilled
             moved_off[nk] = nmoved
+            mg_off[nk] = nmerged
+            if has_wedges:
+                # s's wedges changed; an opposite vertex may have lost a wedge with its face
+                wstamp = _vertex_fixed(s, faces, face_alive, vhead, cnext, cw, wq, wval, fv,
+                                       wmark, wstamp)
+                for o in (o0, o1):
+                    if o >= 0:
+                        wstamp = _vertex_fixed(o, faces, face_alive, vhead, cnext, cw, wq, wval,
+                                               fv, wmark, wstamp)
             if nk % _PROGRESS_STRIDE == 0:
                 progress[0] = nk
 
@@ -718,7 +942,8 @@ def _decimate_kernel(pos, world, scale, origin, faces, quadrics, kind, min_verti
                     w = faces[f, (slot + t) % 3]
                     if mark[w] != stamp:
                         mark[w] = stamp
-                        cost2, _s = _plan(s, w, pos, quadrics, kind, q, p)
+                        cost2, _s = _plan(s, w, pos, quadrics, kind, q, p, faces, face_alive,
+                                          vhead, cnext, cw, wq, wval, fv, groups)
                         if cost2 < np.inf:
                             e_ab = (s << 32) | w if s < w else (w << 32) | s
                             e_vs = version[s] + version[w]
@@ -737,7 +962,7 @@ def _decimate_kernel(pos, world, scale, origin, faces, quadrics, kind, min_verti
     progress[0] = nk
     return (log_s[:nk], log_r[:nk], log_p[:nk], log_cost[:nk], log_area[:nk],
             killed_off[:nk + 1], killed[:nkilled], moved_off[:nk + 1], moved[:nmoved],
-            rejected, passes)
+            rejected, passes, mg_off[:nk + 1], mg_s[:nmerged], mg_r[:nmerged], mg_v[:nmerged])
 
 
 # --------------------------------------------------------------------------
@@ -746,7 +971,8 @@ def _decimate_kernel(pos, world, scale, origin, faces, quadrics, kind, min_verti
 
 def decimate(mesh: Mesh, *, boundary_weight: float = 1.0, locked=None, min_vertices: int = 0,
              max_collapses: int | None = None, flip_cos: float = DEFAULT_FLIP_COS,
-             pair_threshold: float = 0.0, progress=None,
+             pair_threshold: float = 0.0, attribute_weights: dict | None = None,
+             preserve_volume: bool = True, seam_weight: float = 1.0, progress=None,
              cancel: threading.Event | None = None) -> CollapseLog:
     """Collapse edges of ``mesh`` cheapest first and log every collapse.
 
@@ -772,6 +998,17 @@ def decimate(mesh: Mesh, *, boundary_weight: float = 1.0, locked=None, min_verti
         the two vertices share no neighbour and are still that close; the
         joined vertex then has two fans, and the link condition keeps every
         later collapse from making a non-manifold edge.
+    attribute_weights : dict, optional
+        Weight of each attribute's squared error (by glTF name, e.g.
+        ``{"NORMAL": 0.25, "TEXCOORD_0": 1}``) against squared distance in the
+        unit box; missing names take :data:`DEFAULT_ATTRIBUTE_WEIGHTS`. Only
+        used when the mesh has attributes.
+    preserve_volume : bool
+        Place every interior collapse on the plane that keeps the enclosed
+        volume (default), so thin parts do not shrink away.
+    seam_weight : float
+        Weight of the constraint planes along attribute seams (as
+        ``boundary_weight`` for borders).
     progress : callable(done: int, expected: int), optional
         Called from this thread about ten times a second while the kernel runs.
     cancel : threading.Event, optional
@@ -795,8 +1032,13 @@ def decimate(mesh: Mesh, *, boundary_weight: float = 1.0, locked=None, min_verti
     lo = positions.min(axis=0)
     scale = float((positions.max(axis=0) - lo).max()) or 1.0
     unit = (positions - lo) / scale
+    attributes = mesh.attributes
+    seams = seam_edges(faces, attributes.corners) if attributes is not None else None
     quadrics = vertex_quadrics(unit, faces, boundary_weight=boundary_weight,
-                               boundary=(found.boundary_edges, found.boundary_faces))
+                               boundary=(found.boundary_edges, found.boundary_faces),
+                               seams=seams, seam_weight=seam_weight)
+    corner_wedge, wq, wval, scales, *columns = _wedge_inputs(attributes, unit, faces,
+                                                             attribute_weights)
 
     if not pair_threshold >= 0:
         raise ValueError(f"pair_threshold must be a non-negative distance, got {pair_threshold}")
@@ -809,7 +1051,8 @@ def decimate(mesh: Mesh, *, boundary_weight: float = 1.0, locked=None, min_verti
 
     def run():
         result["log"] = _decimate_kernel(unit, world, scale, lo, faces, quadrics, kind,
-                                         int(min_vertices), limit, float(flip_cos), radius, state)
+                                         int(min_vertices), limit, float(flip_cos), radius, state,
+                                         corner_wedge, wq, wval, *columns, bool(preserve_volume))
 
     if progress is None and cancel is None:
         run()
@@ -827,11 +1070,53 @@ def decimate(mesh: Mesh, *, boundary_weight: float = 1.0, locked=None, min_verti
             progress(int(state[0]), n)
     if "log" not in result:
         raise RuntimeError("the decimation kernel failed")
-    (s, r, p, cost, area, killed_off, killed, moved_off, moved, rejected, passes) = result["log"]
+    (s, r, p, cost, area, killed_off, killed, moved_off, moved, rejected, passes,
+     merge_off, merge_s, merge_r, merge_v) = result["log"]
 
     error = np.sqrt(cost / np.maximum(area, np.finfo(float).tiny)) * scale
+    merges = {}
+    if attributes is not None:
+        # back from sqrt(weight)-scaled to input units
+        merges = dict(merge_offsets=merge_off.copy(), merge_survivor=merge_s.copy(),
+                      merge_removed=merge_r.copy(), merge_value=merge_v / scales)
     return CollapseLog(
         survivor=s.copy(), removed=r.copy(), position=p.copy(), error=error,
         killed_offsets=killed_off.copy(), killed_faces=killed.copy(),
         moved_offsets=moved_off.copy(), moved_corners=moved.copy(),
-        rejected=dict(zip(REJECT_REASONS, (int(x) for x in rejected))), passes=int(passes))
+        rejected=dict(zip(REJECT_REASONS, (int(x) for x in rejected))), passes=int(passes),
+        **merges)
+
+
+def attribute_scales(layout, weights: dict | None) -> np.ndarray:
+    """(d,) float64: sqrt(weight) for every attribute column of ``layout``."""
+    weights = {**DEFAULT_ATTRIBUTE_WEIGHTS, **(weights or {})}
+    unknown = set(weights) - {name for name, _ in layout} - set(DEFAULT_ATTRIBUTE_WEIGHTS)
+    if unknown:
+        raise ValueError(f"no attribute named {', '.join(sorted(unknown))}; "
+                         f"known are {', '.join(DEFAULT_ATTRIBUTE_WEIGHTS)}")
+    scales = []
+    for name, width in layout:
+        weight = float(weights[name])
+        if not 0 < weight < float("inf"):
+            raise ValueError(f"the weight of {name} must be a positive number, got {weight}")
+        scales += [np.sqrt(weight)] * width
+    return np.array(scales, dtype=np.float64)
+
+
+def _wedge_inputs(attributes, unit, faces, weights):
+    """The kernel's wedge arguments: corner_wedge (3m,), wq (w, 11 + 4d), wval
+    (w, d) scaled by sqrt(weight), those scales (d,), then normal_col,
+    normal_len, color_col, color_max. Empty arrays for a geometry-only mesh."""
+    if attributes is None:
+        return (np.zeros(0, dtype=np.int64), np.zeros((0, 11)), np.zeros((0, 0)), np.ones(0),
+                -1, 1.0, -1, 1.0)
+    scales = attribute_scales(attributes.layout, weights)
+    wval = attributes.values * scales
+    wq = wedge_quadrics(unit, faces, attributes.corners, wval)
+    normal = attributes.columns("NORMAL")
+    color = attributes.columns("COLOR_0")
+    return (attributes.corners.ravel(), wq, wval, scales,
+            -1 if normal is None else normal.start,
+            1.0 if normal is None else float(scales[normal.start]),
+            -1 if color is None else color.start,
+            1.0 if color is None else float(scales[color.start]))

@@ -5,6 +5,18 @@ A :class:`Mesh` is a thin, validated container of two arrays:
 - ``positions`` : (n, 3) float64, vertex positions in the file's units.
 - ``faces``     : (m, 3) int64, counter-clockwise vertex indices into ``positions``.
 
+and, when the source has them, appearance data (Hoppe 1999's wedges):
+
+- ``attributes`` : :class:`Attributes`, per-corner normals / UVs / colours,
+  grouped into wedges: the corners of one vertex that share one attribute
+  vector. A UV seam or a hard edge is a vertex with two or more wedges.
+- ``face_material`` : (m,) int32, index into ``materials.gltf["materials"]``,
+  -1 for "no material"; and ``materials`` : :class:`Materials`, the glTF
+  material, texture, sampler and image records with the image bytes.
+
+Topology (welding, manifoldness, the vertex hierarchy) lives on positions;
+attributes ride on wedges, so seams cost nothing topologically.
+
 Validation happens once, on construction, so the kernels downstream can trust
 their input (finite coordinates, indices in range) without re-checking.
 """
@@ -20,12 +32,99 @@ class MeshError(ValueError):
     """A mesh (or a file that should hold one) cannot be used; the message says why."""
 
 
+# Attribute names follow glTF's vertex attribute semantics; the width is fixed per name.
+ATTRIBUTE_WIDTHS = {"NORMAL": 3, "TEXCOORD_0": 2, "TEXCOORD_1": 2, "COLOR_0": 4}
+
+
+@dataclass(frozen=True, eq=False)
+class Attributes:
+    """Per-corner appearance attributes, grouped into wedges.
+
+    layout : tuple of (name, width)
+        The columns of ``values``, in order, named as glTF vertex attributes
+        (keys of :data:`ATTRIBUTE_WIDTHS`): e.g. ``(("NORMAL", 3), ("TEXCOORD_0", 2))``.
+        UVs are in glTF's convention (origin top-left, v down); colours are linear RGBA in 0..1.
+    values : (w, d) float64
+        One attribute vector per wedge, ``d = sum(widths)``.
+    corners : (m, 3) int64
+        The wedge of every face corner; ``corners[f, k]`` belongs to vertex ``faces[f, k]``.
+    """
+
+    layout: tuple
+    values: np.ndarray
+    corners: np.ndarray
+
+    def __post_init__(self):
+        layout = tuple((str(name), int(width)) for name, width in self.layout)
+        for name, width in layout:
+            if ATTRIBUTE_WIDTHS.get(name) != width:
+                raise MeshError(f"unknown attribute {name!r} of width {width}")
+        if len({name for name, _ in layout}) != len(layout):
+            raise MeshError("an attribute appears twice in the layout")
+        d = sum(width for _, width in layout)
+        values = np.ascontiguousarray(self.values, dtype=np.float64).reshape(-1, d)
+        corners = np.ascontiguousarray(self.corners, dtype=np.int64)
+        if not np.isfinite(values).all():
+            raise MeshError("attribute values are NaN or infinite")
+        if corners.ndim != 2 or corners.shape[1] != 3:
+            raise MeshError(f"wedge corners must have shape (m, 3), got {corners.shape}")
+        if corners.size and (corners.min() < 0 or corners.max() >= len(values)):
+            raise MeshError("wedge indices out of range")
+        values.setflags(write=False)
+        corners.setflags(write=False)
+        object.__setattr__(self, "layout", layout)
+        object.__setattr__(self, "values", values)
+        object.__setattr__(self, "corners", corners)
+
+    @property
+    def width(self) -> int:
+        return self.values.shape[1]
+
+    @property
+    def wedge_count(self) -> int:
+        return len(self.values)
+
+    def columns(self, name: str) -> slice | None:
+        """The columns of ``values`` holding attribute ``name``, or None."""
+        start = 0
+        for other, width in self.layout:
+            if other == name:
+                return slice(start, start + width)
+            start += width
+        return None
+
+
+@dataclass(frozen=True, eq=False)
+class Materials:
+    """Materials carried from input to output, as glTF 2.0 records.
+
+    gltf : dict
+        ``{"materials": [...], "textures": [...], "samplers": [...], "images": [...]}``
+        as in a glTF document, except that each image record holds
+        ``{"mimeType": ..., "name": ...}`` and no ``uri``/``bufferView``: its
+        bytes are ``images[i]``. Texture ``source`` indices point into that list.
+    images : tuple of bytes
+        The encoded image files (PNG, JPEG), byte for byte as read.
+    """
+
+    gltf: dict
+    images: tuple = ()
+
+    @property
+    def count(self) -> int:
+        return len(self.gltf.get("materials", ()))
+
+
 @dataclass(frozen=True, eq=False)
 class Mesh:
-    """Positions (n, 3) float64 and triangle faces (m, 3) int64, both read-only."""
+    """Positions (n, 3) float64 and triangle faces (m, 3) int64, both read-only,
+    with optional wedge attributes and per-face materials (see the module docstring)."""
 
     positions: np.ndarray
     faces: np.ndarray
+    attributes: Attributes | None = None
+    face_material: np.ndarray | None = None
+    materials: Materials | None = None
 
     def __post_init__(self):
         positions = np.ascontiguousarray(self.positions, dtype=np.float64)
@@ -53,6 +152,34 @@ class Mesh:
         faces.setflags(write=False)
         object.__setattr__(self, "positions", positions)
         object.__setattr__(self, "faces", faces)
+        if self.attributes is not None:
+            corners = self.attributes.corners
+            if corners.shape != faces.shape:
+                raise MeshError(f"wedge corners {corners.shape} do not match faces {faces.shape}")
+            # every wedge belongs to exactly one vertex
+            owner = np.full(self.attributes.wedge_count, -1, dtype=np.int64)
+            owner[corners.ravel()] = faces.ravel()
+            if not np.array_equal(owner[corners.ravel()], faces.ravel()):
+                raise MeshError("a wedge is shared by corners of different vertices")
+        if self.face_material is not None:
+            material = np.ascontiguousarray(self.face_material, dtype=np.int32)
+            count = self.materials.count if self.materials is not None else 0
+            if material.shape != (len(faces),):
+                raise MeshError(f"face_material must have shape ({len(faces)},), got {material.shape}")
+            if material.size and (material.min() < -1 or material.max() >= count):
+                raise MeshError(f"face materials must lie in [-1, {count - 1}]")
+            material.setflags(write=False)
+            object.__setattr__(self, "face_material", material)
+
+    def with_geometry(self, positions, faces, *, attributes=None, face_material=None) -> "Mesh":
+        """A mesh with new arrays and this mesh's materials."""
+        return Mesh(positions, faces, attributes, face_material, self.materials)
+
+    def wedge_vertices(self) -> np.ndarray:
+        """(w,) int64: the vertex of every wedge (-1 for a wedge no corner uses)."""
+        owner = np.full(self.attributes.wedge_count, -1, dtype=np.int64)
+        owner[self.attributes.corners.ravel()] = self.faces.ravel()
+        return owner
 
     @property
     def vertex_count(self) -> int:
@@ -69,4 +196,10 @@ class Mesh:
         return float(np.linalg.norm(used.max(axis=0) - used.min(axis=0)))
 
     def __repr__(self) -> str:
-        return f"Mesh(vertices={self.vertex_count}, faces={self.face_count})"
+        extra = ""
+        if self.attributes is not None:
+            names = ",".join(name for name, _ in self.attributes.layout)
+            extra += f", wedges={self.attributes.wedge_count} [{names}]"
+        if self.materials is not None:
+            extra += f", materials={self.materials.count}"
+        return f"Mesh(vertices={self.vertex_count}, faces={self.face_count}{extra})"

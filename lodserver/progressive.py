@@ -29,6 +29,16 @@ faces                int range   faces ``face_counts[t-n0] .. face_counts[t-n0+1
 moved corners        int64       ``3 * face + slot`` corners relabelled ``vs -> t``
 error                f64         RMS quadric error of the collapse undone (mesh units)
 ===================  ==========  ===================================================
+
+Wedges (appearance attributes, when the input has them) follow the same
+scheme one level down: wedges are numbered so that level ``v`` uses wedges
+``0 .. wedge_counts[v-n0]-1``; split ``t`` introduces the wedges its collapse
+merged away, each a child of the wedge it merged into (``wedge_parent``). A
+corner's wedge at a level is the first ancestor of its full-detail wedge below
+that level's wedge count, and a wedge's attribute vector is the one left by
+its most recent applied merge (``wedge_coarse_value``), exactly as for
+positions. So attributes, too, are exact at every level, in both directions.
+Face materials ride on the faces (``face_material``, renumbered with them).
 """
 
 from __future__ import annotations
@@ -39,7 +49,10 @@ import numpy as np
 from numba import njit
 
 from .decimate import CollapseLog
-from .mesh import Mesh
+from .mesh import Attributes, Materials, Mesh
+
+WEDGE_ARRAYS = ("wedge_values", "corner_wedges", "wedge_parent", "wedge_coarse_value",
+                "wedge_counts")
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -61,7 +74,8 @@ def _faces_at(full_faces, parent, face_count, level, out):
 
 @njit(cache=True, nogil=True)
 def _positions_at(full_positions, coarse_position, child_offsets, children, base, level, out):
-    """Positions of vertices ``0 .. level-1`` at ``level``.
+    """Positions of vertices ``0 .. level-1`` at ``level`` (or, for wedges,
+    the attribute vectors of wedges ``0 .. level-1`` with ``level`` a wedge count).
 
     A vertex's position is the one left by its most recent collapse that is
     applied at this level: the smallest child ``t >= level`` (collapses are
@@ -79,13 +93,11 @@ def _positions_at(full_positions, coarse_position, child_offsets, children, base
                 hi = mid
         if lo < child_offsets[x + 1]:
             t = children[lo]
-            out[x, 0] = coarse_position[t - base, 0]
-            out[x, 1] = coarse_position[t - base, 1]
-            out[x, 2] = coarse_position[t - base, 2]
+            for j in range(out.shape[1]):
+                out[x, j] = coarse_position[t - base, j]
         else:
-            out[x, 0] = full_positions[x, 0]
-            out[x, 1] = full_positions[x, 1]
-            out[x, 2] = full_positions[x, 2]
+            for j in range(out.shape[1]):
+                out[x, j] = full_positions[x, j]
 
 
 @njit(cache=True, nogil=True)
@@ -108,6 +120,47 @@ def _apply_splits(positions, faces, level, target, base, parent, fine_position, 
             faces[f, 0] = birth_faces[f, 0]
             faces[f, 1] = birth_faces[f, 1]
             faces[f, 2] = birth_faces[f, 2]
+
+
+@njit(cache=True, nogil=True)
+def _apply_wedge_splits(values, corners, level, target, base, wedge_base, wedge_counts,
+                        wedge_parent, fine_value, new_value, face_counts, birth_corners,
+                        moved_offsets, moved_corners, full_corners):
+    """The wedge side of ``_apply_splits``: new wedges appear, their parents
+    take their finer values, and moved corners climb to their finer wedges."""
+    for t in range(level, target):
+        j = t - base
+        top = wedge_counts[j + 1]
+        for x in range(wedge_counts[j], top):
+            i = x - wedge_base
+            w = wedge_parent[x]
+            for k in range(values.shape[1]):
+                values[w, k] = fine_value[i, k]
+                values[x, k] = new_value[i, k]
+        for k in range(moved_offsets[j], moved_offsets[j + 1]):
+            c = moved_corners[k]
+            corners[c // 3, c % 3] = _ancestor_below(wedge_parent, full_corners[c // 3, c % 3], top)
+        for f in range(face_counts[j], face_counts[j + 1]):
+            for k in range(3):
+                corners[f, k] = birth_corners[f, k]
+
+
+@njit(cache=True, nogil=True)
+def _apply_wedge_collapses(values, corners, level, target, base, wedge_base, wedge_counts,
+                           wedge_parent, coarse_value, moved_offsets, moved_corners, full_corners):
+    """The wedge side of ``_apply_collapses``: merged wedges' parents take the
+    merged values, moved corners climb to their coarser wedges."""
+    for t in range(level - 1, target - 1, -1):
+        j = t - base
+        bottom = wedge_counts[j]
+        for x in range(wedge_counts[j + 1] - 1, bottom - 1, -1):
+            w = wedge_parent[x]
+            for k in range(values.shape[1]):
+                values[w, k] = coarse_value[x - wedge_base, k]
+        for k in range(moved_offsets[j], moved_offsets[j + 1]):
+            c = moved_corners[k]
+            corners[c // 3, c % 3] = _ancestor_below(wedge_parent, full_corners[c // 3, c % 3],
+                                                     bottom)
 
 
 @njit(cache=True, nogil=True)
@@ -141,6 +194,17 @@ class ProgressiveMesh:
     face_counts : (n-n0+1,) int64   faces at level ``v`` = ``face_counts[v - n0]``
     moved_offsets : (n-n0+1,) int64, moved_corners : (c,) int64
     metadata : dict                 JSON-able facts (source, options, load report)
+
+    With attributes (all None / empty without):
+
+    attribute_layout : tuple        ((name, width), ...) as ``mesh.Attributes.layout``
+    wedge_values : (w, d) float64   full-detail attribute vectors (renumbered)
+    corner_wedges : (m, 3) int64    full-detail wedge of every face corner
+    wedge_parent : (w,) int64       the wedge each merged into; -1 in the base
+    wedge_coarse_value : (w-w0, d)  the parent's vector after that merge
+    wedge_counts : (n-n0+1,) int64  wedges at level ``v`` = ``wedge_counts[v - n0]``
+    face_material : (m,) int32      per face (renumbered), or None
+    materials : Materials           glTF materials and images, or None
     """
 
     positions: np.ndarray
@@ -153,6 +217,18 @@ class ProgressiveMesh:
     moved_offsets: np.ndarray
     moved_corners: np.ndarray
     metadata: dict = field(default_factory=dict)
+    attribute_layout: tuple = ()
+    wedge_values: np.ndarray | None = None
+    corner_wedges: np.ndarray | None = None
+    wedge_parent: np.ndarray | None = None
+    wedge_coarse_value: np.ndarray | None = None
+    wedge_counts: np.ndarray | None = None
+    face_material: np.ndarray | None = None
+    materials: Materials | None = None
+
+    @property
+    def has_attributes(self) -> bool:
+        return self.wedge_values is not None
 
     def __post_init__(self):
         n, n0 = len(self.positions), self.base_vertices
@@ -172,38 +248,37 @@ class ProgressiveMesh:
                 or (len(self.moved_corners) and (self.moved_corners.min() < 0
                                                  or self.moved_corners.max() >= 3 * len(self.faces)))):
             raise ValueError("inconsistent progressive mesh arrays: indices out of range")
+        if self.has_attributes:
+            self._check_wedges()
+        if self.face_material is not None and self.face_material.shape != (len(self.faces),):
+            raise ValueError("inconsistent progressive mesh arrays: face_material size")
         for name in ("positions", "faces", "parent", "coarse_position", "error", "face_counts",
-                     "moved_offsets", "moved_corners"):
-            getattr(self, name).setflags(write=False)
+                     "moved_offsets", "moved_corners") + WEDGE_ARRAYS + ("face_material",):
+            if getattr(self, name) is not None:
+                getattr(self, name).setflags(write=False)
         self._derive()
+
+    def _check_wedges(self):
+        w, k = len(self.wedge_values), self.split_count
+        counts, parent = self.wedge_counts, self.wedge_parent
+        width = sum(int(x) for _, x in self.attribute_layout)
+        if (self.wedge_values.ndim != 2 or self.wedge_values.shape[1] != width
+                or self.corner_wedges.shape != self.faces.shape or len(parent) != w
+                or len(counts) != k + 1 or counts[-1] != w
+                or self.wedge_coarse_value.shape != (w - counts[0], width)):
+            raise ValueError("inconsistent progressive mesh arrays: wedge sizes disagree")
+        x = np.arange(counts[0], w)
+        if (np.any(np.diff(counts) < 0) or counts[0] < 0 or np.any(parent[:counts[0]] != -1)
+                or np.any(parent[counts[0]:] < 0) or np.any(parent[counts[0]:] >= x)
+                or (self.corner_wedges.size and (self.corner_wedges.min() < 0
+                                                 or self.corner_wedges.max() >= w))):
+            raise ValueError("inconsistent progressive mesh arrays: wedge indices out of range")
 
     # ---- derived arrays -------------------------------------------------
     def _derive(self):
         n, n0 = self.vertex_count, self.base_vertices
-        t = np.arange(n0, n)
-        par = self.parent[n0:]
-        # children of every vertex, ascending (CSR): the vertex hierarchy
-        order = np.argsort(par, kind="stable")     # t is ascending already
-        children = t[order]
-        child_offsets = np.zeros(n + 1, dtype=np.int64)
-        np.cumsum(np.bincount(par, minlength=n), out=child_offsets[1:])
-
-        # fine_position[t]: vs's position just after split t = the position
-        # left by vs's next collapse above t (its next child), else its input position.
-        sorted_par = par[order]
-        next_sibling = np.full(len(t), -1, dtype=np.int64)
-        same = sorted_par[1:] == sorted_par[:-1]
-        next_sibling[order[:-1][same]] = children[1:][same]
-        fine = self.positions[par].copy()
-        has = next_sibling >= 0
-        fine[has] = self.coarse_position[next_sibling[has] - n0]
-        # new_position[t]: t's own position at level t+1 = left by its first child.
-        first_child = np.full(n, -1, dtype=np.int64)
-        nonempty = child_offsets[1:] > child_offsets[:-1]
-        first_child[nonempty] = children[child_offsets[:-1][nonempty]]
-        new = self.positions[n0:].copy()
-        fc = first_child[n0:]
-        new[fc >= 0] = self.coarse_position[fc[fc >= 0] - n0]
+        children, child_offsets, fine, new = _hierarchy(self.parent, n0, self.positions,
+                                                        self.coarse_position)
 
         # birth_faces: each face's corners at the first level it appears in.
         birth = np.empty_like(self.faces)
@@ -216,6 +291,17 @@ class ProgressiveMesh:
         derived = dict(children=children, child_offsets=child_offsets, fine_position=fine,
                        new_position=new, birth_faces=birth,
                        level_error=_level_error(self.error))
+        if self.has_attributes:
+            w0 = int(self.wedge_counts[0])
+            (derived["wedge_children"], derived["wedge_child_offsets"],
+             derived["wedge_fine_value"], derived["wedge_new_value"]) = _hierarchy(
+                self.wedge_parent, w0, self.wedge_values, self.wedge_coarse_value)
+            # corners of each face at the level it appears in, as for birth_faces
+            corners = np.empty_like(self.corner_wedges)
+            _faces_at(self.corner_wedges, self.wedge_parent, m0, w0, corners)
+            _faces_at_levels(self.corner_wedges, self.wedge_parent, m0,
+                             self.wedge_counts[owner + 1 - n0], corners)
+            derived["birth_corners"] = corners
         for key, value in derived.items():
             value.setflags(write=False)
             object.__setattr__(self, key, value)
@@ -295,7 +381,30 @@ class ProgressiveMesh:
         elif criterion:
             raise ValueError("give a level or one criterion, not both")
         positions, faces = self.arrays_at(level)
-        return Mesh(positions, faces)
+        return self._mesh(level, positions, faces, *self.wedges_at(level))
+
+    def _mesh(self, level, positions, faces, values=None, corners=None) -> Mesh:
+        attributes = None
+        if self.has_attributes:
+            attributes = Attributes(self.attribute_layout, values, corners)
+        material = None
+        if self.face_material is not None:
+            material = self.face_material[:len(faces)]
+        return Mesh(positions, faces, attributes, material, self.materials)
+
+    def wedges_at(self, level: int):
+        """(values (w, d) float64, corners (f, 3) int64) at ``level``; (None, None)
+        without attributes."""
+        if not self.has_attributes:
+            return None, None
+        level = self._check_level(level)
+        count = int(self.wedge_counts[level - self.base_vertices])
+        values = np.empty((count, self.wedge_values.shape[1]), dtype=np.float64)
+        _positions_at(self.wedge_values, self.wedge_coarse_value, self.wedge_child_offsets,
+                      self.wedge_children, int(self.wedge_counts[0]), count, values)
+        corners = np.empty((self.faces_at_level(level), 3), dtype=np.int64)
+        _faces_at(self.corner_wedges, self.wedge_parent, len(corners), count, corners)
+        return values, corners
 
     def arrays_at(self, level: int):
         """(positions (v, 3) float64, faces (f, 3) int64) at ``level``, freshly allocated."""
@@ -347,6 +456,51 @@ def _faces_at_levels(full_faces, parent, start, levels, out):
             out[f, k] = _ancestor_below(parent, full_faces[f, k], levels[i])
 
 
+def _hierarchy(parent, n0, full, coarse):
+    """The vertex (or wedge) hierarchy as CSR children lists, and the values
+    a split writes going forward.
+
+    Parameters
+    ----------
+    parent : (n,) int64, -1 for the first ``n0``
+    full : (n, d) float64, values at full detail
+    coarse : (n - n0, d) float64, the parent's value after collapsing ``t``
+
+    Returns
+    -------
+    children : (n - n0,) int64, child_offsets : (n + 1,) int64
+        ``children[child_offsets[x]:child_offsets[x+1]]``, ascending.
+    fine : (n - n0, d)
+        The parent's value just after split ``t``: the value left by its next
+        collapse above ``t`` (its next child), else its full-detail value.
+    new : (n - n0, d)
+        ``t``'s own value at level ``t + 1``: left by its first child.
+    """
+    n = len(parent)
+    t = np.arange(n0, n)
+    par = parent[n0:]
+    order = np.argsort(par, kind="stable")     # t is ascending already
+    children = t[order]
+    child_offsets = np.zeros(n + 1, dtype=np.int64)
+    np.cumsum(np.bincount(par, minlength=n), out=child_offsets[1:])
+
+    sorted_par = par[order]
+    next_sibling = np.full(len(t), -1, dtype=np.int64)
+    same = sorted_par[1:] == sorted_par[:-1]
+    next_sibling[order[:-1][same]] = children[1:][same]
+    fine = full[par].copy()
+    has = next_sibling >= 0
+    fine[has] = coarse[next_sibling[has] - n0]
+
+    first_child = np.full(n, -1, dtype=np.int64)
+    nonempty = child_offsets[1:] > child_offsets[:-1]
+    first_child[nonempty] = children[child_offsets[:-1][nonempty]]
+    new = full[n0:].copy()
+    fc = first_child[n0:]
+    new[fc >= 0] = coarse[fc[fc >= 0] - n0]
+    return children, child_offsets, fine, new
+
+
 def _level_error(error):
     """Error at each level v (index v - n0): the worst collapse applied to get
     there, i.e. the max over splits t >= v; 0 at full detail. Non-increasing."""
@@ -369,6 +523,12 @@ class Cursor:
         p, f = pm.arrays_at(level)
         self.positions[:level] = p
         self.faces[:len(f)] = f
+        if pm.has_attributes:
+            self.values = np.empty_like(pm.wedge_values)
+            self.corners = np.empty_like(pm.corner_wedges)
+            v, c = pm.wedges_at(level)
+            self.values[:len(v)] = v
+            self.corners[:len(c)] = c
         self.level = level
 
     def seek(self, level: int) -> "Cursor":
@@ -379,9 +539,20 @@ class Cursor:
             _apply_splits(self.positions, self.faces, self.level, level, pm.base_vertices,
                           pm.parent, pm.fine_position, pm.new_position, pm.face_counts,
                           pm.birth_faces, pm.moved_offsets, pm.moved_corners)
+            if pm.has_attributes:
+                _apply_wedge_splits(self.values, self.corners, self.level, level,
+                                    pm.base_vertices, int(pm.wedge_counts[0]), pm.wedge_counts,
+                                    pm.wedge_parent, pm.wedge_fine_value, pm.wedge_new_value,
+                                    pm.face_counts, pm.birth_corners, pm.moved_offsets,
+                                    pm.moved_corners, pm.corner_wedges)
         elif level < self.level:
             _apply_collapses(self.positions, self.faces, self.level, level, pm.base_vertices,
                              pm.parent, pm.coarse_position, pm.moved_offsets, pm.moved_corners)
+            if pm.has_attributes:
+                _apply_wedge_collapses(self.values, self.corners, self.level, level,
+                                       pm.base_vertices, int(pm.wedge_counts[0]), pm.wedge_counts,
+                                       pm.wedge_parent, pm.wedge_coarse_value, pm.moved_offsets,
+                                       pm.moved_corners, pm.corner_wedges)
         self.level = level
         return self
 
@@ -390,8 +561,17 @@ class Cursor:
         return (self.positions[:self.level].copy(),
                 self.faces[:self.pm.faces_at_level(self.level)].copy())
 
+    def wedges(self):
+        """Copies of (values (w, d), corners (f, 3)) at the current level; (None, None)
+        without attributes."""
+        pm = self.pm
+        if not pm.has_attributes:
+            return None, None
+        count = int(pm.wedge_counts[self.level - pm.base_vertices])
+        return (self.values[:count].copy(), self.corners[:pm.faces_at_level(self.level)].copy())
+
     def mesh(self) -> Mesh:
-        return Mesh(*self.arrays())
+        return self.pm._mesh(self.level, *self.arrays(), *self.wedges())
 
 
 def _reverse_blocks(values, offsets):
@@ -443,9 +623,41 @@ def from_collapse_log(mesh: Mesh, log: CollapseLog, metadata=None) -> Progressiv
     moved = _reverse_blocks(log.moved_corners, log.moved_offsets)
     moved_corners = 3 * new_face[moved // 3] + moved % 3
 
+    appearance = {}
+    if mesh.attributes is not None:
+        appearance = _renumber_wedges(mesh.attributes, log, face_order)
+    if mesh.face_material is not None:
+        appearance["face_material"] = mesh.face_material[face_order]
     return ProgressiveMesh(
         positions=np.ascontiguousarray(mesh.positions[order]),
         faces=np.ascontiguousarray(new_id[mesh.faces[face_order]]),
         parent=parent, base_vertices=n0, coarse_position=coarse_position, error=error,
         face_counts=face_counts.astype(np.int64), moved_offsets=moved_offsets,
-        moved_corners=moved_corners.astype(np.int64), metadata=dict(metadata or {}))
+        moved_corners=moved_corners.astype(np.int64), metadata=dict(metadata or {}),
+        materials=mesh.materials, **appearance)
+
+
+def _renumber_wedges(attributes: Attributes, log: CollapseLog, face_order) -> dict:
+    """The wedge arrays of the prefix layout, as ``from_collapse_log`` does for
+    vertices: wedges never merged away keep their order as ``0 .. w0-1``, then
+    each split's wedges follow in split order."""
+    w = attributes.wedge_count
+    removed = _reverse_blocks(log.merge_removed, log.merge_offsets)
+    survivor = _reverse_blocks(log.merge_survivor, log.merge_offsets)
+    value = _reverse_blocks(log.merge_value, log.merge_offsets)
+    w0 = w - len(removed)
+    new_id = np.full(w, -1, dtype=np.int64)
+    new_id[removed] = w0 + np.arange(len(removed))
+    kept = new_id < 0
+    new_id[kept] = np.arange(w0)
+    order = np.empty(w, dtype=np.int64)
+    order[new_id] = np.arange(w)
+    parent = np.full(w, -1, dtype=np.int64)
+    parent[w0:] = new_id[survivor]
+    per_split = np.diff(log.merge_offsets)[::-1]
+    counts = np.concatenate([[w0], w0 + np.cumsum(per_split)]).astype(np.int64)
+    return dict(attribute_layout=attributes.layout,
+                wedge_values=np.ascontiguousarray(attributes.values[order]),
+                corner_wedges=np.ascontiguousarray(new_id[attributes.corners[face_order]]),
+                wedge_parent=parent, wedge_coarse_value=np.ascontiguousarray(value),
+                wedge_counts=counts)

@@ -20,6 +20,25 @@ by ``boundary_weight * |edge|^2`` so it has the same units as the face terms.
 
 Reference: M. Garland and P. Heckbert, "Surface Simplification Using Quadric
 Error Metrics", SIGGRAPH 1997, sections 4 and 5.
+
+Appearance attributes (Hoppe, "New quadric metric for simplifying meshes with
+appearance attributes", IEEE Visualization 1999): on each face every attribute
+scalar ``s_j`` is fitted by a linear field ``g_j . p + d_j`` (``g_j`` in the
+face plane), and a wedge sums ``area * (g_j . p + d_j - s_j)^2`` over its
+faces. Expanded, that is the geometric quadric's form plus, per scalar, one
+gradient and one offset, so a wedge quadric row has ``11 + 4 d`` entries
+instead of the ``(4 + d)(5 + d) / 2`` of a dense quadric over ``(p, s)``::
+
+    [a00, a01, a02, a11, a12, a22, b0, b1, b2, c, area, (G_j (3), D_j) for j < d]
+
+with ``A = sum area g g^T``, ``b = sum area d g``, ``c = sum area d^2`` (summed
+over faces and scalars), ``G_j = sum area g_j`` and ``D_j = sum area d_j``:
+
+    E(p, s) = p^T A p + 2 b . p + c - 2 sum_j s_j (G_j . p + D_j) + area |s|^2
+
+For a given ``p`` the best ``s_j`` is ``(G_j . p + D_j) / area``; putting it
+back gives a plain 3D quadric (``add_reduced``), so position and attributes are
+solved together with the same 3x3 solve as geometry alone.
 """
 
 from __future__ import annotations
@@ -28,6 +47,11 @@ import numpy as np
 from numba import njit
 
 QUADRIC_SIZE = 11
+
+
+def wedge_quadric_size(width: int) -> int:
+    """Entries in a wedge quadric row for ``width`` attribute scalars."""
+    return QUADRIC_SIZE + 4 * width
 
 # Placement solves (A + eps I) p = eps m - b with eps = REGULARIZATION * trace(A):
 # a Tikhonov pull towards the edge midpoint m. Where A has curvature (eigenvalue
@@ -75,7 +99,8 @@ def plane_quadrics(normals, offsets, weights, areas):
     return q
 
 
-def vertex_quadrics(positions, faces, *, boundary_weight=1.0, boundary=None):
+def vertex_quadrics(positions, faces, *, boundary_weight=1.0, boundary=None, seams=None,
+                    seam_weight=1.0):
     """Sum of face and boundary-constraint quadrics at every vertex.
 
     Parameters
@@ -88,6 +113,10 @@ def vertex_quadrics(positions, faces, *, boundary_weight=1.0, boundary=None):
     boundary : (edges (k, 2), faces (k,)), optional
         Boundary edges in face winding and their faces, if already known
         (``topology.census``); found here otherwise.
+    seams : (edges (k, 2), faces (k,)), optional
+        Attribute seams (``seam_edges``), one row per side: each gets the same
+        perpendicular plane as a border, weighted by ``seam_weight``, so a
+        seam keeps its place on the surface as it is simplified.
 
     Returns
     -------
@@ -103,24 +132,209 @@ def vertex_quadrics(positions, faces, *, boundary_weight=1.0, boundary=None):
             from .topology import census
             found = census(faces, len(positions))
             boundary = (found.boundary_edges, found.boundary_faces)
-        edges, edge_faces = boundary
-        if len(edges):
-            a, b = positions[edges[:, 0]], positions[edges[:, 1]]
-            along = b - a
-            tri = positions[faces[edge_faces]]
-            normals = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-            # The constraint plane contains the edge and the face normal, so it
-            # penalises motion across the border but not along it or off the surface.
-            perp = np.cross(along, normals)
-            length = np.linalg.norm(perp, axis=1)
-            ok = length > 0
-            perp = perp[ok] / length[ok, None]
-            weight = boundary_weight * np.einsum("ij,ij->i", along[ok], along[ok])
-            bq = plane_quadrics(perp, -np.einsum("ij,ij->i", perp, a[ok]), weight,
-                                np.zeros(len(perp)))
-            _scatter_add(q, edges[ok, 0], bq)
-            _scatter_add(q, edges[ok, 1], bq)
+        _add_edge_planes(q, positions, faces, *boundary, boundary_weight)
+    if seams is not None and seam_weight > 0:
+        _add_edge_planes(q, positions, faces, *seams, seam_weight)
     return q
+
+
+def _add_edge_planes(q, positions, faces, edges, edge_faces, weight):
+    """Add to both ends of every edge the plane through it perpendicular to its face."""
+    if not len(edges):
+        return
+    a, b = positions[edges[:, 0]], positions[edges[:, 1]]
+    along = b - a
+    tri = positions[faces[edge_faces]]
+    normals = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    # The constraint plane contains the edge and the face normal, so it
+    # penalises motion across the edge but not along it or off the surface.
+    perp = np.cross(along, normals)
+    length = np.linalg.norm(perp, axis=1)
+    ok = length > 0
+    perp = perp[ok] / length[ok, None]
+    w = weight * np.einsum("ij,ij->i", along[ok], along[ok])
+    bq = plane_quadrics(perp, -np.einsum("ij,ij->i", perp, a[ok]), w, np.zeros(len(perp)))
+    _scatter_add(q, edges[ok, 0], bq)
+    _scatter_add(q, edges[ok, 1], bq)
+
+
+def seam_edges(faces, corners):
+    """Edges where the wedges on the two sides differ: UV seams, hard edges,
+    material borders.
+
+    Parameters
+    ----------
+    faces : (m, 3) int
+    corners : (m, 3) int
+        The wedge of every face corner.
+
+    Returns
+    -------
+    edges : (k, 2) int64
+        One row per side of a seam, in that side's face winding.
+    edge_faces : (k,) int64
+        The face on that side.
+
+    Only edges with exactly two faces, wound oppositely, are considered:
+    borders and non-manifold edges have constraints of their own.
+    """
+    faces = np.asarray(faces, dtype=np.int64)
+    corners = np.asarray(corners, dtype=np.int64)
+    m = len(faces)
+    u = faces.ravel()
+    v = faces[:, [1, 2, 0]].ravel()
+    wu = corners.ravel()
+    wv = corners[:, [1, 2, 0]].ravel()
+    lo, hi = np.minimum(u, v), np.maximum(u, v)
+    order = np.lexsort((hi, lo))
+    key_lo, key_hi = lo[order], hi[order]
+    same = (key_lo[1:] == key_lo[:-1]) & (key_hi[1:] == key_hi[:-1])
+    # runs of exactly two half-edges: the pair (i, i+1) with no third on either side
+    pair = same.copy()
+    pair[1:] &= ~same[:-1]
+    pair[:-1] &= ~same[1:]
+    first, second = order[:-1][pair], order[1:][pair]
+    opposite = u[first] == v[second]
+    first, second = first[opposite], second[opposite]
+    # the twin runs v -> u, so its wedges line up crosswise
+    seam = (wu[first] != wv[second]) | (wv[first] != wu[second])
+    sides = np.concatenate([first[seam], second[seam]])
+    edges = np.stack([u[sides], v[sides]], axis=1)
+    return edges, sides // 3 if m else sides
+
+
+def wedge_quadrics(positions, faces, corners, values):
+    """Hoppe's attribute quadric of every wedge (see the module docstring).
+
+    Parameters
+    ----------
+    positions : (n, 3) float
+    faces : (m, 3) int
+    corners : (m, 3) int
+        The wedge of every face corner.
+    values : (w, d) float
+        Attribute vector of every wedge, already scaled by sqrt(weight).
+
+    Returns
+    -------
+    (w, 11 + 4 d) float64
+        Attribute terms only: the geometric plane quadric stays on the vertex.
+    """
+    values = np.ascontiguousarray(values, dtype=np.float64)
+    out = np.zeros((len(values), wedge_quadric_size(values.shape[1])), dtype=np.float64)
+    _accumulate_wedge_quadrics(np.ascontiguousarray(positions, dtype=np.float64),
+                               np.ascontiguousarray(faces, dtype=np.int64),
+                               np.ascontiguousarray(corners, dtype=np.int64), values, out)
+    return out
+
+
+@njit(cache=True, nogil=True)
+def _accumulate_wedge_quadrics(positions, faces, corners, values, out):
+    d = values.shape[1]
+    g = np.empty((d, 4))
+    for f in range(faces.shape[0]):
+        i, j, k = faces[f, 0], faces[f, 1], faces[f, 2]
+        e1x = positions[j, 0] - positions[i, 0]
+        e1y = positions[j, 1] - positions[i, 1]
+        e1z = positions[j, 2] - positions[i, 2]
+        e2x = positions[k, 0] - positions[i, 0]
+        e2y = positions[k, 1] - positions[i, 1]
+        e2z = positions[k, 2] - positions[i, 2]
+        g11 = e1x * e1x + e1y * e1y + e1z * e1z
+        g12 = e1x * e2x + e1y * e2y + e1z * e2z
+        g22 = e2x * e2x + e2y * e2y + e2z * e2z
+        det = g11 * g22 - g12 * g12      # = (2 area)^2
+        if det <= 1e-30 * (g11 + g22) * (g11 + g22):
+            continue                     # no plane to fit a field on
+        area = 0.5 * np.sqrt(det)
+        wi, wj, wk = corners[f, 0], corners[f, 1], corners[f, 2]
+        # the field g . p + d through the three corner values, g in the face plane:
+        # g = alpha e1 + beta e2 with g . e1 = s_j - s_i and g . e2 = s_k - s_i
+        for c in range(d):
+            d1 = values[wj, c] - values[wi, c]
+            d2 = values[wk, c] - values[wi, c]
+            alpha = (g22 * d1 - g12 * d2) / det
+            beta = (g11 * d2 - g12 * d1) / det
+            gx = alpha * e1x + beta * e2x
+            gy = alpha * e1y + beta * e2y
+            gz = alpha * e1z + beta * e2z
+            g[c, 0] = gx
+            g[c, 1] = gy
+            g[c, 2] = gz
+            g[c, 3] = values[wi, c] - (gx * positions[i, 0] + gy * positions[i, 1]
+                                       + gz * positions[i, 2])
+        for w in (wi, wj, wk):
+            for c in range(d):
+                gx, gy, gz, dd = g[c, 0], g[c, 1], g[c, 2], g[c, 3]
+                out[w, 0] += area * gx * gx
+                out[w, 1] += area * gx * gy
+                out[w, 2] += area * gx * gz
+                out[w, 3] += area * gy * gy
+                out[w, 4] += area * gy * gz
+                out[w, 5] += area * gz * gz
+                out[w, 6] += area * dd * gx
+                out[w, 7] += area * dd * gy
+                out[w, 8] += area * dd * gz
+                out[w, 9] += area * dd * dd
+                o = QUADRIC_SIZE + 4 * c
+                out[w, o] += area * gx
+                out[w, o + 1] += area * gy
+                out[w, o + 2] += area * gz
+                out[w, o + 3] += area * dd
+            out[w, 10] += area
+
+
+@njit(cache=True, nogil=True, inline="always")
+def add_fixed(q, wq, w, value, sign):
+    """``q += sign * E_w(p, value)`` as a quadric in ``p``: wedge ``w`` keeping
+    the attribute vector ``value`` (d,) wherever its vertex goes."""
+    for j in range(10):
+        q[j] += sign * wq[w, j]
+    area = wq[w, 10]
+    for c in range(value.shape[0]):
+        s = value[c]
+        o = QUADRIC_SIZE + 4 * c
+        q[6] -= sign * s * wq[w, o]
+        q[7] -= sign * s * wq[w, o + 1]
+        q[8] -= sign * s * wq[w, o + 2]
+        q[9] += sign * s * (area * s - 2.0 * wq[w, o + 3])
+
+
+@njit(cache=True, nogil=True, inline="always")
+def add_reduced(q, wq, wa, wb, d):
+    """``q += min_s (E_wa + E_wb)(p, s)``: the wedges ``wa`` and ``wb`` merged,
+    their attributes at the best value for each ``p`` (Hoppe's sparse form)."""
+    for j in range(10):
+        q[j] += wq[wa, j] + wq[wb, j]
+    area = wq[wa, 10] + wq[wb, 10]
+    if area <= 0.0:
+        return
+    inv = 1.0 / area
+    for c in range(d):
+        o = QUADRIC_SIZE + 4 * c
+        gx = wq[wa, o] + wq[wb, o]
+        gy = wq[wa, o + 1] + wq[wb, o + 1]
+        gz = wq[wa, o + 2] + wq[wb, o + 2]
+        dd = wq[wa, o + 3] + wq[wb, o + 3]
+        q[0] -= gx * gx * inv
+        q[1] -= gx * gy * inv
+        q[2] -= gx * gz * inv
+        q[3] -= gy * gy * inv
+        q[4] -= gy * gz * inv
+        q[5] -= gz * gz * inv
+        q[6] -= gx * dd * inv
+        q[7] -= gy * dd * inv
+        q[8] -= gz * dd * inv
+        q[9] -= dd * dd * inv
+
+
+@njit(cache=True, nogil=True, inline="always")
+def best_attributes(wq, w, x, y, z, out):
+    """The attribute vector minimising wedge quadric ``w`` at ``p``: (G_j . p + D_j) / area."""
+    area = wq[w, 10]
+    for c in range(out.shape[0]):
+        o = QUADRIC_SIZE + 4 * c
+        out[c] = (wq[w, o] * x + wq[w, o + 1] * y + wq[w, o + 2] * z + wq[w, o + 3]) / area
 
 
 @njit(cache=True, nogil=True)
@@ -239,3 +453,41 @@ def optimal_position_xyz(q, ax, ay, az, bx, by, bz, out):
         best = e
         out[0] = bx; out[1] = by; out[2] = bz
     return best
+
+
+@njit(cache=True, nogil=True)
+def constrain_to_plane(q, nx, ny, nz, h, out):
+    """Move the minimiser ``out`` of ``q`` onto the plane ``N . p = h`` along
+    the quadric's own metric (Lagrange: ``p += A^-1 N (h - N . p) / (N . A^-1 N)``).
+
+    Used for volume preservation (Lindstrom & Turk 1998; Hoppe 1999, section 4):
+    the collapse then neither adds nor removes volume. Returns False, leaving
+    ``out`` alone, when the plane is undefined or ``A`` is singular.
+    """
+    trace = q[0] + q[3] + q[5]
+    nn = nx * nx + ny * ny + nz * nz
+    if trace <= 0.0 or nn <= 0.0:
+        return False
+    eps = REGULARIZATION * trace
+    a00 = q[0] + eps; a01 = q[1]; a02 = q[2]
+    a11 = q[3] + eps; a12 = q[4]; a22 = q[5] + eps
+    c00 = a11 * a22 - a12 * a12
+    c01 = a02 * a12 - a01 * a22
+    c02 = a01 * a12 - a02 * a11
+    det = a00 * c00 + a01 * c01 + a02 * c02
+    if det <= DET_RELATIVE_EPS * trace * trace * trace:
+        return False
+    c11 = a00 * a22 - a02 * a02
+    c12 = a01 * a02 - a00 * a12
+    c22 = a00 * a11 - a01 * a01
+    ux = (c00 * nx + c01 * ny + c02 * nz) / det
+    uy = (c01 * nx + c11 * ny + c12 * nz) / det
+    uz = (c02 * nx + c12 * ny + c22 * nz) / det
+    nu = nx * ux + ny * uy + nz * uz
+    if nu <= 0.0:
+        return False
+    step = (h - (nx * out[0] + ny * out[1] + nz * out[2])) / nu
+    out[0] += step * ux
+    out[1] += step * uy
+    out[2] += step * uz
+    return True

@@ -9,7 +9,7 @@ import numpy as np
 import trimesh
 
 from lodserver.io import load_mesh
-from lodserver.mesh import Mesh
+from lodserver.mesh import Attributes, Mesh
 
 DATA = Path(__file__).resolve().parent / "data"
 SHARED = Path(__file__).resolve().parents[1].parent / "shared" / "meshes"
@@ -38,9 +38,56 @@ GENERATED = {
 }
 
 
+def textured_sphere(nu=32, nv=16, hard_equator=False) -> Mesh:
+    """A UV sphere with normals and UVs: a UV seam from pole to pole (u = 0 | 1),
+    one wedge per face corner at the poles, and, with ``hard_equator``, a hard
+    normal edge round the equator (flat normals per hemisphere side)."""
+    u, v = np.meshgrid(np.linspace(0, 1, nu + 1), np.linspace(0, 1, nv + 1), indexing="ij")
+    theta, phi = 2 * np.pi * u.ravel(), np.pi * v.ravel()
+    grid = np.stack([np.sin(phi) * np.cos(theta), np.sin(phi) * np.sin(theta), np.cos(phi)], 1)
+    idx = np.arange((nu + 1) * (nv + 1)).reshape(nu + 1, nv + 1)
+    a, b = idx[:-1, :-1], idx[1:, :-1]
+    c, d = idx[1:, 1:], idx[:-1, 1:]
+    # outward winding; the triangles touching the poles would be degenerate
+    upper = np.stack([a, b, d], -1)[:, 1:].reshape(-1, 3)
+    lower = np.stack([b, c, d], -1)[:, :-1].reshape(-1, 3)
+    render_faces = np.concatenate([upper, lower])
+    normals = grid.copy()
+    if hard_equator:
+        normals[:, 2] = np.where(v.ravel() < 0.5, 1.0, -1.0) * 0.5 + normals[:, 2] * 0.5
+        normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    values = np.concatenate([normals, np.stack([u.ravel(), v.ravel()], 1)], 1)
+    if hard_equator:
+        # the equator row gets the upper side's normals on upper faces only
+        row = (v.ravel() == 0.5)
+        extra = values[row].copy()
+        extra[:, 2] = -extra[:, 2]
+    # weld positions; wedges = distinct (vertex, attribute vector)
+    _, first, vertex_of = np.unique(np.round(grid, 12), axis=0, return_index=True,
+                                    return_inverse=True)
+    vertex_of = vertex_of.ravel()
+    faces = vertex_of[render_faces]
+    corner_values = values[render_faces]
+    if hard_equator:
+        # corners on the equator take the normal of their face's hemisphere
+        centre_z = grid[render_faces][:, :, 2].mean(axis=1)
+        on_row = row[render_faces]
+        lower_face = (centre_z < 0)[:, None] & on_row
+        corner_values[lower_face, 2] = -corner_values[lower_face, 2]
+    keys = np.concatenate([faces.reshape(-1, 1), corner_values.reshape(-1, 5)], 1)
+    wedge_rows, corners = np.unique(keys, axis=0, return_inverse=True)
+    attributes = Attributes((("NORMAL", 3), ("TEXCOORD_0", 2)), wedge_rows[:, 1:],
+                            corners.reshape(-1, 3))
+    return Mesh(grid[first], faces, attributes)
+
+
 @lru_cache(maxsize=None)
 def mesh(name: str) -> Mesh:
     """A test mesh by name: a generator key, ``spot`` (shipped), or a path under shared/meshes."""
+    if name == "textured_sphere":
+        return textured_sphere()
+    if name == "hard_sphere":
+        return textured_sphere(hard_equator=True)
     if name in GENERATED:
         positions, faces = GENERATED[name]()
         from lodserver.io import clean_mesh
