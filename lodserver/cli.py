@@ -1,4 +1,4 @@
-"""Command line: ``lodserver build | extract | info | serve``.
+"""Command line: ``lodserver build | extract | simplify | export | info | serve``.
 
 Every failure ends with one sentence on stderr and a non-zero exit code:
 1 for bad input or a failed operation, 2 for a malformed command line.
@@ -96,6 +96,45 @@ def _cmd_simplify(args) -> int:
     return 0
 
 
+def _cmd_export(args) -> int:
+    from .gltf import coverage_from_ratios, encode_lod_chain
+    from .io import encode_mesh, write_atomic
+    from .progressive import ProgressiveMesh
+
+    try:
+        ratios = [float(text) for text in args.lods.split(",")]
+    except ValueError:
+        raise MeshError(f"--lods must be comma-separated ratios like 1,0.5,0.2, "
+                        f"got {args.lods!r}") from None
+    if not all(0 < ratio <= 1 for ratio in ratios):
+        raise MeshError(f"every LOD ratio must be in (0, 1], got {args.lods}")
+    coverage = coverage_from_ratios(ratios)  # also checks that the ratios decrease
+    output = Path(args.output)
+    if output.suffix.lower() != ".glb":
+        raise MeshError(f"export writes GLB, so the output must end in .glb, got {output.name}")
+    start = time.perf_counter()
+    if Path(args.source).suffix.lower() == ".pm":
+        pm = ProgressiveMesh.load(args.source)
+    else:
+        from .build import build
+        pm = build(args.source)
+    levels = [pm.level_for(ratio=ratio) for ratio in ratios]
+    meshes = [pm.at(level) for level in levels]
+    if args.separate:
+        written = [output.with_name(f"{output.stem}_lod{i}{output.suffix}")
+                   for i in range(len(meshes))]
+        for path, mesh in zip(written, meshes):
+            write_atomic(path, encode_mesh(mesh, "glb"))
+    else:
+        written = [output]
+        write_atomic(output, encode_lod_chain(meshes, coverage))
+    faces = ", ".join(str(mesh.face_count) for mesh in meshes)
+    print(f"{', '.join(map(str, written))}: {len(meshes)} levels of {faces} faces "
+          f"(screen coverage {', '.join(f'{c:.3g}' for c in coverage)}) in "
+          f"{time.perf_counter() - start:.2f} s", file=sys.stderr)
+    return 0
+
+
 def _cmd_info(args) -> int:
     from .progressive import ProgressiveMesh
 
@@ -156,6 +195,18 @@ def _parser() -> argparse.ArgumentParser:
                         "(fastest; may merge parts and change topology)")
     p.add_argument("-o", "--output", required=True, help="PLY, OBJ, GLB, OFF or STL file to write")
     p.set_defaults(run=_cmd_simplify)
+
+    p = sub.add_parser("export",
+                       help="write levels of detail as one GLB (MSFT_lod) or one GLB each")
+    p.add_argument("source", help="a .pm artefact, or a mesh file to build one from")
+    p.add_argument("--lods", default="1,0.5,0.2,0.05", metavar="R1,R2,...",
+                   help="face ratios of the levels, finest first, each in (0, 1] "
+                        "(default 1,0.5,0.2,0.05); level i's screen coverage hint is "
+                        "0.5*sqrt(R(i+1)/R1), the last level's 0")
+    p.add_argument("-o", "--output", required=True, help="the .glb file to write")
+    p.add_argument("--separate", action="store_true",
+                   help="write OUT_lod0.glb, OUT_lod1.glb, ... instead of one file with MSFT_lod")
+    p.set_defaults(run=_cmd_export)
 
     p = sub.add_parser("info", help="print counts and the error curve of a .pm artefact as JSON")
     p.add_argument("asset")

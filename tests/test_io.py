@@ -16,7 +16,7 @@ from lodserver.io import (
     load_mesh,
     save_mesh,
 )
-from lodserver.mesh import Mesh, MeshError
+from lodserver.mesh import Materials, Mesh, MeshError
 
 SPOT = Path(__file__).parent / "data" / "spot.obj"
 
@@ -74,7 +74,14 @@ def test_spot_loads():
         "unreferenced_vertices": 0,
         "degenerate_faces": 0,
         "duplicate_faces": 0,
+        # one wedge per distinct vt of a vertex: 3225 vt lines, 277 vertices on the UV seam
+        "wedges": 3225,
+        "seam_vertices": 277,
+        "materials": 0,
+        "dropped_attributes": [],
+        "missing_files": [],
     }
+    assert [name for name, _ in mesh.attributes.layout] == ["TEXCOORD_0"]
     assert_clean(mesh, report)
 
 
@@ -447,13 +454,14 @@ def test_save_replaces_an_existing_file(tmp_path):
 
 
 def test_glb_is_a_well_formed_gltf_binary():
-    """Header, 4-byte aligned chunks, accessor counts and POSITION bounds."""
+    """Header, 4-byte aligned chunks, accessor counts and POSITION bounds (positions-only path)."""
     import json
     import struct
 
     from lodserver.io import encode_mesh
 
-    mesh, _ = load_mesh(SPOT)
+    loaded, _ = load_mesh(SPOT)
+    mesh = Mesh(loaded.positions, loaded.faces)  # without its UVs
     data = encode_mesh(mesh, "glb")
     magic, version, total = struct.unpack_from("<4sII", data)
     assert (magic, version, total) == (b"glTF", 2, len(data))
@@ -469,3 +477,254 @@ def test_glb_is_a_well_formed_gltf_binary():
     assert positions["min"] == as_float32.min(axis=0).tolist()
     assert positions["max"] == as_float32.max(axis=0).tolist()
     assert document["buffers"][0]["byteLength"] == bin_length
+
+
+# --- attributes and materials -----------------------------------------------------------
+
+PNG = (b"\x89PNG\r\n\x1a\n\x00\x00\x00\rIHDR\x00\x00\x00\x01\x00\x00\x00\x01\x08\x06\x00\x00"
+       b"\x00\x1f\x15\xc4\x89\x00\x00\x00\rIDATx\x9cc\xf8\xcf\xc0\xf0\x1f\x00\x05\x00\x01\xff"
+       b"\x89\x99=\x1d\x00\x00\x00\x00IEND\xaeB`\x82")  # a 1x1 PNG
+
+
+def corner_table(mesh: Mesh, name: str) -> np.ndarray:
+    """(m, 3, width) values of attribute ``name`` at every face corner."""
+    return mesh.attributes.values[mesh.attributes.corners][..., mesh.attributes.columns(name)]
+
+
+def test_clean_mesh_builds_wedges_and_drops_corners_with_their_faces():
+    # two triangles over a square; vertex 0 and 2 are shared. Face 2 repeats face 0
+    # (wound the other way) with other UVs: dropped with them.
+    positions = [[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0]]
+    faces = [[0, 1, 2], [0, 2, 3], [2, 1, 0]]
+    uv = np.array([
+        [[0, 0], [1, 0], [1, 1]],
+        [[0, 0], [0.5, 0.5], [0, 1]],  # vertex 2 gets a second UV: a seam
+        [[9, 9], [9, 9], [9, 9]],
+    ], dtype=np.float64)
+    mesh, report = clean_mesh(positions, faces, corner_values=uv, layout=(("TEXCOORD_0", 2),))
+    assert mesh.faces.tolist() == [[0, 1, 2], [0, 2, 3]]
+    assert mesh.attributes.corners.tolist() == [[0, 1, 2], [0, 3, 4]]
+    assert (report.duplicate_faces, report.wedges, report.seam_vertices) == (1, 5, 1)
+    np.testing.assert_array_equal(corner_table(mesh, "TEXCOORD_0"), uv[:2])
+    # -0.0 and 0.0 are one wedge, as they are one position
+    uv[1, 0] = [-0.0, 0.0]
+    assert clean_mesh(positions, faces, corner_values=uv, layout=(("TEXCOORD_0", 2),))[1].wedges == 5
+
+
+def test_clean_mesh_puts_the_material_in_the_wedge():
+    positions = [[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0]]
+    faces = [[0, 1, 2], [0, 2, 3]]
+    normals = np.tile([0.0, 0.0, 1.0], (2, 3, 1))
+    materials = Materials({"materials": [{"name": "a"}, {"name": "b"}]})
+    mesh, report = clean_mesh(positions, faces, corner_values=normals, layout=(("NORMAL", 3),),
+                              face_material=[0, 1], materials=materials)
+    assert mesh.face_material.tolist() == [0, 1] and mesh.materials is materials
+    # the shared edge (vertices 0 and 2) has one wedge per material
+    assert (report.wedges, report.seam_vertices, report.materials) == (6, 2, 2)
+
+
+@pytest.mark.parametrize(("kwargs", "keyword"), [
+    ({"corner_values": np.zeros((1, 3, 3)), "layout": (("TEXCOORD_0", 2),)}, "shape (1, 3, 2)"),
+    ({"corner_values": np.zeros((1, 3, 2)), "layout": (("UV", 2),)}, "unknown attribute"),
+    ({"corner_values": np.full((1, 3, 2), np.inf), "layout": (("TEXCOORD_0", 2),)},
+     "3 TEXCOORD_0 corners"),
+    ({"face_material": [0]}, "[-1, -1]"),
+    ({"face_material": [0.5]}, "integers"),
+])
+def test_clean_mesh_rejects_bad_attributes(kwargs, keyword):
+    with pytest.raises(MeshError) as caught:
+        clean_mesh(np.eye(3), [[0, 1, 2]], **kwargs)
+    assert keyword in str(caught.value)
+
+
+def test_obj_vt_and_vn_per_corner(tmp_path):
+    path = write(
+        tmp_path / "square.obj",
+        "v 0 0 0\nv 1 0 0\nv 1 1 0\nv 0 1 0\nv 2 1 0\n"
+        "vt 0 0\nvt 1 0\nvt 1 1 0\nvt 0 1\nvt 0.25 0.75\n"
+        "vn 0 0 1\nvn 0 0 2\n"
+        "f 1/1/1 2/2/1 3/3/2 4/4/2\n"  # a quad: two triangles sharing vertices 1 and 3
+        "f 2/-1 5/-3 3/1\n",  # relative vt, no vn: a flat normal
+    )
+    mesh, report = load_mesh(path)
+    assert mesh.attributes.layout == (("NORMAL", 3), ("TEXCOORD_0", 2))
+    assert mesh.faces.tolist() == [[0, 1, 2], [0, 2, 3], [1, 4, 2]]
+    uv = corner_table(mesh, "TEXCOORD_0")
+    # glTF's v runs down: v_gltf = 1 - v_obj
+    np.testing.assert_array_equal(uv[0], [[0, 1], [1, 1], [1, 0]])
+    np.testing.assert_array_equal(uv[2], [[0.25, 0.25], [1, 0], [0, 1]])
+    normals = corner_table(mesh, "NORMAL")
+    np.testing.assert_array_equal(normals[0], [[0, 0, 1], [0, 0, 1], [0, 0, 2]])  # as stored
+    np.testing.assert_array_equal(normals[2], [[0, 0, 1]] * 3)  # flat, from the winding
+    # vertex 0 has one (vt, vn) in both quad triangles; vertices 1 and 2 differ in face 2
+    assert (report.wedges, report.seam_vertices) == (7, 2)
+    assert report.dropped_attributes == [] and mesh.materials is None
+
+
+def test_obj_nan_texture_coordinate_is_a_mesh_error(tmp_path):
+    path = write(tmp_path / "nan.obj", TRIANGLE + "vt nan 0\nf 1/1 2/1 3/1\n")
+    with pytest.raises(MeshError, match="nan.obj: face corners have NaN .*TEXCOORD_0"):
+        load_mesh(path)
+
+
+def test_obj_bad_vt_reference(tmp_path):
+    path = write(tmp_path / "vt.obj", TRIANGLE + "vt 0 0\nf 1/1 2/2 3/1\n")
+    with pytest.raises(MeshError, match="refer to texture coordinates that do not exist"):
+        load_mesh(path)
+
+
+def test_obj_vertex_colours_become_linear_rgba(tmp_path):
+    path = write(tmp_path / "colours.obj",
+                 "v 0 0 0 1 0 0\nv 1 0 0 0 0.5 0\nv 0 1 0 0 0 0.04\nf 1 2 3\n")
+    mesh, _ = load_mesh(path)
+    colours = corner_table(mesh, "COLOR_0")[0]
+    srgb_half = ((0.5 + 0.055) / 1.055) ** 2.4  # the sRGB curve
+    np.testing.assert_allclose(colours, [[1, 0, 0, 1], [0, srgb_half, 0, 1], [0, 0, 0.04 / 12.92, 1]])
+
+
+def test_obj_materials_from_mtllib_and_usemtl(tmp_path):
+    (tmp_path / "textures").mkdir()
+    (tmp_path / "textures" / "wood grain.png").write_bytes(PNG)
+    write(tmp_path / "parts.mtl",
+          "newmtl wood\nKd 1 0.5 0\nmap_Kd -s 1 1 1 -o 0 0 textures\\wood grain.png\n"
+          "newmtl glass\nKd 0.2 0.2 0.2\nd 0.25\n"
+          "newmtl unused\nTr 0.5\n")
+    path = write(tmp_path / "parts.obj",
+                 "mtllib parts.mtl\n" + TRIANGLE + "v 1 1 0\nvt 0 0\n"
+                 "f 1 2 3\nusemtl glass\nf 2 4 3\nusemtl wood\nf 1/1 2/1 4/1\nusemtl paint\nf 1 4 3\n")
+    mesh, report = load_mesh(path)
+    assert mesh.face_material.tolist() == [-1, 1, 0, 3]
+    records = mesh.materials.gltf["materials"]
+    assert [r["name"] for r in records] == ["wood", "glass", "unused", "paint"]
+    wood = records[0]["pbrMetallicRoughness"]
+    assert wood["baseColorTexture"] == {"index": 0}
+    assert (wood["metallicFactor"], wood["roughnessFactor"]) == (0.0, 1.0)
+    np.testing.assert_allclose(wood["baseColorFactor"], [1, ((0.5 + 0.055) / 1.055) ** 2.4, 0, 1])
+    assert records[1]["pbrMetallicRoughness"]["baseColorFactor"][3] == 0.25
+    assert records[1]["alphaMode"] == "BLEND" and records[2]["alphaMode"] == "BLEND"
+    assert mesh.materials.images == (PNG,)
+    assert mesh.materials.gltf["images"] == [{"mimeType": "image/png", "name": "wood grain.png"}]
+    assert mesh.materials.gltf["textures"] == [{"source": 0}]
+    assert report.materials == 4 and report.missing_files == []
+
+
+def test_obj_missing_mtllib_is_reported_and_a_missing_texture_is_an_error(tmp_path):
+    path = write(tmp_path / "a.obj", "mtllib gone.mtl\nusemtl skin\n" + TRIANGLE + "f 1 2 3\n")
+    mesh, report = load_mesh(path)
+    assert report.missing_files == ["gone.mtl"]
+    assert [r["name"] for r in mesh.materials.gltf["materials"]] == ["skin"]
+
+    write(tmp_path / "b.mtl", "newmtl skin\nmap_Kd skin.png\n")
+    path = write(tmp_path / "b.obj", "mtllib b.mtl\nusemtl skin\n" + TRIANGLE + "f 1 2 3\n")
+    with pytest.raises(MeshError, match="b.obj: its material 'skin' uses the texture 'skin.png', "
+                                        "which is missing"):
+        load_mesh(path)
+
+
+PLY_ATTRIBUTES = (
+    "ply\nformat ascii 1.0\nelement vertex 4\n"
+    "property float x\nproperty float y\nproperty float z\n"
+    "property float nx\nproperty float ny\nproperty float nz\n"
+    "property uchar red\nproperty uchar green\nproperty uchar blue\n"
+    "property float s\nproperty float t\nproperty float quality\n"
+    "element face 2\nproperty list uchar int vertex_indices\nend_header\n"
+    "0 0 0 0 0 1 255 0 0 0 0 7\n1 0 0 0 0 1 0 255 0 1 0 7\n"
+    "1 1 0 0 0 1 0 0 255 1 1 7\n0 1 0 0 0 1 0 0 0 0 1 7\n"
+    "3 0 1 2\n3 0 2 3\n"
+)
+
+
+def binary_ply_attributes() -> bytes:
+    """PLY_ATTRIBUTES as binary little-endian, with its types."""
+    header = PLY_ATTRIBUTES[:PLY_ATTRIBUTES.index("end_header")].replace("ascii", "binary_little_endian")
+    vertex = np.zeros(4, dtype=[("p", "<f4", 3), ("n", "<f4", 3), ("rgb", "u1", 3),
+                                ("st", "<f4", 2), ("quality", "<f4")])
+    rows = np.array([line.split() for line in PLY_ATTRIBUTES.splitlines()[-6:-2]], dtype=float)
+    vertex["p"], vertex["n"], vertex["rgb"] = rows[:, :3], rows[:, 3:6], rows[:, 6:9]
+    vertex["st"], vertex["quality"] = rows[:, 9:11], rows[:, 11]
+    faces = np.array([(3, (0, 1, 2)), (3, (0, 2, 3))], dtype=[("n", "u1"), ("i", "<i4", 3)])
+    return (header + "end_header\n").encode() + vertex.tobytes() + faces.tobytes()
+
+
+@pytest.mark.parametrize("binary", [False, True])
+def test_ply_vertex_normals_colours_and_uvs(tmp_path, binary):
+    path = tmp_path / "square.ply"
+    path.write_bytes(binary_ply_attributes() if binary else PLY_ATTRIBUTES.encode())
+    mesh, report = load_mesh(path)
+    assert mesh.attributes.layout == (("NORMAL", 3), ("TEXCOORD_0", 2), ("COLOR_0", 4))
+    np.testing.assert_array_equal(corner_table(mesh, "NORMAL"), np.tile([0, 0, 1], (2, 3, 1)))
+    # PLY's v runs up, glTF's down
+    np.testing.assert_array_equal(corner_table(mesh, "TEXCOORD_0")[0], [[0, 1], [1, 1], [1, 0]])
+    np.testing.assert_array_equal(corner_table(mesh, "COLOR_0")[0],
+                                  [[1, 0, 0, 1], [0, 1, 0, 1], [0, 0, 1, 1]])
+    assert report.dropped_attributes == ["quality"]
+    assert report.seam_vertices == 0 and report.wedges == 4
+
+
+def test_ply_per_face_texcoords(tmp_path):
+    path = write(
+        tmp_path / "meshlab.ply",
+        "ply\nformat ascii 1.0\nelement vertex 4\n"
+        "property float x\nproperty float y\nproperty float z\n"
+        "element face 2\nproperty list uchar int vertex_indices\n"
+        "property list uchar float texcoord\nend_header\n"
+        "0 0 0\n1 0 0\n1 1 0\n0 1 0\n"
+        "3 0 1 2 6 0 0 1 0 1 1\n3 0 2 3 6 0.5 0.5 1 1 0 1\n",
+    )
+    mesh, report = load_mesh(path)
+    assert mesh.vertex_count == 4 and mesh.faces.tolist() == [[0, 1, 2], [0, 2, 3]]
+    np.testing.assert_array_equal(corner_table(mesh, "TEXCOORD_0"),
+                                  [[[0, 1], [1, 1], [1, 0]], [[0.5, 0.5], [1, 0], [0, 0]]])
+    assert report.seam_vertices == 1 and report.dropped_attributes == []
+
+
+def test_tristrips_ply_reports_its_extra_property(tmp_path):
+    path = tmp_path / "strips.ply"
+    path.write_bytes(ply_with_strips("ascii"))
+    mesh, report = load_mesh(path)
+    assert mesh.attributes is None and report.dropped_attributes == ["quality"]
+
+
+def test_obj_without_uvs_or_normals_writes_what_it_always_wrote(tmp_path):
+    mesh, _ = load_mesh(SPOT)
+    plain = Mesh(mesh.positions, mesh.faces)
+    assert lodio.encode_mesh(plain, "obj") == trimesh.Trimesh(
+        plain.positions, plain.faces, process=False).export(
+        file_type="obj", **lodio._EXPORT_OPTIONS["obj"]).encode()
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    st.integers(3, 10).flatmap(
+        lambda n: st.tuples(
+            st.lists(st.tuples(*[st.sampled_from([0.0, -0.0, 1.0])] * 3), min_size=n, max_size=n),
+            st.lists(st.tuples(*[st.integers(0, n - 1)] * 3), min_size=1, max_size=16),
+            st.randoms(use_true_random=False),
+        )
+    )
+)
+def test_clean_mesh_wedges_are_the_distinct_corner_values_of_each_vertex(data):
+    positions, faces, rng = np.array(data[0]), np.array(data[1]), data[2]
+    # UVs from a small set, so that corners of one vertex often agree
+    uv = np.array([[rng.choice([0.0, -0.0, 0.5]) for _ in range(2)] for _ in range(3 * len(faces))])
+    corner_values = uv.reshape(-1, 3, 2)
+    layout = (("TEXCOORD_0", 2),)
+    try:
+        mesh, report = clean_mesh(positions, faces, corner_values=corner_values, layout=layout)
+    except MeshError as exc:
+        assert "degenerate" in str(exc)
+        return
+    values = mesh.attributes.values[mesh.attributes.corners]  # (m', 3, 2)
+    # one wedge per distinct (vertex, value) among the corners (0.0 == -0.0)
+    keys = {(v, *np.abs(row)) for v, row in zip(mesh.faces.ravel(), values.reshape(-1, 2))}
+    assert report.wedges == mesh.attributes.wedge_count == len(keys)
+    # each kept face carries the corner values of an input face with its corner positions
+    originals = {tuple(map(tuple, np.hstack([positions[f], corner_values[i]])))
+                 for i, f in enumerate(faces)}
+    for face, corner in zip(mesh.faces, values):
+        assert tuple(map(tuple, np.hstack([mesh.positions[face], corner]))) in originals
+    # cleaning again changes nothing
+    again, second = clean_mesh(mesh.positions, mesh.faces, corner_values=values, layout=layout)
+    np.testing.assert_array_equal(again.attributes.corners, mesh.attributes.corners)
+    np.testing.assert_array_equal(again.attributes.values, mesh.attributes.values)
+    assert (second.wedges, second.seam_vertices) == (report.wedges, report.seam_vertices)
