@@ -332,3 +332,174 @@ def test_tuples_junk_vertices_and_degenerate_faces(spot):
     # as the reference, unreferenced vertices do not stretch the diagonal
     reference = Mesh(np.vstack([spot.positions, [[100.0, 100, 100]]]), spot.faces)
     assert surface_distance(reference, noisy, samples=20_000) == plain
+
+
+# ---------------------------------------------------------------------------
+# attribute_deviation: appearance attributes at corresponding surface points
+# ---------------------------------------------------------------------------
+
+from lodserver.mesh import Attributes  # noqa: E402
+from lodserver.metrics import (  # noqa: E402
+    _closest_barycentrics,
+    _sample,
+    _sample_barycentric,
+    attribute_deviation,
+)
+
+PLANE_LAYOUT = (("NORMAL", 3), ("TEXCOORD_0", 2), ("COLOR_0", 4))
+
+
+def textured_plane(cells=8, uv=lambda xy: 0.2 + 0.4 * xy, normal=(0.0, 0.0, 1.0),
+                   color=(0.5, 0.25, 1.0, 1.0), z=0.0) -> Mesh:
+    """The unit square at height z, cells x cells quads, one wedge per vertex:
+    UVs a function of (x, y), constant normal and colour."""
+    t = np.linspace(0.0, 1.0, cells + 1)
+    x, y = np.meshgrid(t, t, indexing="ij")
+    xy = np.column_stack([x.ravel(), y.ravel()])
+    positions = np.column_stack([xy, np.full(len(xy), z)])
+    i = np.arange(cells)[:, None] * (cells + 1) + np.arange(cells)[None, :]
+    i = i.ravel()
+    faces = np.concatenate([
+        np.column_stack([i, i + cells + 1, i + cells + 2]),
+        np.column_stack([i, i + cells + 2, i + 1]),
+    ])
+    values = np.column_stack([
+        np.broadcast_to(normal, (len(xy), 3)), uv(xy), np.broadcast_to(color, (len(xy), 4)),
+    ])
+    return Mesh(positions, faces, Attributes(PLANE_LAYOUT, values, faces))
+
+
+def test_attribute_deviation_identical_is_zero():
+    plane = textured_plane()
+    result = attribute_deviation(plane, plane, samples=5_000)
+    assert result["geometry"]["rms"] == 0.0 and result["geometry"]["hausdorff"] == 0.0
+    for name in ("NORMAL", "TEXCOORD_0", "COLOR_0"):
+        assert result[name]["max"] == pytest.approx(0.0, abs=1e-12), name
+    assert result["NORMAL"]["excluded"] == 0
+    assert result["TEXCOORD_1"] is None and result["texture"] is None
+
+
+def test_attribute_deviation_shifted_uvs():
+    plane = textured_plane()
+    shifted = textured_plane(uv=lambda xy: 0.2 + 0.4 * xy + [0.1, 0.0])
+    result = attribute_deviation(plane, shifted, samples=5_000)
+    uv = result["TEXCOORD_0"]
+    for key in ("rms", "p50", "p99", "max", "rms_ab", "rms_ba"):
+        assert uv[key] == pytest.approx(0.1, rel=1e-9), key
+    assert result["NORMAL"]["max"] == pytest.approx(0.0, abs=1e-12)
+    assert result["COLOR_0"]["max"] == pytest.approx(0.0, abs=1e-12)
+
+
+def test_attribute_deviation_other_triangulation_of_a_linear_field():
+    # barycentric interpolation reproduces an affine UV field on any
+    # triangulation, so only the candidate's own weights are under test here
+    fine = textured_plane(cells=9, uv=lambda xy: xy @ [[0.3, 0.1], [-0.2, 0.5]] + 0.25)
+    coarse = textured_plane(cells=2, uv=lambda xy: xy @ [[0.3, 0.1], [-0.2, 0.5]] + 0.25)
+    result = attribute_deviation(fine, coarse, samples=20_000)
+    assert result["geometry"]["hausdorff"] < 1e-12
+    assert result["TEXCOORD_0"]["max"] < 1e-12
+
+
+def test_attribute_deviation_tilted_normals_and_colour():
+    plane = textured_plane()
+    angle = np.radians(10.0)
+    tilted = textured_plane(normal=(3.0 * np.sin(angle), 0.0, 3.0 * np.cos(angle)),  # not unit
+                            color=(0.5, 0.25, 1.0, 0.6))
+    result = attribute_deviation(plane, tilted, samples=5_000)
+    assert result["NORMAL"]["rms"] == pytest.approx(10.0, rel=1e-6)
+    assert result["NORMAL"]["max"] == pytest.approx(10.0, rel=1e-6)
+    # one channel of four off by 0.4: RMS over channels = 0.4 / 2
+    assert result["COLOR_0"]["rms"] == pytest.approx(0.2, rel=1e-9)
+
+
+def test_attribute_deviation_geometry_matches_surface_distance():
+    plane = textured_plane()
+    lifted = textured_plane(cells=5, z=0.03)
+    result = attribute_deviation(plane, lifted, samples=4_000, seed=7)
+    plain = surface_distance(plane, lifted, samples=4_000, seed=7)
+    for key, value in result["geometry"].items():
+        assert value == plain[key], key
+    assert result["diagonal"] == plain["diagonal"]
+    assert result["geometry"]["rms"] == pytest.approx(0.03 / np.sqrt(2), rel=1e-9)
+
+
+def test_attribute_deviation_without_attributes_reports_none():
+    plane = textured_plane()
+    bare = Mesh(plane.positions, plane.faces)
+    for a, b in ((plane, bare), (bare, plane), ((plane.positions, plane.faces), bare)):
+        result = attribute_deviation(a, b, samples=1_000)
+        assert result["geometry"]["rms"] == 0.0
+        assert all(result[name] is None for name in ("NORMAL", "TEXCOORD_0", "COLOR_0"))
+    with pytest.raises(ValueError):
+        attribute_deviation(plane, plane, samples=0)
+
+
+def test_attribute_deviation_texture_colour():
+    plane = textured_plane()  # u in [0.2, 0.6]
+    shifted = textured_plane(uv=lambda xy: 0.2 + 0.4 * xy + [0.1, 0.0])
+    # colour = 2 x (texel column), so a 0.1 shift in u over 100 texels is 20 levels
+    image = np.repeat((2.0 * np.arange(100))[None, :, None], 7, axis=0).repeat(3, axis=2)
+    result = attribute_deviation(plane, shifted, samples=5_000, texture=image)
+    assert result["texture"]["rms"] == pytest.approx(20.0, rel=1e-9)
+    assert result["texture"]["max"] == pytest.approx(20.0, rel=1e-9)
+    same = attribute_deviation(plane, plane, samples=2_000, texture=image.astype(np.uint8))
+    assert same["texture"]["max"] == pytest.approx(0.0, abs=1e-9)
+
+
+def seamed_plane(cells=8, shift=0.0) -> Mesh:
+    """The unit square moved by ``shift`` along x, with two UV charts split by a
+    seam at local x = 0.5: u = x / 2 on the left, x / 2 + 0.25 on the right
+    (seam vertices have one wedge per chart), v = y."""
+    plane = textured_plane(cells=cells)
+    chart = (plane.positions[plane.faces].mean(axis=1)[:, 0] > 0.5).astype(np.int64)
+    keys = 2 * plane.faces + chart[:, None]
+    unique, corners = np.unique(keys.ravel(), return_inverse=True)
+    vertex, side = unique // 2, unique % 2
+    xy = plane.positions[vertex, :2]
+    values = np.column_stack([np.broadcast_to((0.0, 0.0, 1.0), (len(unique), 3)),
+                              0.5 * xy[:, 0] + 0.25 * side, xy[:, 1],
+                              np.ones((len(unique), 4))])
+    return Mesh(plane.positions + [shift, 0.0, 0.0], plane.faces,
+                Attributes(PLANE_LAYOUT, values, corners.reshape(-1, 3)))
+
+
+def test_attribute_deviation_seam_is_seen_in_max_not_p99():
+    # moved by 0.004, the candidate's seam sits 0.004 to the right: reference
+    # points just right of the reference seam find their closest point in the
+    # candidate's left chart (0.252 away in u); everywhere else u differs by 0.002
+    reference = seamed_plane()
+    candidate = seamed_plane(cells=4, shift=0.004)
+    assert reference.attributes.wedge_count == len(reference.positions) + 9
+    result = attribute_deviation(reference, candidate, samples=50_000)
+    uv = result["TEXCOORD_0"]
+    assert uv["max"] == pytest.approx(0.25 + 0.002, rel=1e-6)
+    assert uv["p50"] == pytest.approx(0.002, rel=1e-6)
+    assert uv["p99"] == pytest.approx(0.002, rel=1e-6)
+    # sampled, so from below
+    assert 0.99 * 0.004 < result["geometry"]["hausdorff"] * np.sqrt(2) <= 0.004 * (1 + 1e-12)
+
+
+def test_sample_barycentric_matches_sample_surface(spot):
+    points, face, bary = _sample_barycentric(spot, 5_000, 3)
+    assert np.array_equal(points, _sample(spot, 5_000, 3))
+    assert np.array_equal(points, sample_surface(spot.positions, spot.faces, 5_000, seed=3))
+    rebuilt = np.einsum("kc,kcd->kd", bary, spot.positions[spot.faces[face]])
+    assert np.allclose(rebuilt, points, atol=1e-12)
+    assert (bary >= 0).all() and np.allclose(bary.sum(axis=1), 1.0)
+
+
+def test_closest_barycentrics_rebuild_the_closest_point():
+    rng = np.random.default_rng(12)
+    soup = Mesh(*random_soup(rng, 300))
+    points = rng.normal(size=(3_000, 3))
+    _, face, closest = _nearest_on_mesh(points, soup)
+    bary = _closest_barycentrics(soup.positions, soup.faces, face, closest)
+    assert (bary >= 0).all() and np.allclose(bary.sum(axis=1), 1.0)
+    rebuilt = np.einsum("kc,kcd->kd", bary, soup.positions[soup.faces[face]])
+    scale = np.abs(soup.positions).max()
+    assert np.abs(rebuilt - closest).max() < 1e-9 * scale
+    # a flat triangle: the point lies on its long edge, 30% of the way
+    flat = np.array([[0.0, 0, 0], [1, 0, 0], [0.5, 0, 0]])
+    q = np.array([[0.3, 0.0, 0.0]])
+    w = _closest_barycentrics(flat, np.array([[0, 1, 2]]), np.array([0]), q)
+    assert np.allclose(w @ flat, q)
