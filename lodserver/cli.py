@@ -31,7 +31,7 @@ def _progress_bar(total_hint: int):
 
 
 def _cmd_build(args) -> int:
-    from .build import build
+    from .build import attribute_weights, build
     from .io import load_mesh
 
     mesh, report = load_mesh(args.mesh)
@@ -43,9 +43,15 @@ def _cmd_build(args) -> int:
     bar, update = _progress_bar(mesh.vertex_count)
     start = time.perf_counter()
     try:
-        pm = build(mesh, boundary_weight=args.boundary_weight, locked=locked,
-                   min_vertices=args.min_vertices, pair_threshold=args.pair_threshold,
+        pm = build(mesh, method=args.method, boundary_weight=args.boundary_weight,
+                   locked=locked, min_vertices=args.min_vertices,
+                   pair_threshold=args.pair_threshold, preserve_volume=not args.no_volume,
+                   attributes=not args.no_attributes,
+                   attribute_weights=attribute_weights(normal=args.normal_weight,
+                                                       uv=args.uv_weight, color=args.color_weight),
                    progress=update)
+    except ValueError as exc:
+        raise MeshError(str(exc)) from exc
     finally:
         bar.close()
     pm.metadata["source"] = Path(args.mesh).name
@@ -173,6 +179,17 @@ def _parser() -> argparse.ArgumentParser:
                    help="also contract vertices closer than T that share no edge, joining "
                         "parts: mesh units, or a percentage of the bounding-box diagonal "
                         "like 1%% (default 0: edges only)")
+    p.add_argument("--method", choices=("qem", "cluster"), default="qem",
+                   help="qem: quadric edge collapse (best quality; keeps topology and "
+                        "attributes); cluster: octree vertex clustering recorded as splits "
+                        "(joins parts; geometry only)")
+    p.add_argument("--no-volume", action="store_true",
+                   help="do not keep the enclosed volume when placing collapses")
+    p.add_argument("--no-attributes", action="store_true",
+                   help="ignore normals, UVs, colours and materials (positions only)")
+    for kind, default in (("normal", "0.003"), ("uv", "0.3"), ("color", "0.3")):
+        p.add_argument(f"--{kind}-weight", type=float, metavar="W",
+                       help=f"weight of {kind} error against geometric error (default {default})")
     p.set_defaults(run=_cmd_build)
 
     p = sub.add_parser("extract", help="write one level of a .pm artefact as a mesh file")

@@ -35,9 +35,17 @@ import numpy as np
 from numba import njit
 
 from .mesh import Mesh, MeshError
-from .quadrics import (add_fixed, add_reduced, best_attributes, constrain_to_plane,
-                       optimal_position_xyz, quadric_error, seam_edges, vertex_quadrics,
-                       wedge_quadrics)
+from .quadrics import (
+    add_fixed,
+    add_reduced,
+    best_attributes,
+    constrain_to_plane,
+    optimal_position_xyz,
+    quadric_error,
+    seam_edges,
+    vertex_quadrics,
+    wedge_quadrics,
+)
 from .topology import Census, census
 
 # Vertex kinds. The rules, as in meshoptimizer's kCanCollapse table:
@@ -72,9 +80,14 @@ _REASON_COUNT = len(REJECT_REASONS)
 MAX_PAIRS_PER_VERTEX = 8
 
 # Default weight of each attribute's squared error against squared distance in
-# the unit box (positions are scaled so the longest box side is 1): a UV error
-# of 0.01 then costs as much as a geometric error of 1% of the model's size.
-DEFAULT_ATTRIBUTE_WEIGHTS = {"NORMAL": 0.25, "TEXCOORD_0": 1.0, "TEXCOORD_1": 1.0, "COLOR_0": 0.5}
+# the unit box (positions are scaled so the longest box side is 1): with 0.3, a
+# UV error of 0.01 costs as much as a geometric error of 0.55% of the model's
+# size. Chosen on the textured shared meshes (bench/appearance.py): heavier
+# weights bought little texture accuracy for much geometric error. Normals
+# weigh least: their field varies with curvature (1/radius per unit length),
+# so even a small weight pins vertices against sliding along the surface, and
+# normals come out right wherever the geometry does.
+DEFAULT_ATTRIBUTE_WEIGHTS = {"NORMAL": 0.003, "TEXCOORD_0": 0.3, "TEXCOORD_1": 0.3, "COLOR_0": 0.3}
 
 # With volume preservation, a collapse popped from the queue is re-placed on
 # its volume plane, which can only raise its cost; if the cost rose past this
@@ -905,8 +918,7 @@ def _decimate_kernel(pos, world, scale, origin, faces, quadrics, kind, min_verti
                 for j in range(3):
                     world[s, j] = origin[j] + scale * p[j]
             pos[s, 0] = p[0]; pos[s, 1] = p[1]; pos[s, 2] = p[2]
-            if kind[r] > kind[s]:
-                kind[s] = kind[r]
+            kind[s] = max(kind[s], kind[r])
             vertex_alive[r] = False
             alive_count -= 1
             version[s] += 1
@@ -1033,7 +1045,7 @@ def decimate(mesh: Mesh, *, boundary_weight: float = 1.0, locked=None, min_verti
     scale = float((positions.max(axis=0) - lo).max()) or 1.0
     unit = (positions - lo) / scale
     attributes = mesh.attributes
-    seams = seam_edges(faces, attributes.corners) if attributes is not None else None
+    seams = _texture_seams(mesh) if attributes is not None else None
     quadrics = vertex_quadrics(unit, faces, boundary_weight=boundary_weight,
                                boundary=(found.boundary_edges, found.boundary_faces),
                                seams=seams, seam_weight=seam_weight)
@@ -1085,6 +1097,27 @@ def decimate(mesh: Mesh, *, boundary_weight: float = 1.0, locked=None, min_verti
         moved_offsets=moved_off.copy(), moved_corners=moved.copy(),
         rejected=dict(zip(REJECT_REASONS, (int(x) for x in rejected))), passes=int(passes),
         **merges)
+
+
+def _texture_seams(mesh: Mesh):
+    """``seam_edges`` over the wedges as UVs and colours alone see them.
+
+    Seams where only the normal changes are creases: the geometric quadrics
+    already keep a real crease, and pinning the many shallow ones that
+    exporters leave (Duck.glb's median 13 degrees) with planes costs far more
+    geometric error than it saves.
+    """
+    attributes = mesh.attributes
+    keep = np.ones(attributes.width, dtype=bool)
+    normal = attributes.columns("NORMAL")
+    if normal is not None:
+        keep[normal] = False
+    if not keep.any():
+        return None
+    rows = np.concatenate([mesh.wedge_vertices()[:, None].astype(np.float64),
+                           attributes.values[:, keep]], axis=1)
+    _, texture_wedge = np.unique(rows, axis=0, return_inverse=True)
+    return seam_edges(mesh.faces, texture_wedge.ravel()[attributes.corners])
 
 
 def attribute_scales(layout, weights: dict | None) -> np.ndarray:

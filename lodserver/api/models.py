@@ -3,9 +3,11 @@
 from __future__ import annotations
 
 from datetime import datetime, timezone
+from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
+from ..build import attribute_weights
 from ..store import MeshRecord, Status
 
 
@@ -27,8 +29,25 @@ class MeshCreate(BaseModel):
                                 "no edge (joins parts): mesh units, or a percentage of the "
                                 "bounding-box diagonal such as '1%'. 0: edges only.")
 
+    method: Literal["qem", "cluster"] = Field(
+        "qem", description="qem: quadric edge collapse (best quality, keeps topology and "
+        "attributes); cluster: octree vertex clustering (faster, joins parts, geometry only).")
+    preserve_volume: bool = Field(True, description="Place collapses so the enclosed volume "
+                                  "is kept (thin parts do not shrink away).")
+    attributes: bool = Field(True, description="Simplify normals, UVs and colours with the "
+                             "geometry (wedges, seams kept); false: positions only.")
+    normal_weight: float | None = Field(None, gt=0, le=1e6, allow_inf_nan=False,
+                                        description="Weight of normal error (default 0.003).")
+    uv_weight: float | None = Field(None, gt=0, le=1e6, allow_inf_nan=False,
+                                    description="Weight of UV error (default 0.3).")
+    color_weight: float | None = Field(None, gt=0, le=1e6, allow_inf_nan=False,
+                                       description="Weight of vertex colour error (default 0.3).")
+
     def build_options(self) -> dict:
-        return self.model_dump(exclude={"name"})
+        options = self.model_dump(exclude={"name", "normal_weight", "uv_weight", "color_weight"})
+        options["attribute_weights"] = attribute_weights(
+            normal=self.normal_weight, uv=self.uv_weight, color=self.color_weight)
+        return options
 
 
 class MeshCreated(BaseModel):
