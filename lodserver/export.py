@@ -1,13 +1,26 @@
 """One level of a progressive mesh as the bytes of a response.
 
 ``glb``, ``obj`` and ``ply`` carry the level's exact positions (as precise as
-the format allows, see ``io``). ``json`` carries its *quantized form*, the
+the format allows, see ``io``); ``glb`` also its wedge attributes, materials and
+images, ``obj`` its UVs and normals (one ``vt``/``vn`` per wedge), ``ply``
+positions only. ``json`` carries its *quantized form*, the
 state a packet client starts from and ends in (``packets.py``)::
 
     {"level": v, "vertex_count": v, "face_count": f, "error": e,
      "grid": {"origin": [x, y, z], "step": s, "bits": b},
      "positions": [[qx, qy, qz], ...],   # grid coordinates, position = origin + q * step
      "faces": [[a, b, c], ...]}          # in prefix-layout slots
+
+and, for a mesh with attributes and materials (docs/packets.md)::
+
+     "layout": [["NORMAL", 3], ["TEXCOORD_0", 2]],
+     "attribute_grid": {"NORMAL": {"encoding": "octahedral", ...}, "TEXCOORD_0": {...}},
+     "wedge_capacity": w,                # wedges at full detail (the most of any level)
+     "wedges": [[...], ...],             # grid coordinates per wedge, attribute after attribute
+     "corners": [[a, b, c], ...],        # the wedge of every face corner
+     "face_material": [m, ...],          # per face, -1 for none
+     "material_faces": [n0, ..., n_none],  # faces per material at full detail, last: none
+     "materials": "/meshes/{id}/materials"
 """
 
 from __future__ import annotations
@@ -56,11 +69,12 @@ def checked_bits(bits: int | None) -> int | None:
 
 
 def encode_level(pm: ProgressiveMesh, level: int, *, file_type: str,
-                 bits: int | None = None) -> bytes:
+                 bits: int | None = None, materials_href: str | None = None) -> bytes:
     """The bytes of ``level`` in ``file_type`` (one of :data:`FORMATS`).
 
     ``bits`` sets the grid of the ``json`` form (default ``packets.default_bits``)
-    and must match the packets the client applies to it.
+    and must match the packets the client applies to it. ``materials_href`` is
+    where the ``json`` form says the mesh's materials are (when it has some).
     """
     level = check_level(pm, level)
     if file_type not in FORMATS:
@@ -72,7 +86,26 @@ def encode_level(pm: ProgressiveMesh, level: int, *, file_type: str,
                     "error": pm.error_at_level(level), "grid": grid.as_dict(),
                     "positions": np.ascontiguousarray(state.positions),
                     "faces": np.ascontiguousarray(state.faces)}
+        if state.attribute_grids:
+            document.update(layout=[list(x) for x in pm.attribute_layout],
+                            attribute_grid={g.name: g.as_dict() for g in state.attribute_grids},
+                            wedge_capacity=int(pm.wedge_counts[-1]),
+                            wedges=np.ascontiguousarray(state.wedges),
+                            corners=np.ascontiguousarray(state.corners))
+        if state.face_material is not None:
+            count = pm.materials.count if pm.materials is not None else 0
+            document.update(face_material=np.ascontiguousarray(state.face_material),
+                            material_faces=material_face_counts(pm.face_material, count))
+        if pm.materials is not None and materials_href:
+            document["materials"] = materials_href
         # orjson writes numpy arrays directly: the same bytes as json.dumps of
         # their lists, 7x faster on a million-face level.
         return orjson.dumps(document, option=orjson.OPT_SERIALIZE_NUMPY)
     return encode_mesh(pm.at(level), file_type)
+
+
+def material_face_counts(face_material: np.ndarray, count: int) -> list[int]:
+    """Faces per material (``count`` of them), then faces without one (-1): the sizes
+    of a viewer's per-material index ranges at full detail."""
+    counts = np.bincount(np.asarray(face_material) + 1, minlength=count + 1)
+    return [int(x) for x in counts[1:]] + [int(counts[0])]

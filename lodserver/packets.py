@@ -6,7 +6,8 @@ integer grid positions and faces in the slots of the prefix layout
 (``progressive.py``). A packet from level ``A`` to level ``B`` carries the
 ``|B - A|`` vertex splits (``B > A``) or edge collapses (``B < A``) between
 them; applying it (:func:`apply_packet`) yields exactly the quantized form of
-level ``B``: the same grid positions and the same faces in the same slots.
+level ``B``: the same grid positions and the same faces in the same slots
+(and the same wedge values, corner wedges and face materials).
 
 The byte layout is specified in ``docs/packets.md`` for clients in any language;
 this module is the encoder and the reference decoder. In short:
@@ -19,6 +20,15 @@ this module is the encoder and the reference decoder. In short:
   positions as residuals from the known position of ``vs`` (the collapse put
   ``vs`` between them). A collapse names ``vs`` by its rank among the new
   vertex's neighbours and the merged position as a residual from the midpoint.
+- With attributes (version 2), the state also holds wedges: grid values per
+  attribute (:class:`AttributeGrid`: linear, or octahedral for normals) and the
+  wedge of every corner. A split then names how many wedges it adds, each one's
+  parent by rank among ``vs``'s wedges and its two values (the parent's finer
+  one, the new wedge's) as residuals from their extrapolation along the
+  attribute gradient fitted around ``vs``; and the wedge of each moved corner
+  and new-face corner as a small code (nearly always 0, the predicted one). A
+  collapse names how many wedges go, their parents, and the merged values as
+  residuals from between the two. Packets also carry each new face's material.
 - Each kind of field goes to its own stream of LEB128 varints or bytes, and
   the streams are deflated together (zlib), which entropy-codes each kind apart.
 
@@ -31,6 +41,7 @@ byte for byte against a pure-Python encoder kept in ``tests/naive_packets.py``.
 
 from __future__ import annotations
 
+import math
 import struct
 import threading
 import weakref
@@ -40,23 +51,44 @@ from dataclasses import dataclass
 import numpy as np
 from numba import njit
 
-from .mesh import MeshError
-from .progressive import ProgressiveMesh
+from .mesh import ATTRIBUTE_WIDTHS, MeshError
+from .progressive import ProgressiveMesh, _ancestor_below
 
 MAGIC = b"LODV"
-PACKET_VERSION = 1
+PACKET_VERSION = 2
+# Versions decode_packet reads: a version 1 packet is a geometry-only version 2 one.
+READABLE_VERSIONS = (1, 2)
 MIN_BITS, MAX_BITS = 8, 24
 # Grid steps per mean edge at full detail, as a power of two: see default_bits.
 EDGE_BITS = 6
 
-_HEADER = struct.Struct("<4sBBHIIII3ddI")
+# magic, version, bits, attribute count, flags, from, to, faces at from, faces at to,
+# origin, step, body length; then one _ATTRIBUTE record (+ origin) per attribute.
+_HEADER = struct.Struct("<4sBBBBIIII3ddI")
+_ATTRIBUTE = struct.Struct("<BBBBd")
+# flags
+_HAS_MATERIALS = 1
 # Streams, in body order. A collapse packet leaves FAN, MASK, PATTERN and OTHER empty.
 VERTEX, COUNT, PATTERN, OTHER, FAN, MASK, POSITION = range(7)
 _STREAM_NAMES = ("vertex", "count", "pattern", "other", "fan", "mask", "position")
+# With attributes, these follow (then one value stream per attribute, then MATERIAL
+# when the mesh has face materials; MATERIAL alone when it has materials only).
+WEDGE_COUNT, WEDGE_PARENT, WEDGE_CORNER = range(7, 10)
+_WEDGE_STREAM_NAMES = ("wedge_count", "wedge_parent", "wedge_corner")
 # FAN: whether a split's moved corners are the predicted fan (0) or listed in MASK (1).
 _FAN_PREDICTED, _FAN_LISTED = 0, 1
 # A face corner in a split's new face is vs, the new vertex, or another vertex.
 _IS_VS, _IS_NEW, _IS_OTHER = 0, 1, 2
+
+# Attributes in packet headers: glTF semantic <-> id, and the encodings of their grids.
+ATTRIBUTE_IDS = {"NORMAL": 0, "TEXCOORD_0": 1, "TEXCOORD_1": 2, "COLOR_0": 3}
+_ATTRIBUTE_NAMES = {v: k for k, v in ATTRIBUTE_IDS.items()}
+LINEAR, OCTAHEDRAL = "linear", "octahedral"
+_ENCODING_IDS = {LINEAR: 0, OCTAHEDRAL: 1}
+# Default grid bits per attribute (see attribute_grids_of). Normals: octahedral,
+# 10 bits per component (at most 0.25 degrees off); UVs: 12 bits over their range
+# (a quarter texel on a 1024-texel texture spanning it); colours: 10 bits.
+DEFAULT_ATTRIBUTE_BITS = {"NORMAL": 10, "TEXCOORD_0": 12, "TEXCOORD_1": 12, "COLOR_0": 10}
 
 
 class PacketError(MeshError):
@@ -87,6 +119,79 @@ class Grid:
 
     def as_dict(self) -> dict:
         return {"origin": list(self.origin), "step": self.step, "bits": self.bits}
+
+
+@dataclass(frozen=True)
+class AttributeGrid:
+    """The quantization of one appearance attribute (a glTF vertex attribute).
+
+    name : str          ``NORMAL``, ``TEXCOORD_0``, ``TEXCOORD_1`` or ``COLOR_0``
+    encoding : str      ``linear``: ``value = origin + q * step`` per component;
+                        ``octahedral`` (normals): two coordinates ``origin + q * step``
+                        on the octahedron, unfolded to a unit vector (:func:`unfold_octahedral`)
+    origin : tuple      per component of the encoding
+    step : float        the same for all components
+    bits : int          grid coordinates lie in ``[0, 2**bits - 1]``
+    """
+
+    name: str
+    encoding: str
+    origin: tuple
+    step: float
+    bits: int
+
+    @property
+    def width(self) -> int:
+        """Floats per value (the attribute's glTF width)."""
+        return ATTRIBUTE_WIDTHS[self.name]
+
+    @property
+    def components(self) -> int:
+        """Integers per quantized value."""
+        return 2 if self.encoding == OCTAHEDRAL else self.width
+
+    def quantize(self, values: np.ndarray) -> np.ndarray:
+        """(k, width) float values -> (k, components) int64 grid coordinates (nearest)."""
+        values = np.asarray(values, dtype=np.float64).reshape(-1, self.width)
+        if self.encoding == OCTAHEDRAL:
+            values = fold_octahedral(values)
+        q = np.rint((values - np.array(self.origin)) / self.step)
+        return np.clip(q, 0, 2**self.bits - 1).astype(np.int64)
+
+    def dequantize(self, q: np.ndarray) -> np.ndarray:
+        """(k, components) grid coordinates -> (k, width) float64 values, as a client computes them."""
+        x = np.array(self.origin) + np.asarray(q, dtype=np.float64) * self.step
+        return unfold_octahedral(x) if self.encoding == OCTAHEDRAL else x
+
+    def as_dict(self) -> dict:
+        return {"encoding": self.encoding, "origin": list(self.origin), "step": self.step,
+                "bits": self.bits}
+
+
+def fold_octahedral(normals: np.ndarray) -> np.ndarray:
+    """(k, 3) directions -> (k, 2) points of the square [-1, 1]^2 (Meyer et al. 2010):
+    project onto the octahedron ``|x| + |y| + |z| = 1`` and fold its lower half
+    out over the corners. A zero vector maps to (0, 0), which unfolds to +z."""
+    n = np.asarray(normals, dtype=np.float64)
+    l1 = np.abs(n).sum(axis=1)
+    n = n / np.where(l1 > 0, l1, 1.0)[:, None]
+    x, y, z = n[:, 0], n[:, 1], n[:, 2]
+    sx, sy = np.where(x >= 0, 1.0, -1.0), np.where(y >= 0, 1.0, -1.0)
+    lower = z < 0
+    return np.stack([np.where(lower, (1 - np.abs(y)) * sx, x),
+                     np.where(lower, (1 - np.abs(x)) * sy, y)], axis=1)
+
+
+def unfold_octahedral(points: np.ndarray) -> np.ndarray:
+    """(k, 2) points of [-1, 1]^2 -> (k, 3) unit vectors: the inverse of :func:`fold_octahedral`."""
+    p = np.asarray(points, dtype=np.float64)
+    x, y = p[:, 0], p[:, 1]
+    z = 1 - np.abs(x) - np.abs(y)
+    lower = z < 0
+    sx, sy = np.where(x >= 0, 1.0, -1.0), np.where(y >= 0, 1.0, -1.0)
+    n = np.stack([np.where(lower, (1 - np.abs(y)) * sx, x),
+                  np.where(lower, (1 - np.abs(x)) * sy, y), z], axis=1)
+    return n / np.linalg.norm(n, axis=1, keepdims=True)
 
 
 def default_bits(pm: ProgressiveMesh) -> int:
@@ -133,6 +238,68 @@ def _box_of(pm: ProgressiveMesh) -> tuple[tuple[float, float, float], float]:
     return box
 
 
+def attribute_grids_of(pm: ProgressiveMesh, *, attribute_bits: dict | None = None) -> tuple:
+    """The grids of ``pm``'s attributes, in layout order (empty without attributes).
+
+    Normals use an octahedral grid with ``origin = (-1, -1)`` and
+    ``step = 2 / (2**bits - 2)``, so that ``q = 2**(bits-1) - 1`` is exactly 0
+    (axis-aligned normals stay exact). Other attributes use a linear grid over
+    every value any level uses, one step for all components, like positions.
+    ``attribute_bits`` maps attribute names to bits (default
+    :data:`DEFAULT_ATTRIBUTE_BITS`).
+    """
+    if not pm.has_attributes:
+        return ()
+    attribute_bits = dict(attribute_bits or {})
+    unknown = set(attribute_bits) - {name for name, _ in pm.attribute_layout}
+    if unknown:
+        raise ValueError(f"the mesh has no attribute named {', '.join(sorted(unknown))}")
+    grids = []
+    for i, (name, _) in enumerate(pm.attribute_layout):
+        bits = check_bits(attribute_bits.get(name, DEFAULT_ATTRIBUTE_BITS[name]))
+        if name == "NORMAL":
+            grids.append(AttributeGrid(name, OCTAHEDRAL, (-1.0, -1.0), 2 / (2**bits - 2), bits))
+            continue
+        lo, extent = _attribute_box_of(pm)[i]
+        grids.append(AttributeGrid(name, LINEAR, lo, extent / (2**bits - 1) if extent > 0 else 1.0,
+                                   bits))
+    return tuple(grids)
+
+
+def _attribute_box_of(pm: ProgressiveMesh) -> list:
+    """Per attribute: the smallest value of any wedge at any level per component, and the
+    largest extent over the components."""
+    with _boxes_lock:
+        boxes = _attribute_boxes.get(pm)
+    if boxes is None:
+        values = np.concatenate([pm.wedge_values, pm.wedge_coarse_value])
+        boxes, start = [], 0
+        for _, width in pm.attribute_layout:
+            column = values[:, start:start + width]
+            start += width
+            lo = column.min(axis=0) if len(column) else np.zeros(width)
+            hi = column.max(axis=0) if len(column) else np.zeros(width)
+            boxes.append((tuple(float(x) for x in lo), float((hi - lo).max())))
+        with _boxes_lock:
+            _attribute_boxes[pm] = boxes
+    return boxes
+
+
+_attribute_boxes: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+
+
+def quantize_wedges(grids: tuple, values: np.ndarray) -> np.ndarray:
+    """(k, d) wedge values -> (k, sum of components) int64, attribute after attribute."""
+    values = np.asarray(values, dtype=np.float64)
+    columns, start = [], 0
+    for grid in grids:
+        columns.append(grid.quantize(values[:, start:start + grid.width]))
+        start += grid.width
+    if not columns:
+        return np.zeros((len(values), 0), dtype=np.int64)
+    return np.ascontiguousarray(np.concatenate(columns, axis=1))
+
+
 def check_bits(bits) -> int:
     bits = int(bits)
     if not MIN_BITS <= bits <= MAX_BITS:
@@ -147,30 +314,69 @@ class LodState:
     positions : (v, 3) int64   grid coordinates of vertices ``0 .. v-1``
     faces : (f, 3) int64       the level's faces, in prefix-layout slots
     grid : Grid                how grid coordinates map to positions
+
+    With attributes (None / empty without):
+
+    wedges : (w, k) int64      grid coordinates of wedges ``0 .. w-1``, attribute
+                               after attribute (``k`` = the grids' components)
+    corners : (f, 3) int64     the wedge of every face corner
+    attribute_grids : tuple    an :class:`AttributeGrid` per attribute, in layout order
+    face_material : (f,) int64 the material of every face (-1: none), or None
     """
 
     positions: np.ndarray
     faces: np.ndarray
     grid: Grid
+    wedges: np.ndarray | None = None
+    corners: np.ndarray | None = None
+    attribute_grids: tuple = ()
+    face_material: np.ndarray | None = None
 
     @property
     def level(self) -> int:
         return len(self.positions)
 
+    @property
+    def components(self) -> int:
+        return sum(g.components for g in self.attribute_grids)
+
 
 def state_from_json(document: dict) -> LodState:
     """The state held by a client that fetched ``/lod?format=json`` (``export.encode_level``)."""
     grid = document["grid"]
-    return LodState(np.array(document["positions"], dtype=np.int64).reshape(-1, 3),
-                    np.array(document["faces"], dtype=np.int64).reshape(-1, 3),
+    faces = np.array(document["faces"], dtype=np.int64).reshape(-1, 3)
+    grids, wedges, corners = (), None, None
+    if document.get("layout"):
+        grids = tuple(AttributeGrid(name, document["attribute_grid"][name]["encoding"],
+                                    tuple(float(x) for x in document["attribute_grid"][name]["origin"]),
+                                    float(document["attribute_grid"][name]["step"]),
+                                    int(document["attribute_grid"][name]["bits"]))
+                      for name, _ in document["layout"])
+        k = sum(g.components for g in grids)
+        wedges = np.array(document["wedges"], dtype=np.int64).reshape(-1, k)
+        corners = np.array(document["corners"], dtype=np.int64).reshape(-1, 3)
+    material = document.get("face_material")
+    return LodState(np.array(document["positions"], dtype=np.int64).reshape(-1, 3), faces,
                     Grid(tuple(float(x) for x in grid["origin"]), float(grid["step"]),
-                         int(grid["bits"])))
+                         int(grid["bits"])),
+                    wedges, corners, grids,
+                    None if material is None else np.array(material, dtype=np.int64).reshape(-1))
 
 
-def quantized_level(pm: ProgressiveMesh, level: int, grid: Grid) -> LodState:
-    """The quantized form of ``level``: what the LOD endpoint serves as JSON."""
+def quantized_level(pm: ProgressiveMesh, level: int, grid: Grid,
+                    attribute_grids: tuple | None = None) -> LodState:
+    """The quantized form of ``level``: what the LOD endpoint serves as JSON.
+    ``attribute_grids`` defaults to :func:`attribute_grids_of`."""
     positions, faces = pm.arrays_at(level)
-    return LodState(grid.quantize(positions), faces, grid)
+    wedges = corners = material = None
+    grids = ()
+    if pm.has_attributes:
+        grids = attribute_grids_of(pm) if attribute_grids is None else tuple(attribute_grids)
+        values, corners = pm.wedges_at(level)
+        wedges = quantize_wedges(grids, values)
+    if pm.face_material is not None:
+        material = pm.face_material[:len(faces)].astype(np.int64)
+    return LodState(grid.quantize(positions), faces, grid, wedges, corners, grids, material)
 
 
 # ---- varints ----------------------------------------------------------------
@@ -285,6 +491,184 @@ class _Working:
         for k in range(3):
             self.corners.of(int(self.faces[f, k])).discard(3 * f + k)
 
+    # ---- wedges (with attributes) ----
+    def attach_wedges(self, wedges, corners, face_material) -> None:
+        """Hold wedge values (a list of int lists, grown and shrunk at the end), the
+        wedge of every corner, and the face materials (each may be None)."""
+        self.wedge_values = None if wedges is None else [list(map(int, w)) for w in wedges]
+        self.corner_wedges = None
+        if corners is not None:
+            self.corner_wedges = np.zeros(self.faces.shape, dtype=np.int64)
+            self.corner_wedges[:len(corners)] = corners
+        self.face_material = None
+        if face_material is not None:
+            self.face_material = np.zeros(len(self.faces), dtype=np.int64)
+            self.face_material[:len(face_material)] = face_material
+
+    def wedge_of(self, c: int) -> int:
+        return int(self.corner_wedges[c // 3, c % 3])
+
+    def set_wedge(self, c: int, w: int) -> None:
+        self.corner_wedges[c // 3, c % 3] = w
+
+    def wedges_held(self, corners) -> list[int]:
+        """The distinct wedges of ``corners``, ascending."""
+        return sorted({self.wedge_of(c) for c in corners})
+
+
+def _corner_candidates(work: _Working, v: int, limit: int, bottom: int, top: int) -> list[int]:
+    """The wedges a new face's corner on ``v`` may take: those of ``v``'s corners
+    below corner ``limit`` (the faces before the record), ascending, then the
+    record's new wedges ``bottom .. top-1`` not among them."""
+    held = work.wedges_held(c for c in work.corners.of(v) if c < limit)
+    known = set(held)
+    return held + [x for x in range(bottom, top) if x not in known]
+
+
+# The split's new wedge is predicted beyond the parent's coarse value by the
+# ratio the new vertex lies beyond vs's coarse position, clamped to this.
+_MAX_SPLIT_RATIO = 4.0
+
+
+def _split_ratio(coarse, fine, new) -> float:
+    """How far the new vertex lies beyond ``coarse`` (vs before the split), in units
+    of ``coarse - fine``: ``(new - coarse) . (coarse - fine) / |coarse - fine|^2``,
+    clamped to ``[0, 4]``; 1 (the mirror image) when vs did not move. Integer grid
+    positions, so both dot products are exact in float64: every decoder gets
+    the same float."""
+    a = sum(float(c - f) * float(c - f) for c, f in zip(coarse, fine))
+    b = sum(float(n - c) * float(c - f) for c, f, n in zip(coarse, fine, new))
+    ratio = b / a if a > 0 else 1.0
+    return min(max(ratio, 0.0), _MAX_SPLIT_RATIO)
+
+
+def _collapse_ratio(fine, new, coarse) -> float:
+    """Where the merged position lies between vs's (``fine``) and the removed vertex's
+    (``new``): ``(coarse - fine) . (new - fine) / |new - fine|^2`` clamped to
+    ``[0, 1]``; 1/2 when the two coincide."""
+    a = sum(float(n - f) * float(n - f) for f, n in zip(fine, new))
+    b = sum(float(c - f) * float(n - f) for f, n, c in zip(fine, new, coarse))
+    ratio = b / a if a > 0 else 0.5
+    return min(max(ratio, 0.0), 1.0)
+
+
+# The fit of a wedge's attribute gradient is damped by this fraction of the trace.
+_GRADIENT_DAMPING = 1e-3
+
+
+def _gradient(work: _Working, s: int, held: list, p: int, coarse) -> list | None:
+    """The gradient ``J`` (3 rows of ``k`` floats) of wedge ``p``'s values against
+    position around vertex ``s`` (at grid position ``coarse``): the damped least
+    squares fit of ``value(w) - value(p) ~ J . (position(v) - coarse)`` over the
+    edges from ``s`` to the other corners ``(v, w)`` of the faces whose corner on
+    ``s`` (from ``held``, ascending) holds ``p``. None with fewer than two edges.
+
+    Every decoder must get the same floats: the sums run in this order (corners
+    ascending, each face's next corner before its prev) and the 3x3 solve is
+    written out; with integer inputs the sums are exact anyway below 2^53.
+    """
+    k = len(work.wedge_values[p])
+    value = work.wedge_values[p]
+    m00 = m01 = m02 = m11 = m12 = m22 = 0.0
+    b0, b1, b2 = [0.0] * k, [0.0] * k, [0.0] * k
+    edges = 0
+    for c in held:
+        if work.wedge_of(c) != p:
+            continue
+        f3 = c - c % 3
+        for o in (f3 + (c - f3 + 1) % 3, f3 + (c - f3 + 2) % 3):
+            v = int(work.faces[o // 3, o % 3])
+            if v == s:
+                continue
+            e0 = float(int(work.positions[v, 0]) - coarse[0])
+            e1 = float(int(work.positions[v, 1]) - coarse[1])
+            e2 = float(int(work.positions[v, 2]) - coarse[2])
+            other = work.wedge_values[work.wedge_of(o)]
+            m00 += e0 * e0
+            m01 += e0 * e1
+            m02 += e0 * e2
+            m11 += e1 * e1
+            m12 += e1 * e2
+            m22 += e2 * e2
+            for j in range(k):
+                d = float(other[j] - value[j])
+                b0[j] += e0 * d
+                b1[j] += e1 * d
+                b2[j] += e2 * d
+            edges += 1
+    if edges < 2:
+        return None
+    damping = (m00 + m11 + m22) * _GRADIENT_DAMPING + 1e-9
+    m00 += damping
+    m11 += damping
+    m22 += damping
+    c00 = m11 * m22 - m12 * m12
+    c01 = m02 * m12 - m01 * m22
+    c02 = m01 * m12 - m02 * m11
+    c11 = m00 * m22 - m02 * m02
+    c12 = m01 * m02 - m00 * m12
+    c22 = m00 * m11 - m01 * m01
+    det = m00 * c00 + m01 * c01 + m02 * c02
+    if not det > 0:
+        return None
+    i00, i01, i02 = c00 / det, c01 / det, c02 / det
+    i11, i12, i22 = c11 / det, c12 / det, c22 / det
+    return [[i00 * b0[j] + i01 * b1[j] + i02 * b2[j] for j in range(k)],
+            [i01 * b0[j] + i11 * b1[j] + i12 * b2[j] for j in range(k)],
+            [i02 * b0[j] + i12 * b1[j] + i22 * b2[j] for j in range(k)]]
+
+
+def _extrapolated(gradient: list, j: int, value: int, delta, limit: int) -> int:
+    """``value`` moved by ``gradient`` over the position change ``delta`` (integers),
+    rounded, within ``[0, limit]``: ``floor(value + J . delta + 0.5)``."""
+    x = (float(value) + (float(delta[0]) * gradient[0][j] + float(delta[1]) * gradient[1][j]
+                         + float(delta[2]) * gradient[2][j])) + 0.5
+    if not x >= 0:        # also NaN
+        return 0
+    if x > limit:
+        return limit
+    return math.floor(x)
+
+
+def _split_guesses(work: _Working, s: int, held: list, p: int, geometry, grids):
+    """The predictions of split values for the new wedge of parent ``p``:
+    ``(guess_fine, guess_new)``, the parent's finer value (a list) and a function
+    ``guess_new(j, fine_j)`` of component ``j`` of the new wedge's value.
+
+    With a :func:`_gradient` around ``s``, both extrapolate ``p``'s current value
+    over the moves from vs's coarse position to its fine one and to the new
+    vertex's. Without one, the parent keeps its value and the new wedge lies
+    beyond it as the new vertex does (:func:`_split_ratio`).
+    """
+    coarse, fine, new = geometry
+    current = work.wedge_values[p]
+    gradient = _gradient(work, s, held, p, coarse)
+    if gradient is None:
+        ratio = _split_ratio(coarse, fine, new)
+        return list(current), lambda j, f: current[j] + _scaled(ratio, current[j] - f)
+    limits = [2**g.bits - 1 for g in grids for _ in range(g.components)]
+    to_fine = [a - b for a, b in zip(fine, coarse)]
+    to_new = [a - b for a, b in zip(new, coarse)]
+    guess_fine = [_extrapolated(gradient, j, current[j], to_fine, limits[j])
+                  for j in range(len(current))]
+    guess_new = [_extrapolated(gradient, j, current[j], to_new, limits[j])
+                 for j in range(len(current))]
+    return guess_fine, lambda j, f: guess_new[j]
+
+
+def _scaled(ratio: float, d: int) -> int:
+    """``floor(ratio * d + 0.5)``: the rounding every decoder does the same way."""
+    return math.floor(ratio * d + 0.5)
+
+
+def _moved_prediction(parents: list[int], bottom: int, y: int) -> int:
+    """The predicted finer wedge of a moved corner holding ``y``: the first new wedge
+    (``bottom + i``, parent ``parents[i]``) that is a child of ``y``, else ``y``."""
+    for i, parent in enumerate(parents):
+        if parent == y:
+            return bottom + i
+    return y
+
 
 def _predict_fan(state, s: int, t: int, added: list) -> set[int] | None:
     """The corners of ``s`` a split moves to ``t``, predicted from its new faces.
@@ -365,7 +749,7 @@ _SLACK, _BLOCK = 4, 8
 
 
 def encode_packet(pm: ProgressiveMesh, start: int, stop: int, *,
-                  bits: int | None = None) -> bytes:
+                  bits: int | None = None, attribute_bits: dict | None = None) -> bytes:
     """The packet taking the quantized form of level ``start`` to level ``stop``.
 
     Parameters
@@ -375,6 +759,8 @@ def encode_packet(pm: ProgressiveMesh, start: int, stop: int, *,
         Levels (vertex counts) in ``pm.levels``; ``stop < start`` gives collapses.
     bits : int, optional
         Grid resolution, as for :func:`grid_of` (default :func:`default_bits`).
+    attribute_bits : dict, optional
+        Attribute grid resolutions, as for :func:`attribute_grids_of`.
 
     Returns
     -------
@@ -383,6 +769,8 @@ def encode_packet(pm: ProgressiveMesh, start: int, stop: int, *,
     """
     start, stop = pm._check_level(start), pm._check_level(stop)
     grid = grid_of(pm, bits=bits)
+    grids = attribute_grids_of(pm, attribute_bits=attribute_bits)
+    has_materials = pm.face_material is not None
     positions, faces = pm.arrays_at(start)
     n0 = pm.base_vertices
     # room for both end levels; the kernels change these in place
@@ -392,27 +780,69 @@ def encode_packet(pm: ProgressiveMesh, start: int, stop: int, *,
     work_positions[:start] = grid.quantize(positions)
     work_faces = np.zeros(3 * face_capacity, dtype=index)
     work_faces[:faces.size] = faces.ravel()
+    offsets = np.cumsum([0] + [g.components for g in grids]).astype(np.int64)
+    material = (pm.face_material.astype(np.int64) if has_materials
+                else np.zeros(0, dtype=np.int64))
+    if grids:
+        values, corners = pm.wedges_at(start)
+        lo, hi = (int(pm.wedge_counts[level - n0]) for level in sorted((start, stop)))
+        w0 = int(pm.wedge_counts[0])
+        work_values = np.zeros((hi, offsets[-1]), dtype=np.int64)
+        work_values[:len(values)] = quantize_wedges(grids, values)
+        work_wedges = np.zeros(3 * face_capacity, dtype=index)
+        work_wedges[:corners.size] = corners.ravel()
+        wedge_counts, wedge_parent = pm.wedge_counts, pm.wedge_parent
+        birth_corners, full_corners = pm.birth_corners, pm.corner_wedges
+    else:
+        lo = hi = w0 = 0
+        work_values = np.zeros((0, 0), dtype=np.int64)
+        work_wedges = np.zeros(0, dtype=index)
+        # read-only like the progressive mesh's arrays: the same compiled kernel
+        wedge_counts = wedge_parent = _READ_ONLY_INDEX
+        birth_corners = full_corners = _READ_ONLY_CORNERS
     if stop > start:
-        lo, hi = start - n0, stop - n0
-        streams, error = _encode_splits(
+        a, b = start - n0, stop - n0
+        wedge_fine = wedge_new = np.zeros((0, 0), dtype=np.int64)
+        if grids:   # of wedges lo .. hi-1, the splits' new wedges
+            wedge_fine = quantize_wedges(grids, pm.wedge_fine_value[lo - w0:hi - w0])
+            wedge_new = quantize_wedges(grids, pm.wedge_new_value[lo - w0:hi - w0])
+        streams, wedge_streams, value_streams, error = _encode_splits(
             work_positions, work_faces, len(faces), start, stop, n0, pm.parent, pm.face_counts,
             pm.birth_faces, pm.moved_offsets, pm.moved_corners,
-            grid.quantize(pm.fine_position[lo:hi]), grid.quantize(pm.new_position[lo:hi]))
+            grid.quantize(pm.fine_position[a:b]), grid.quantize(pm.new_position[a:b]),
+            work_wedges, work_values, wedge_counts, wedge_parent, wedge_fine, wedge_new, lo,
+            birth_corners, full_corners, offsets,
+            np.array([2**g.bits - 1 for g in grids], dtype=np.int64), material)
         t, c, s = (int(x) for x in error)
         if t >= 0:
             raise PacketError(f"split {t} moves corner {c}, which does not hold vertex {s}")
     else:
-        streams = _encode_collapses(work_positions, work_faces, len(faces), start, stop, n0,
-                                    pm.parent, pm.face_counts,
-                                    grid.quantize(pm.coarse_position[stop - n0:start - n0]))
+        wedge_coarse = np.zeros((0, 0), dtype=np.int64)
+        if grids:   # of wedges lo .. hi-1, the collapses' removed wedges
+            wedge_coarse = quantize_wedges(grids, pm.wedge_coarse_value[lo - w0:hi - w0])
+        streams, wedge_streams, value_streams = _encode_collapses(
+            work_positions, work_faces, len(faces), start, stop, n0, pm.parent, pm.face_counts,
+            grid.quantize(pm.coarse_position[stop - n0:start - n0]),
+            work_wedges, work_values, wedge_counts, wedge_parent, wedge_coarse, lo, offsets)
+    streams = list(streams)
+    if grids:
+        buffers, used = value_streams
+        streams += list(wedge_streams[:3]) + [buffers[i, :used[i]] for i in range(len(grids))]
+    if has_materials:
+        streams.append(wedge_streams[3])
     body = bytearray()
     for stream in streams:
         _put_varint(body, len(stream))
         body += memoryview(stream)
-    header = _HEADER.pack(MAGIC, PACKET_VERSION, grid.bits, 0, start, stop,
-                          pm.faces_at_level(start), pm.faces_at_level(stop),
-                          *grid.origin, grid.step, len(body))
+    header = pack_header(grid, grids, has_materials, start, stop, pm.faces_at_level(start),
+                         pm.faces_at_level(stop), len(body))
     return header + zlib.compress(bytes(body), 9)
+
+
+_READ_ONLY_INDEX = np.zeros(1, dtype=np.int64)
+_READ_ONLY_INDEX.setflags(write=False)
+_READ_ONLY_CORNERS = np.zeros((0, 3), dtype=np.int64)
+_READ_ONLY_CORNERS.setflags(write=False)
 
 
 def _index_dtype(corners: int, vertices: int):
@@ -641,14 +1071,25 @@ def _predicted_fan(scratch, d, s, t, birth_faces, first, last):
 
 @njit(cache=True, nogil=True)
 def _encode_splits(positions, faces, face_count, start, stop, base, parent, face_counts,
-                   birth_faces, moved_offsets, moved_corners, fine, new):
+                   birth_faces, moved_offsets, moved_corners, fine, new,
+                   wedges, values, wedge_counts, wedge_parent, wedge_fine, wedge_new, wedge_from,
+                   birth_corners, full_corners, offsets, bit_limits, material):
     """The streams of split records ``start .. stop-1``.
 
     ``positions`` (v, 3) and flat ``faces`` hold the quantized state at ``start``
     (``face_count`` faces) with room for ``stop``, and are changed in place;
     ``fine`` and ``new`` are the quantized positions of splits ``start ..``.
-    Returns the seven streams and ``(t, c, s)`` of the first moved corner that
-    does not hold ``vs`` (all -1 when there is none; the streams are then complete).
+    With attributes (``offsets``: the columns of each attribute in ``values``,
+    more than one entry; ``bit_limits``: the largest grid value of each) the flat
+    ``wedges`` (wedge per corner) and ``values`` (quantized, room for ``stop``)
+    are the wedge state, changed in place too;
+    ``wedge_fine`` and ``wedge_new`` are the quantized values of wedges
+    ``wedge_from ..``. ``material`` (per face, or empty) adds the material stream.
+
+    Returns the seven streams, the wedge_count, wedge_parent, wedge_corner and
+    material streams, the value streams (a buffer row and a length per attribute),
+    and ``(t, c, s)`` of the first moved corner that does not hold ``vs`` (all -1
+    when there is none; the streams are then complete).
     """
     blocks, pool, end, slot = _corner_blocks(faces, face_count, positions.shape[0])
     records = stop - start
@@ -663,6 +1104,30 @@ def _encode_splits(positions, faces, face_count, start, stop, base, parent, face
     n_vertex = n_count = n_pattern = n_other = n_mask = n_position = 0
     error = np.full(3, -1, dtype=np.int64)
     scratch = np.empty((_SCRATCH_ROWS, 64), dtype=np.int64)
+
+    attributes = offsets.shape[0] - 1
+    has_materials = material.shape[0] > 0
+    new_wedges = wedge_fine.shape[0]
+    moved_total = moved_offsets[stop - base] - moved_offsets[start - base] if attributes else 0
+    wedge_streams = (np.empty(_VARINT_MAX * records if attributes else 0, dtype=np.uint8),
+                     np.empty(_VARINT_MAX * new_wedges, dtype=np.uint8),
+                     np.empty(_VARINT_MAX * (moved_total + 3 * added) if attributes else 0,
+                              dtype=np.uint8),
+                     np.empty(_VARINT_MAX * added if has_materials else 0, dtype=np.uint8))
+    used = np.zeros(4, dtype=np.int64)          # of the wedge streams
+    widest = 0
+    for a in range(attributes):
+        widest = max(widest, offsets[a + 1] - offsets[a])
+    value_streams = np.empty((attributes, 2 * widest * _VARINT_MAX * new_wedges), dtype=np.uint8)
+    value_used = np.zeros(attributes, dtype=np.int64)
+    candidates = np.empty(64, dtype=np.int64)
+    coarse = np.empty(3, dtype=np.int64)
+    columns = offsets[-1]
+    gradient = np.empty((3, columns), dtype=np.float64)
+    sums = np.empty((3, columns), dtype=np.float64)
+    limits = np.empty(columns, dtype=np.int64)
+    for a in range(attributes):
+        limits[offsets[a]:offsets[a + 1]] = bit_limits[a]
 
     for t in range(start, stop):
         j = t - base
@@ -720,11 +1185,13 @@ def _encode_splits(positions, faces, face_count, start, stop, base, parent, face
                 i = _search(held, d, c)          # c's place in held(s)
                 if i == d or held[i] != c:
                     error[0], error[1], error[2] = t, c, s
-                    return (vertex[:n_vertex], count[:n_count], pattern[:n_pattern],
-                            other[:n_other], fan[:t - start], mask[:n_mask],
-                            position[:n_position]), error
+                    return ((vertex[:n_vertex], count[:n_count], pattern[:n_pattern],
+                             other[:n_other], fan[:t - start], mask[:n_mask],
+                             position[:n_position]), wedge_streams,
+                            (value_streams, value_used), error)
                 mask[n_mask + i // 8] |= 1 << (i % 8)
             n_mask += width
+        first_face = face_count
         for x in range(m0, m1):
             c = moved_corners[x]
             _remove(blocks, pool, slot, faces[c], c)
@@ -745,17 +1212,270 @@ def _encode_splits(positions, faces, face_count, start, stop, base, parent, face
             n_position = _put(position, n_position,
                               _zz(new[i, a] + fine[i, a] - 2 * positions[s, a]))
         for a in range(3):
+            coarse[a] = positions[s, a]
             positions[s, a] = fine[i, a]
             positions[t, a] = new[i, a]
-    return (vertex[:n_vertex], count[:n_count], pattern[:n_pattern], other[:n_other],
-            fan, mask[:n_mask], position[:n_position]), error
+        if attributes:
+            candidates = _split_wedges_kernel(
+                faces, positions, blocks, pool, s, t, scratch, d, first_face, face_count, first,
+                coarse, fine[i], new[i], limits, gradient, sums, wedges, values,
+                wedge_counts[j], wedge_counts[j + 1], wedge_parent, wedge_fine, wedge_new,
+                wedge_from, birth_corners, full_corners, offsets, wedge_streams, used,
+                value_streams, value_used, candidates)
+        if has_materials:
+            for f in range(first, last):
+                used[3] = _put(wedge_streams[3], used[3], material[f] + 1)
+    return ((vertex[:n_vertex], count[:n_count], pattern[:n_pattern], other[:n_other],
+             fan, mask[:n_mask], position[:n_position]),
+            (wedge_streams[0][:used[0]], wedge_streams[1][:used[1]], wedge_streams[2][:used[2]],
+             wedge_streams[3][:used[3]]), (value_streams, value_used), error)
+
+
+@njit(cache=True, nogil=True)
+def _split_ratio_kernel(coarse, fine, new):
+    """:func:`_split_ratio`, the same float operations in the same order."""
+    a = 0.0
+    b = 0.0
+    for k in range(3):
+        a += float(coarse[k] - fine[k]) * float(coarse[k] - fine[k])
+    for k in range(3):
+        b += float(new[k] - coarse[k]) * float(coarse[k] - fine[k])
+    ratio = b / a if a > 0 else 1.0
+    return min(max(ratio, 0.0), _MAX_SPLIT_RATIO)
+
+
+@njit(cache=True, nogil=True)
+def _collapse_ratio_kernel(fine, new, coarse):
+    """:func:`_collapse_ratio`, the same float operations in the same order."""
+    a = 0.0
+    b = 0.0
+    for k in range(3):
+        a += float(new[k] - fine[k]) * float(new[k] - fine[k])
+    for k in range(3):
+        b += float(coarse[k] - fine[k]) * float(new[k] - fine[k])
+    ratio = b / a if a > 0 else 0.5
+    return min(max(ratio, 0.0), 1.0)
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _scaled_kernel(ratio, d):
+    return np.int64(np.floor(ratio * d + 0.5))
+
+
+@njit(cache=True, nogil=True)
+def _gradient_kernel(faces, positions, wedges, values, held, d, s, p, coarse, out, sums):
+    """:func:`_gradient` into ``out`` (3, k); False where there is none. The same
+    float operations in the same order."""
+    k = values.shape[1]
+    m00 = m01 = m02 = m11 = m12 = m22 = 0.0
+    for j in range(k):
+        sums[0, j] = 0.0
+        sums[1, j] = 0.0
+        sums[2, j] = 0.0
+    edges = 0
+    for i in range(d):
+        c = held[i]
+        if wedges[c] != p:
+            continue
+        f3 = c - c % 3
+        for step in range(1, 3):
+            o = f3 + (c - f3 + step) % 3
+            v = faces[o]
+            if v == s:
+                continue
+            e0 = float(positions[v, 0] - coarse[0])
+            e1 = float(positions[v, 1] - coarse[1])
+            e2 = float(positions[v, 2] - coarse[2])
+            w = wedges[o]
+            m00 += e0 * e0
+            m01 += e0 * e1
+            m02 += e0 * e2
+            m11 += e1 * e1
+            m12 += e1 * e2
+            m22 += e2 * e2
+            for j in range(k):
+                dd = float(values[w, j] - values[p, j])
+                sums[0, j] += e0 * dd
+                sums[1, j] += e1 * dd
+                sums[2, j] += e2 * dd
+            edges += 1
+    if edges < 2:
+        return False
+    damping = (m00 + m11 + m22) * _GRADIENT_DAMPING + 1e-9
+    m00 += damping
+    m11 += damping
+    m22 += damping
+    c00 = m11 * m22 - m12 * m12
+    c01 = m02 * m12 - m01 * m22
+    c02 = m01 * m12 - m02 * m11
+    c11 = m00 * m22 - m02 * m02
+    c12 = m01 * m02 - m00 * m12
+    c22 = m00 * m11 - m01 * m01
+    det = m00 * c00 + m01 * c01 + m02 * c02
+    if not det > 0:
+        return False
+    i00, i01, i02 = c00 / det, c01 / det, c02 / det
+    i11, i12, i22 = c11 / det, c12 / det, c22 / det
+    for j in range(k):
+        out[0, j] = i00 * sums[0, j] + i01 * sums[1, j] + i02 * sums[2, j]
+        out[1, j] = i01 * sums[0, j] + i11 * sums[1, j] + i12 * sums[2, j]
+        out[2, j] = i02 * sums[0, j] + i12 * sums[1, j] + i22 * sums[2, j]
+    return True
+
+
+@njit(cache=True, nogil=True)
+def _extrapolated_kernel(gradient, j, value, d0, d1, d2, limit):
+    """:func:`_extrapolated`, the same float operations in the same order."""
+    x = (float(value) + (float(d0) * gradient[0, j] + float(d1) * gradient[1, j]
+                         + float(d2) * gradient[2, j])) + 0.5
+    if not x >= 0:
+        return np.int64(0)
+    if x > limit:
+        return np.int64(limit)
+    return np.int64(np.floor(x))
+
+
+@njit(cache=True, nogil=True)
+def _distinct_wedges(wedges, corners, n, below, out):
+    """``out[:k]``: the distinct wedges of ``corners[:n]`` that are below ``below``,
+    ascending; returns ``(out, k)`` (``out`` grown if needed)."""
+    if n > out.shape[0]:
+        out = np.empty(2 * n, dtype=np.int64)
+    k = 0
+    for i in range(n):
+        w = wedges[corners[i]]
+        if w < below:
+            out[k] = w
+            k += 1
+    _sort(out, k)
+    distinct = 0
+    for i in range(k):
+        if distinct == 0 or out[i] != out[distinct - 1]:
+            out[distinct] = out[i]
+            distinct += 1
+    return out, distinct
+
+
+@njit(cache=True, nogil=True)
+def _wedge_code(held, k, bottom, top, w):
+    """``w``'s code relative to the candidate list of ``held[:k]`` (ascending)
+    followed by the new wedges ``bottom .. top-1`` not among them (:func:`_corner_candidates`)."""
+    i = _search(held, k, w)
+    if i < k and held[i] == w:
+        return i
+    rank = k
+    for x in range(bottom, top):
+        j = _search(held, k, x)
+        if j < k and held[j] == x:
+            continue
+        if x == w:
+            return rank
+        rank += 1
+    return rank + w
+
+
+@njit(cache=True, nogil=True)
+def _split_wedges_kernel(faces, positions, blocks, pool, s, t, scratch, d, first_face,
+                         face_count, first, coarse, fine, new, limits, gradient, sums, wedges,
+                         values, bottom, top, wedge_parent, wedge_fine, wedge_new, wedge_from,
+                         birth_corners, full_corners, offsets, streams, used, value_streams,
+                         value_used, candidates):
+    """The wedge part of split ``t`` (:func:`_split_wedges`); ``scratch`` holds
+    ``held(s)`` (``d`` corners), the new faces are ``first_face .. face_count-1``
+    in the state and from row ``first`` in ``birth_corners``. Returns the
+    candidate buffer (grown if needed)."""
+    wedge_count, wedge_parents, wedge_corner = streams[0], streams[1], streams[2]
+    held = scratch[_HELD]
+    used[0] = _put(wedge_count, used[0], top - bottom)
+    candidates, k = _distinct_wedges(wedges, held, d, top, candidates)
+    for x in range(bottom, top):
+        p = wedge_parent[x]
+        i = _search(candidates, k, p)
+        used[1] = _put(wedge_parents, used[1], i if i < k and candidates[i] == p else k + p)
+        row = x - wedge_from
+        fitted = _gradient_kernel(faces, positions, wedges, values, held, d, s, p, coarse,
+                                  gradient, sums)
+        if not fitted:
+            ratio = _split_ratio_kernel(coarse, fine, new)
+        for a in range(offsets.shape[0] - 1):
+            for col in range(offsets[a], offsets[a + 1]):
+                c = values[p, col]
+                guess = c
+                if fitted:
+                    guess = _extrapolated_kernel(gradient, col, c, fine[0] - coarse[0],
+                                                 fine[1] - coarse[1], fine[2] - coarse[2],
+                                                 limits[col])
+                value_used[a] = _put(value_streams[a], value_used[a],
+                                     _zz(wedge_fine[row, col] - guess))
+            for col in range(offsets[a], offsets[a + 1]):
+                c = values[p, col]
+                if fitted:
+                    guess = _extrapolated_kernel(gradient, col, c, new[0] - coarse[0],
+                                                 new[1] - coarse[1], new[2] - coarse[2],
+                                                 limits[col])
+                else:
+                    guess = c + _scaled_kernel(ratio, c - wedge_fine[row, col])
+                value_used[a] = _put(value_streams[a], value_used[a],
+                                     _zz(wedge_new[row, col] - guess))
+        for col in range(offsets[-1]):
+            values[p, col] = wedge_fine[row, col]
+            values[x, col] = wedge_new[row, col]
+    m = top - bottom
+    for i in range(d):            # moved corners, ascending
+        c = held[i]
+        if faces[c] != t:
+            continue
+        y = wedges[c]
+        w = _ancestor_below(wedge_parent, full_corners[c // 3, c % 3], top)
+        guess = y
+        for x in range(bottom, top):
+            if wedge_parent[x] == y:
+                guess = x
+                break
+        if w == guess:
+            code = 0
+        elif bottom <= w < top:
+            code = 1 + w - bottom
+        elif w == y:
+            code = m + 1
+        else:
+            code = m + 2 + w
+        used[2] = _put(wedge_corner, used[2], code)
+        wedges[c] = w
+    # the corners of the new faces, each relative to its vertex's wedges
+    limit = 3 * first_face
+    for f in range(first_face, face_count):
+        for k in range(3):
+            c = 3 * f + k
+            v = faces[c]
+            begin, n = blocks[v, 0], blocks[v, 1]
+            if n > candidates.shape[0]:
+                candidates = np.empty(2 * n, dtype=np.int64)
+            size = 0
+            for i in range(n):
+                other = pool[begin + i]
+                if other < limit:
+                    candidates[size] = wedges[other]
+                    size += 1
+            _sort(candidates, size)
+            distinct = 0
+            for i in range(size):
+                if distinct == 0 or candidates[i] != candidates[distinct - 1]:
+                    candidates[distinct] = candidates[i]
+                    distinct += 1
+            w = birth_corners[first + f - first_face, k]
+            used[2] = _put(wedge_corner, used[2], _wedge_code(candidates, distinct, bottom, top, w))
+            wedges[c] = w
+    return candidates
 
 
 @njit(cache=True, nogil=True)
 def _encode_collapses(positions, faces, face_count, start, stop, base, parent, face_counts,
-                      coarse):
+                      coarse, wedges, values, wedge_counts, wedge_parent, wedge_coarse,
+                      wedge_from, offsets):
     """The streams of collapse records ``start-1`` down to ``stop``, as
-    :func:`_encode_splits` (``coarse``: quantized positions of records ``stop ..``)."""
+    :func:`_encode_splits` (``coarse``: quantized positions of records ``stop ..``;
+    ``wedge_coarse``: quantized merged values of wedges ``wedge_from ..``)."""
     blocks, pool, end, slot = _corner_blocks(faces, face_count, positions.shape[0])
     records = start - stop
     vertex = np.empty(_VARINT_MAX * records, dtype=np.uint8)
@@ -763,6 +1483,20 @@ def _encode_collapses(positions, faces, face_count, start, stop, base, parent, f
     position = np.empty(3 * _VARINT_MAX * records, dtype=np.uint8)
     n_vertex = n_count = n_position = 0
     scratch = np.empty((_SCRATCH_ROWS, 64), dtype=np.int64)
+
+    attributes = offsets.shape[0] - 1
+    removed_wedges = wedge_coarse.shape[0]
+    wedge_count = np.empty(_VARINT_MAX * records if attributes else 0, dtype=np.uint8)
+    wedge_parents = np.empty(_VARINT_MAX * removed_wedges, dtype=np.uint8)
+    n_wedge_count = n_wedge_parents = 0
+    widest = 0
+    for a in range(attributes):
+        widest = max(widest, offsets[a + 1] - offsets[a])
+    value_streams = np.empty((attributes, widest * _VARINT_MAX * removed_wedges), dtype=np.uint8)
+    value_used = np.zeros(attributes, dtype=np.int64)
+    candidates = np.empty(64, dtype=np.int64)
+    fine = np.empty(3, dtype=np.int64)
+
     for t in range(start - 1, stop - 1, -1):
         j = t - base
         s = parent[t]
@@ -786,11 +1520,42 @@ def _encode_collapses(positions, faces, face_count, start, stop, base, parent, f
         for a in range(3):
             middle = (positions[s, a] + positions[t, a]) >> 1
             n_position = _put(position, n_position, _zz(coarse[i, a] - middle))
+        if not attributes:
+            for a in range(3):
+                positions[s, a] = coarse[i, a]
+            continue
         for a in range(3):
+            fine[a] = positions[s, a]
             positions[s, a] = coarse[i, a]
+
+        # wedges: how many go, then each (last first) with its parent and merged value
+        ratio = _collapse_ratio_kernel(fine, positions[t], positions[s])
+        bottom, top = wedge_counts[j], wedge_counts[j + 1]
+        n_wedge_count = _put(wedge_count, n_wedge_count, top - bottom)
+        first, d = blocks[s, 0], blocks[s, 1]
+        candidates, k = _distinct_wedges(wedges, pool[first:first + d], d, bottom, candidates)
+        for x in range(top - 1, bottom - 1, -1):
+            p = wedge_parent[x]
+            r = _search(candidates, k, p)
+            n_wedge_parents = _put(wedge_parents, n_wedge_parents,
+                                   r if r < k and candidates[r] == p else k + p)
+            row = x - wedge_from
+            for a in range(attributes):
+                for col in range(offsets[a], offsets[a + 1]):
+                    predicted = values[p, col] + _scaled_kernel(ratio,
+                                                                values[x, col] - values[p, col])
+                    value_used[a] = _put(value_streams[a], value_used[a],
+                                         _zz(wedge_coarse[row, col] - predicted))
+            for col in range(offsets[-1]):
+                values[p, col] = wedge_coarse[row, col]
+        for q in range(d):
+            c = pool[first + q]
+            wedges[c] = _ancestor_below(wedge_parent, wedges[c], bottom)
     empty = np.empty(0, dtype=np.uint8)
-    return (vertex[:n_vertex], count[:n_count], empty, empty, empty, empty,
-            position[:n_position])
+    return ((vertex[:n_vertex], count[:n_count], empty, empty, empty, empty,
+             position[:n_position]),
+            (wedge_count[:n_wedge_count], wedge_parents[:n_wedge_parents], empty, empty),
+            (value_streams, value_used))
 
 
 # ---- decoding ----------------------------------------------------------------
@@ -804,10 +1569,34 @@ class Packet:
     stop_faces: int
     grid: Grid
     streams: tuple[bytes, ...]
+    attribute_grids: tuple = ()
+    has_materials: bool = False
 
     @property
     def records(self) -> int:
         return abs(self.stop - self.start)
+
+
+def stream_names(attribute_grids: tuple, has_materials: bool) -> tuple[str, ...]:
+    """The names of a packet's streams, in body order."""
+    names = _STREAM_NAMES
+    if attribute_grids:
+        names += _WEDGE_STREAM_NAMES + tuple(f"value:{g.name}" for g in attribute_grids)
+    if has_materials:
+        names += ("material",)
+    return names
+
+
+def pack_header(grid: Grid, attribute_grids: tuple, has_materials: bool, start: int, stop: int,
+                start_faces: int, stop_faces: int, body_length: int) -> bytes:
+    """The header of a packet (docs/packets.md), attribute records included."""
+    out = bytearray(_HEADER.pack(MAGIC, PACKET_VERSION, grid.bits, len(attribute_grids),
+                                 _HAS_MATERIALS if has_materials else 0, start, stop,
+                                 start_faces, stop_faces, *grid.origin, grid.step, body_length))
+    for g in attribute_grids:
+        out += _ATTRIBUTE.pack(ATTRIBUTE_IDS[g.name], _ENCODING_IDS[g.encoding], g.bits, 0, g.step)
+        out += struct.pack(f"<{g.components}d", *g.origin)
+    return bytes(out)
 
 
 def decode_packet(data: bytes) -> Packet:
@@ -816,31 +1605,57 @@ def decode_packet(data: bytes) -> Packet:
     Raises
     ------
     PacketError
-        On a bad magic, version, length, deflate stream or stream table.
+        On a bad magic, version, length, attribute record, deflate stream or stream table.
     """
     data = bytes(data)
     if len(data) < _HEADER.size:
         raise PacketError(f"the packet is truncated: {len(data)} bytes is shorter than the header")
-    (magic, version, bits, _reserved, start, stop, start_faces, stop_faces,
+    (magic, version, bits, attributes, flags, start, stop, start_faces, stop_faces,
      ox, oy, oz, step, body_length) = _HEADER.unpack_from(data)
     if magic != MAGIC:
         raise PacketError("this is not a lodserver vsplit packet (bad magic bytes)")
-    if version != PACKET_VERSION:
-        raise PacketError(f"the packet has version {version}; this decoder reads {PACKET_VERSION}")
+    if version not in READABLE_VERSIONS:
+        raise PacketError(f"the packet has version {version}; this decoder reads "
+                          f"{' and '.join(map(str, READABLE_VERSIONS))}")
+    if version == 1 and (attributes or flags):
+        raise PacketError("the packet has version 1 but sets reserved header bytes")
+    if flags & ~_HAS_MATERIALS:
+        raise PacketError(f"the packet sets unknown header flags {flags:#x}")
+    at = _HEADER.size
+    grids = []
+    encodings = {v: k for k, v in _ENCODING_IDS.items()}
+    for _ in range(attributes):
+        if len(data) < at + _ATTRIBUTE.size:
+            raise PacketError("the packet is truncated in its attribute records")
+        kind, encoding, attribute_bits, _reserved, attribute_step = _ATTRIBUTE.unpack_from(data, at)
+        at += _ATTRIBUTE.size
+        if kind not in _ATTRIBUTE_NAMES or encoding not in encodings:
+            raise PacketError(f"the packet names an unknown attribute ({kind}) or encoding "
+                              f"({encoding})")
+        name, encoding = _ATTRIBUTE_NAMES[kind], encodings[encoding]
+        if encoding == OCTAHEDRAL and name != "NORMAL":
+            raise PacketError(f"the packet encodes {name} as octahedral: only NORMAL can be")
+        components = 2 if encoding == OCTAHEDRAL else ATTRIBUTE_WIDTHS[name]
+        if len(data) < at + 8 * components:
+            raise PacketError("the packet is truncated in its attribute records")
+        origin = struct.unpack_from(f"<{components}d", data, at)
+        at += 8 * components
+        grids.append(AttributeGrid(name, encoding, origin, attribute_step, attribute_bits))
     try:
-        body = zlib.decompress(data[_HEADER.size:])
+        body = zlib.decompress(data[at:])
     except zlib.error as exc:
         raise PacketError(f"the packet's body does not inflate ({exc})") from exc
     if len(body) != body_length:
         raise PacketError(f"the packet's body is {len(body)} bytes, the header says {body_length}")
     table = _Reader(body, "stream table")
+    has_materials = bool(flags & _HAS_MATERIALS)
     streams = []
-    for _ in _STREAM_NAMES:
+    for _ in stream_names(tuple(grids), has_materials):
         streams.append(table.take(table.varint()))
     if not table.done():
         raise PacketError("the packet's body has bytes after its last stream")
     return Packet(start, stop, start_faces, stop_faces, Grid((ox, oy, oz), step, bits),
-                  tuple(streams))
+                  tuple(streams), tuple(grids), has_materials)
 
 
 def apply_packet(state: LodState, packet) -> LodState:
@@ -869,14 +1684,21 @@ def apply_packet(state: LodState, packet) -> LodState:
                           f"faces; the state is at level {state.level} with {len(state.faces)}")
     if state.grid != packet.grid:
         raise PacketError("the packet was made for another quantization grid than the state's")
+    if tuple(state.attribute_grids) != packet.attribute_grids:
+        raise PacketError("the packet was made for other attributes or attribute grids than "
+                          "the state's")
+    if (state.face_material is not None) != packet.has_materials:
+        raise PacketError("the packet and the state disagree on face materials")
     work = _Working(state.positions, state.faces, max(packet.start, packet.stop),
                     max(packet.start_faces, packet.stop_faces))
-    readers = [_Reader(s, name) for s, name in zip(packet.streams, _STREAM_NAMES)]
+    work.attach_wedges(state.wedges, state.corners, state.face_material)
+    names = stream_names(packet.attribute_grids, packet.has_materials)
+    readers = [_Reader(s, name) for s, name in zip(packet.streams, names)]
     try:
         if packet.stop > packet.start:
-            _apply_splits(work, packet.start, packet.stop, readers)
+            _apply_splits(work, packet.start, packet.stop, readers, packet.attribute_grids)
         else:
-            _apply_collapses(work, packet.start, packet.stop, readers)
+            _apply_collapses(work, packet.start, packet.stop, readers, packet.attribute_grids)
     except (IndexError, KeyError, ValueError) as exc:
         raise PacketError(f"the packet does not fit the state ({exc})") from exc
     if not all(r.done() for r in readers):
@@ -888,11 +1710,27 @@ def apply_packet(state: LodState, packet) -> LodState:
     positions = work.positions[:packet.stop].copy()
     if positions.min(initial=0) < 0 or positions.max(initial=0) > limit:
         raise PacketError("the packet moves a vertex off the grid")
-    return LodState(positions, work.faces[:work.face_count].copy(), state.grid)
+    wedges = corners = material = None
+    if packet.attribute_grids:
+        k = sum(g.components for g in packet.attribute_grids)
+        wedges = np.array(work.wedge_values, dtype=np.int64).reshape(-1, k)
+        corners = work.corner_wedges[:work.face_count].copy()
+        start = 0
+        for g in packet.attribute_grids:
+            column = wedges[:, start:start + g.components]
+            start += g.components
+            if column.min(initial=0) < 0 or column.max(initial=0) > 2**g.bits - 1:
+                raise PacketError(f"the packet moves a {g.name} value off its grid")
+        if corners.min(initial=0) < 0 or corners.max(initial=-1) >= len(wedges):
+            raise PacketError("the packet leaves a corner on a wedge that does not exist")
+    if packet.has_materials:
+        material = work.face_material[:work.face_count].copy()
+    return LodState(positions, work.faces[:work.face_count].copy(), state.grid, wedges, corners,
+                    state.attribute_grids, material)
 
 
-def _apply_splits(work: _Working, start, stop, readers):
-    vertex, count, pattern, other, fan, mask, position = readers
+def _apply_splits(work: _Working, start, stop, readers, grids):
+    vertex, count, pattern, other, fan, mask, position = readers[:7]
     for t in range(start, stop):
         s = t - 1 - vertex.varint()
         if s < 0:
@@ -922,6 +1760,7 @@ def _apply_splits(work: _Working, start, stop, readers):
         else:
             bits = mask.take((len(held) + 7) // 8)
             moved = [c for i, c in enumerate(held) if bits[i // 8] >> (i % 8) & 1]
+        first = work.face_count
         for c in moved:
             work.set_corner(c, t)
         for corners in added:
@@ -931,10 +1770,64 @@ def _apply_splits(work: _Working, start, stop, readers):
         fine = coarse + [position.signed() for _ in range(3)]
         work.positions[s] = fine
         work.positions[t] = 2 * coarse - fine + [position.signed() for _ in range(3)]
+        if grids:
+            geometry = (coarse.tolist(), fine.tolist(), work.positions[t].tolist())
+            _split_wedges(work, s, t, held, set(moved), first, geometry, readers, grids)
+        if work.face_material is not None:
+            material = readers[-1]
+            for f in range(first, work.face_count):
+                work.face_material[f] = material.varint() - 1
 
 
-def _apply_collapses(work: _Working, start, stop, readers):
-    vertex, count, _, _, _, _, position = readers
+def _split_wedges(work: _Working, s, t, held, moved, first, geometry, readers, grids):
+    """The wedge part of split ``t`` (docs/packets.md), after its geometry part:
+    ``held`` is ``held(s)``, ``moved`` the corners moved to ``t``, ``first`` the
+    first new face, ``geometry`` the grid positions ``(coarse, fine, new)``."""
+    wedge_count, wedge_parent, wedge_corner = readers[7:10]
+    values = readers[10:10 + len(grids)]
+    bottom = len(work.wedge_values)
+    top = bottom + wedge_count.varint()
+    candidates = work.wedges_held(held)
+    parents = []
+    for x in range(bottom, top):
+        u = wedge_parent.varint()
+        p = candidates[u] if u < len(candidates) else u - len(candidates)
+        if not 0 <= p < x:
+            raise PacketError(f"split {t} gives wedge {x} the parent {p}, which is not below it")
+        parents.append(p)
+        guess_fine, guess_new = _split_guesses(work, s, held, p, geometry, grids)
+        fine, new, at = [], [], 0
+        for grid, stream in zip(grids, values):
+            columns = range(at, at + grid.components)
+            at += grid.components
+            fine += [guess_fine[j] + stream.signed() for j in columns]
+            new += [guess_new(j, fine[j]) + stream.signed() for j in columns]
+        work.wedge_values[p] = fine
+        work.wedge_values.append(new)
+    m = top - bottom
+    for c in held:
+        if c not in moved:
+            continue
+        y = work.wedge_of(c)
+        u = wedge_corner.varint()
+        if u == 0:
+            w = _moved_prediction(parents, bottom, y)
+        elif u <= m:
+            w = bottom + u - 1
+        elif u == m + 1:
+            w = y
+        else:
+            w = u - m - 2
+        work.set_wedge(c, w)
+    for f in range(first, work.face_count):
+        for k in range(3):
+            candidates = _corner_candidates(work, int(work.faces[f, k]), 3 * first, bottom, top)
+            u = wedge_corner.varint()
+            work.set_wedge(3 * f + k, candidates[u] if u < len(candidates) else u - len(candidates))
+
+
+def _apply_collapses(work: _Working, start, stop, readers, grids):
+    vertex, count, _, _, _, _, position = readers[:7]
     for t in range(start - 1, stop - 1, -1):
         around = work.neighbours(t)
         u = vertex.varint()
@@ -948,5 +1841,42 @@ def _apply_collapses(work: _Working, start, stop, readers):
             work.pop_face()
         for c in list(work.corners.of(t)):
             work.set_corner(c, s)
+        fine = work.positions[s].tolist()
         middle = (work.positions[s] + work.positions[t]) >> 1
         work.positions[s] = middle + [position.signed() for _ in range(3)]
+        if grids:
+            ratio = _collapse_ratio(fine, work.positions[t].tolist(), work.positions[s].tolist())
+            _collapse_wedges(work, t, s, ratio, readers, grids)
+
+
+def _collapse_wedges(work: _Working, t, s, ratio, readers, grids):
+    """The wedge part of collapse ``t`` into ``s``, after its geometry part
+    (``ratio``: the :func:`_collapse_ratio` of the positions)."""
+    wedge_count, wedge_parent = readers[7:9]
+    values = readers[10:10 + len(grids)]
+    top = len(work.wedge_values)
+    bottom = top - wedge_count.varint()
+    if bottom < 0:
+        raise PacketError(f"collapse of {t} removes more wedges than the state holds")
+    candidates = [w for w in work.wedges_held(work.corners.of(s)) if w < bottom]
+    parents = {}
+    for x in range(top - 1, bottom - 1, -1):
+        u = wedge_parent.varint()
+        p = candidates[u] if u < len(candidates) else u - len(candidates)
+        if not 0 <= p < x:
+            raise PacketError(f"collapse of {t} merges wedge {x} into {p}, which is not below it")
+        parents[x] = p
+        merged, at = [], 0
+        for grid, stream in zip(grids, values):
+            # the merged value: between the two as the positions are, plus a residual
+            for a, b in zip(work.wedge_values[p][at:at + grid.components],
+                            work.wedge_values[x][at:at + grid.components]):
+                merged.append(a + _scaled(ratio, b - a) + stream.signed())
+            at += grid.components
+        work.wedge_values[p] = merged
+    for c in work.corners.of(s):
+        w = work.wedge_of(c)
+        while w >= bottom:
+            w = parents[w]
+        work.set_wedge(c, w)
+    del work.wedge_values[bottom:]

@@ -416,7 +416,7 @@ class ProgressiveMesh:
         _faces_at(self.faces, self.parent, len(faces), level, faces)
         return positions, faces
 
-    def cursor(self, level=None) -> "Cursor":
+    def cursor(self, level=None) -> Cursor:
         """A mutable view at ``level`` (default: the base) that moves by splits and collapses."""
         return Cursor(self, self.base_vertices if level is None else level)
 
@@ -442,7 +442,7 @@ class ProgressiveMesh:
         save_progressive(self, path)
 
     @classmethod
-    def load(cls, path) -> "ProgressiveMesh":
+    def load(cls, path) -> ProgressiveMesh:
         from .codec import load_progressive
         return load_progressive(path)
 
@@ -531,7 +531,7 @@ class Cursor:
             self.corners[:len(c)] = c
         self.level = level
 
-    def seek(self, level: int) -> "Cursor":
+    def seek(self, level: int) -> Cursor:
         """Move to ``level`` by replaying splits (up) or collapses (down)."""
         pm = self.pm
         level = pm._check_level(level)

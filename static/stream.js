@@ -1,4 +1,5 @@
-// Fetching a mesh: its summary, its base level, then packets between levels.
+// Fetching a mesh: its summary, its base level (and its materials, if any),
+// then packets between levels.
 //
 // The client never refetches a level: it holds one LodState and moves it to
 // the target level packet by packet, forward (splits) or backward (collapses).
@@ -66,11 +67,19 @@ export function createStream(viewer) {
       const document = JSON.parse(new TextDecoder().decode(
         await fetchGeometry(`../meshes/${id}/lod?vertices=${base}&format=json`, ticket)));
       if (ticket !== opened) return;
+      const appearance = { materialFaces: document.material_faces, materials: null };
+      if (document.materials) {
+        // the glTF records; their image uris are relative to this document
+        const url = new URL(`../meshes/${id}/materials`, window.location.href).href;
+        appearance.materials = { document: await (await fetchOk(url)).json(), url };
+        if (ticket !== opened) return;
+      }
       info = summary;
       state = LodState.fromJson(document, { vertexCapacity: info.vertices,
                                             faceCapacity: info.faces });
       target = state.level;
-      viewer.emit('mesh', { info, state, curve: new ErrorCurve(info, document.error) });
+      viewer.emit('mesh', { info, state, appearance,
+                            curve: new ErrorCurve(info, document.error) });
       viewer.emit('level', { state, bytes, dirty: state.takeDirty() });
       goto(Math.round(settings.initialRatio * info.vertices));
     } catch (error) {

@@ -9,7 +9,7 @@ import numpy as np
 import trimesh
 
 from lodserver.io import load_mesh
-from lodserver.mesh import Attributes, Mesh
+from lodserver.mesh import Attributes, Materials, Mesh
 
 DATA = Path(__file__).resolve().parent / "data"
 SHARED = Path(__file__).resolve().parents[1].parent / "shared" / "meshes"
@@ -49,8 +49,8 @@ def textured_sphere(nu=32, nv=16, hard_equator=False) -> Mesh:
     a, b = idx[:-1, :-1], idx[1:, :-1]
     c, d = idx[1:, 1:], idx[:-1, 1:]
     # outward winding; the triangles touching the poles would be degenerate
-    upper = np.stack([a, b, d], -1)[:, 1:].reshape(-1, 3)
-    lower = np.stack([b, c, d], -1)[:, :-1].reshape(-1, 3)
+    upper = np.stack([a, d, b], -1)[:, 1:].reshape(-1, 3)
+    lower = np.stack([b, d, c], -1)[:, :-1].reshape(-1, 3)
     render_faces = np.concatenate([upper, lower])
     normals = grid.copy()
     if hard_equator:
@@ -79,6 +79,26 @@ def textured_sphere(nu=32, nv=16, hard_equator=False) -> Mesh:
     attributes = Attributes((("NORMAL", 3), ("TEXCOORD_0", 2)), wedge_rows[:, 1:],
                             corners.reshape(-1, 3))
     return Mesh(grid[first], faces, attributes)
+
+
+def textured_spot() -> Mesh:
+    """spot with its UVs and its texture (``data/spot_texture.png``, public domain,
+    Keenan Crane) as the base colour of one material on every face."""
+    m = mesh("spot")
+    materials = Materials(
+        {"materials": [{"name": "spot", "pbrMetallicRoughness": {
+            "baseColorTexture": {"index": 0}, "metallicFactor": 0.0, "roughnessFactor": 0.8}}],
+         "textures": [{"source": 0, "sampler": 0}],
+         "samplers": [{"magFilter": 9729, "minFilter": 9987}],
+         "images": [{"mimeType": "image/png", "name": "spot_texture"}]},
+        ((DATA / "spot_texture.png").read_bytes(),))
+    return Mesh(m.positions, m.faces, m.attributes, np.zeros(m.face_count, np.int32), materials)
+
+
+def textured_spot_glb() -> bytes:
+    """:func:`textured_spot` as a GLB file, to upload."""
+    from lodserver.io import encode_mesh
+    return encode_mesh(textured_spot(), "glb")
 
 
 @lru_cache(maxsize=None)

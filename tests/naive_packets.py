@@ -8,6 +8,11 @@ checks that the compiled encoder produces exactly these bytes. The corner
 sets (``_Working``) and the fan prediction are the reference decoder's own,
 imported from ``lodserver.packets``: a packet must be decoded the way it was
 predicted when encoded.
+
+Wedges (packet version 2, meshes with attributes) were written here first, in
+the same style, then compiled: per record, the new or removed wedges, their
+parents by rank among ``vs``'s wedges, their quantized values as residuals,
+and each changed corner's wedge as a code (docs/packets.md).
 """
 
 from __future__ import annotations
@@ -17,25 +22,33 @@ import zlib
 from lodserver.packets import (
     _FAN_LISTED,
     _FAN_PREDICTED,
-    _HEADER,
     _IS_NEW,
     _IS_OTHER,
     _IS_VS,
-    _STREAM_NAMES,
     COUNT,
     FAN,
-    MAGIC,
     MASK,
     OTHER,
-    PACKET_VERSION,
     PATTERN,
     POSITION,
     VERTEX,
+    WEDGE_CORNER,
+    WEDGE_COUNT,
+    WEDGE_PARENT,
     PacketError,
+    _collapse_ratio,
+    _corner_candidates,
+    _moved_prediction,
     _predict_fan,
     _put_varint,
+    _scaled,
+    _split_guesses,
     _Working,
+    attribute_grids_of,
     grid_of,
+    pack_header,
+    quantize_wedges,
+    stream_names,
 )
 from lodserver.progressive import ProgressiveMesh
 
@@ -47,7 +60,7 @@ def _zigzag(value: int) -> int:
 
 
 def encode_packet(pm: ProgressiveMesh, start: int, stop: int, *,
-                  bits: int | None = None) -> bytes:
+                  bits: int | None = None, attribute_bits: dict | None = None) -> bytes:
     """The packet taking the quantized form of level ``start`` to level ``stop``.
 
     Parameters
@@ -57,6 +70,8 @@ def encode_packet(pm: ProgressiveMesh, start: int, stop: int, *,
         Levels (vertex counts) in ``pm.levels``; ``stop < start`` gives collapses.
     bits : int, optional
         Grid resolution, as for :func:`grid_of` (default :func:`default_bits`).
+    attribute_bits : dict, optional
+        Attribute grid resolutions, as for :func:`attribute_grids_of`.
 
     Returns
     -------
@@ -65,28 +80,42 @@ def encode_packet(pm: ProgressiveMesh, start: int, stop: int, *,
     """
     start, stop = pm._check_level(start), pm._check_level(stop)
     grid = grid_of(pm, bits=bits)
+    grids = attribute_grids_of(pm, attribute_bits=attribute_bits)
+    has_materials = pm.face_material is not None
     positions, faces = pm.arrays_at(start)
     state = _Working(grid.quantize(positions), faces, max(start, stop),
                      max(pm.faces_at_level(start), pm.faces_at_level(stop)))
-    streams = [bytearray() for _ in _STREAM_NAMES]
+    values, corners = pm.wedges_at(start)
+    state.attach_wedges(None if values is None else quantize_wedges(grids, values), corners,
+                        pm.face_material[:len(faces)] if has_materials else None)
+    streams = [bytearray() for _ in stream_names(grids, has_materials)]
     if stop > start:
-        _encode_splits(pm, state, start, stop, grid, streams)
+        _encode_splits(pm, state, start, stop, grid, grids, streams)
     else:
-        _encode_collapses(pm, state, start, stop, grid, streams)
+        _encode_collapses(pm, state, start, stop, grid, grids, streams)
     body = bytearray()
     for stream in streams:
         _put_varint(body, len(stream))
         body += stream
-    header = _HEADER.pack(MAGIC, PACKET_VERSION, grid.bits, 0, start, stop,
-                          pm.faces_at_level(start), pm.faces_at_level(stop),
-                          *grid.origin, grid.step, len(body))
+    header = pack_header(grid, grids, has_materials, start, stop, pm.faces_at_level(start),
+                         pm.faces_at_level(stop), len(body))
     return header + zlib.compress(bytes(body), 9)
 
 
-def _encode_splits(pm, state, start, stop, grid, streams):
+def _ancestor_below(parent, x: int, count: int) -> int:
+    while x >= count:
+        x = int(parent[x])
+    return x
+
+
+def _encode_splits(pm, state, start, stop, grid, grids, streams):
     n0 = pm.base_vertices
     fine = grid.quantize(pm.fine_position[start - n0:stop - n0])
     new = grid.quantize(pm.new_position[start - n0:stop - n0])
+    wedge_fine = wedge_new = None
+    if grids:   # by wedge id - wedge_counts[0]
+        wedge_fine = quantize_wedges(grids, pm.wedge_fine_value)
+        wedge_new = quantize_wedges(grids, pm.wedge_new_value)
     for t in range(start, stop):
         j = t - n0
         s = int(pm.parent[t])
@@ -119,12 +148,13 @@ def _encode_splits(pm, state, start, stop, grid, streams):
                     raise PacketError(f"split {t} moves corner {c}, which does not hold vertex {s}")
                 mask[rank[c] // 8] |= 1 << (rank[c] % 8)
             streams[MASK] += mask
+        first_face = state.face_count
         for c in moved:
             state.set_corner(c, t)
         for corners in added:
             state.append_face(corners)
 
-        coarse = state.positions[s]
+        coarse = state.positions[s].copy()
         for d in (fine[j - (start - n0)] - coarse).tolist():
             _put_varint(streams[POSITION], _zigzag(d))
         # The collapse placed vs between the two, so new ~ 2 * coarse - fine.
@@ -132,11 +162,20 @@ def _encode_splits(pm, state, start, stop, grid, streams):
             _put_varint(streams[POSITION], _zigzag(d))
         state.positions[s] = fine[j - (start - n0)]
         state.positions[t] = new[j - (start - n0)]
+        if grids:
+            geometry = (coarse.tolist(), state.positions[s].tolist(), state.positions[t].tolist())
+            _encode_split_wedges(pm, state, s, t, held, set(moved), first_face, geometry,
+                                 wedge_fine, wedge_new, grids, streams)
+        if pm.face_material is not None:
+            for f in range(first, last):
+                _put_varint(streams[-1], int(pm.face_material[f]) + 1)
+                state.face_material[f] = pm.face_material[f]
 
 
-def _encode_collapses(pm, state, start, stop, grid, streams):
+def _encode_collapses(pm, state, start, stop, grid, grids, streams):
     n0 = pm.base_vertices
     coarse = grid.quantize(pm.coarse_position[stop - n0:start - n0])
+    wedge_coarse = quantize_wedges(grids, pm.wedge_coarse_value) if grids else None
     for t in range(start - 1, stop - 1, -1):
         j = t - n0
         s = int(pm.parent[t])
@@ -153,4 +192,84 @@ def _encode_collapses(pm, state, start, stop, grid, streams):
         middle = (state.positions[s] + state.positions[t]) >> 1
         for d in (target - middle).tolist():
             _put_varint(streams[POSITION], _zigzag(d))
+        if grids:
+            ratio = _collapse_ratio(state.positions[s].tolist(), state.positions[t].tolist(),
+                                    target.tolist())
         state.positions[s] = target
+        if grids:
+            _encode_collapse_wedges(pm, state, t, s, ratio, wedge_coarse, grids, streams)
+
+
+def _encode_split_wedges(pm, state, s, t, held, moved, first, geometry, fine, new, grids,
+                         streams):
+    """The wedge part of split ``t``: its new wedges (parent, values) and the wedge
+    of every moved corner and every corner of its new faces."""
+    n0, base = pm.base_vertices, int(pm.wedge_counts[0])
+    bottom, top = int(pm.wedge_counts[t - n0]), int(pm.wedge_counts[t - n0 + 1])
+    _put_varint(streams[WEDGE_COUNT], top - bottom)
+    candidates = state.wedges_held(held)
+    parents = []
+    for x in range(bottom, top):
+        p = int(pm.wedge_parent[x])
+        _put_varint(streams[WEDGE_PARENT],
+                    candidates.index(p) if p in candidates else len(candidates) + p)
+        parents.append(p)
+        guess_fine, guess_new = _split_guesses(state, s, held, p, geometry, grids)
+        f, n, at = fine[x - base].tolist(), new[x - base].tolist(), 0
+        for i, g in enumerate(grids):
+            columns = range(at, at + g.components)
+            at += g.components
+            residuals = [f[j] - guess_fine[j] for j in columns]
+            residuals += [n[j] - guess_new(j, f[j]) for j in columns]
+            for d in residuals:
+                _put_varint(streams[WEDGE_CORNER + 1 + i], _zigzag(d))
+        state.wedge_values[p] = fine[x - base].tolist()
+        state.wedge_values.append(new[x - base].tolist())
+    m = top - bottom
+    for c in held:
+        if c not in moved:
+            continue
+        y = state.wedge_of(c)
+        w = _ancestor_below(pm.wedge_parent, int(pm.corner_wedges[c // 3, c % 3]), top)
+        if w == _moved_prediction(parents, bottom, y):
+            code = 0
+        elif bottom <= w < top:
+            code = 1 + w - bottom
+        elif w == y:
+            code = m + 1
+        else:
+            code = m + 2 + w
+        _put_varint(streams[WEDGE_CORNER], code)
+        state.set_wedge(c, w)
+    for f in range(first, state.face_count):
+        for k in range(3):
+            w = int(pm.birth_corners[f, k])
+            candidates = _corner_candidates(state, int(state.faces[f, k]), 3 * first, bottom, top)
+            _put_varint(streams[WEDGE_CORNER],
+                        candidates.index(w) if w in candidates else len(candidates) + w)
+            state.set_wedge(3 * f + k, w)
+
+
+def _encode_collapse_wedges(pm, state, t, s, ratio, coarse, grids, streams):
+    """The wedge part of collapse ``t``: how many wedges go, and for each (last first)
+    its parent and the parent's merged value."""
+    n0, base = pm.base_vertices, int(pm.wedge_counts[0])
+    bottom, top = int(pm.wedge_counts[t - n0]), int(pm.wedge_counts[t - n0 + 1])
+    _put_varint(streams[WEDGE_COUNT], top - bottom)
+    candidates = [w for w in state.wedges_held(state.corners.of(s)) if w < bottom]
+    for x in range(top - 1, bottom - 1, -1):
+        p = int(pm.wedge_parent[x])
+        _put_varint(streams[WEDGE_PARENT],
+                    candidates.index(p) if p in candidates else len(candidates) + p)
+        merged = coarse[x - base].tolist()
+        predicted = [a + _scaled(ratio, b - a)
+                     for a, b in zip(state.wedge_values[p], state.wedge_values[x])]
+        at = 0
+        for i, g in enumerate(grids):
+            for d, e in zip(merged[at:at + g.components], predicted[at:at + g.components]):
+                _put_varint(streams[WEDGE_CORNER + 1 + i], _zigzag(d - e))
+            at += g.components
+        state.wedge_values[p] = merged
+    for c in state.corners.of(s):
+        state.set_wedge(c, _ancestor_below(pm.wedge_parent, state.wedge_of(c), bottom))
+    del state.wedge_values[bottom:]

@@ -1,6 +1,5 @@
 """The HTTP API through the real app (TestClient), with a temporary data directory."""
 
-import io
 import time
 
 import numpy as np
@@ -13,9 +12,10 @@ from hypothesis import strategies as st
 
 from lodserver.api.main import create_app
 from lodserver.api.settings import Settings
+from lodserver.io import load_mesh
 from lodserver.packets import apply_packet, state_from_json
 
-from .meshes import DATA
+from .meshes import DATA, textured_spot_glb
 
 SPOT = (DATA / "spot.obj").read_bytes()
 TOKEN = "s3cret-token"
@@ -65,12 +65,18 @@ def test_ready_mesh_reports_counts_and_error_curve(served):
 
 
 @pytest.mark.parametrize("fmt", ["glb", "obj", "ply"])
-def test_lod_files_hold_the_level(served, fmt):
+def test_lod_files_hold_the_level(served, fmt, tmp_path):
     client, mesh_id = served
     response = client.get(f"/meshes/{mesh_id}/lod", params={"vertices": 500, "format": fmt})
     assert response.status_code == 200
-    mesh = trimesh.load(io.BytesIO(response.content), file_type=fmt, force="mesh", process=False)
-    assert len(mesh.vertices) == 500
+    # through lodserver's loader, which welds the render vertices of a seam
+    # (one per wedge in GLB and OBJ) back into positions
+    path = tmp_path / f"level.{fmt}"
+    path.write_bytes(response.content)
+    mesh, _ = load_mesh(path)
+    assert mesh.vertex_count == 500
+    if fmt != "ply":            # PLY carries positions only
+        assert mesh.attributes is not None and mesh.attributes.columns("TEXCOORD_0") is not None
 
 
 def test_lod_criteria_pick_levels(served):
@@ -96,11 +102,73 @@ def test_packets_between_lods_are_exact(served):
         return client.get(f"/meshes/{mesh_id}/splits", params={"from": a, "to": b}).content
 
     state = state_from_json(lod(100))
+    assert [g.name for g in state.attribute_grids] == ["TEXCOORD_0"]   # spot has UVs
     for target in (1500, 2930, 4, 700, 100):
         state = apply_packet(state, splits(state.level, target))
         expected = state_from_json(lod(target))
         assert np.array_equal(state.positions, expected.positions)
         assert np.array_equal(state.faces, expected.faces)
+        assert np.array_equal(state.wedges, expected.wedges)
+        assert np.array_equal(state.corners, expected.corners)
+
+
+@pytest.fixture(scope="module")
+def textured(served):
+    """spot with its texture, uploaded as a GLB beside the plain spot."""
+    client, _ = served
+    created = _upload(client, content=textured_spot_glb(), filename="spot.glb")
+    assert created.status_code == 202, created.text
+    mesh_id = created.json()["id"]
+    assert _wait_ready(client, mesh_id)["status"] == "ready"
+    return client, mesh_id
+
+
+def test_json_levels_hold_wedges_materials_and_where_to_find_them(textured):
+    client, mesh_id = textured
+    document = client.get(f"/meshes/{mesh_id}/lod", params={"ratio": 0.5}).json()
+    assert document["layout"] == [["TEXCOORD_0", 2]]
+    grid = document["attribute_grid"]["TEXCOORD_0"]
+    assert grid["encoding"] == "linear" and grid["bits"] == 12
+    wedges, corners = np.array(document["wedges"]), np.array(document["corners"])
+    assert wedges.shape[1] == 2 and 0 <= wedges.min() and wedges.max() < 2**12
+    assert corners.shape == (document["face_count"], 3) and corners.max() < len(wedges)
+    assert document["face_material"] == [0] * document["face_count"]
+    assert document["material_faces"] == [5856, 0]
+    assert document["materials"] == f"/meshes/{mesh_id}/materials"
+    state = state_from_json(document)
+    there = state_from_json(client.get(f"/meshes/{mesh_id}/lod", params={"ratio": 1}).json())
+    state = apply_packet(state, client.get(f"/meshes/{mesh_id}/splits", params={
+        "from": state.level, "to": there.level}).content)
+    for name in ("positions", "faces", "wedges", "corners", "face_material"):
+        assert np.array_equal(getattr(state, name), getattr(there, name)), name
+
+
+def test_materials_and_images_are_served_with_their_types(textured):
+    client, mesh_id = textured
+    response = client.get(f"/meshes/{mesh_id}/materials")
+    assert response.status_code == 200 and "immutable" in response.headers["cache-control"]
+    document = response.json()
+    assert document["materials"][0]["pbrMetallicRoughness"]["baseColorTexture"] == {"index": 0}
+    assert document["textures"] == [{"source": 0, "sampler": 0}]
+    (image,) = document["images"]
+    assert image["uri"] == "images/0" and image["mimeType"] == "image/png"
+    png = client.get(f"/meshes/{mesh_id}/{image['uri']}")
+    assert png.status_code == 200 and png.headers["content-type"] == "image/png"
+    assert png.content == (DATA / "spot_texture.png").read_bytes()
+    assert "immutable" in png.headers["cache-control"]
+    again = client.get(f"/meshes/{mesh_id}/images/0", headers={"If-None-Match": png.headers["etag"]})
+    assert again.status_code == 304
+    missing = client.get(f"/meshes/{mesh_id}/images/1")
+    assert missing.status_code == 404 and "no image 1" in missing.json()["message"]
+
+
+def test_a_mesh_without_materials_says_so(served):
+    client, mesh_id = served
+    response = client.get(f"/meshes/{mesh_id}/materials")
+    assert response.status_code == 404 and "no materials" in response.json()["message"]
+    assert client.get(f"/meshes/{mesh_id}/images/0").status_code == 404
+    document = client.get(f"/meshes/{mesh_id}/lod", params={"ratio": 0.5}).json()
+    assert "materials" not in document and "face_material" not in document
 
 
 @pytest.mark.parametrize("path, params", [("lod", {"ratio": 0.1}), ("lod", {"vertices": 9,
@@ -143,7 +211,7 @@ def test_bad_level_parameters_are_422_with_a_message(served, path, params, statu
 @pytest.mark.parametrize("mesh_id", ["AAAAAAAAAAAAAAAAAAAAAA", "nope", "..%2F..%2Fetc"])
 def test_unknown_ids_are_404(served, mesh_id):
     client, _ = served
-    for path in ("", "/lod?ratio=0.5", "/splits?from=4&to=5"):
+    for path in ("", "/lod?ratio=0.5", "/splits?from=4&to=5", "/materials", "/images/0"):
         response = client.get(f"/meshes/{mesh_id}{path}")
         assert response.status_code == 404 and response.json()["message"]
     assert client.delete("/meshes/AAAAAAAAAAAAAAAAAAAAAA").status_code == 404

@@ -2,6 +2,7 @@
 
 import struct
 import zlib
+from dataclasses import replace
 from functools import cache
 from itertools import pairwise
 
@@ -12,18 +13,20 @@ from hypothesis import strategies as st
 
 from lodserver import build, packets
 from lodserver.io import clean_mesh
-from lodserver.mesh import Mesh
+from lodserver.mesh import Materials, Mesh
 from lodserver.packets import (
     FAN,
     MAGIC,
     MASK,
     MAX_BITS,
     MIN_BITS,
+    WEDGE_CORNER,
     PacketError,
     _put_varint,
     _Reader,
     _zz as _zigzag,  # the compiled zigzag the encoder uses
     apply_packet,
+    attribute_grids_of,
     decode_packet,
     default_bits,
     encode_packet,
@@ -41,6 +44,29 @@ def _same(a, b):
     assert a.level == b.level
     assert np.array_equal(a.positions, b.positions)
     assert np.array_equal(a.faces, b.faces)
+    assert a.attribute_grids == b.attribute_grids
+    for name in ("wedges", "corners", "face_material"):
+        x, y = getattr(a, name), getattr(b, name)
+        assert (x is None) == (y is None), name
+        if x is not None:
+            assert np.array_equal(x, y), name
+
+
+@cache
+def _geometry_only(name):
+    """``name`` built from its positions and faces alone."""
+    m = input_mesh(name)
+    return build(Mesh(m.positions, m.faces))
+
+
+def _with_materials():
+    """The textured sphere with two materials and some faces without: packets carry
+    the material of every new face."""
+    m = input_mesh("textured_sphere")
+    material = (np.arange(m.face_count) % 3 - 1).astype(np.int32)   # -1, 0, 1, ...
+    materials = Materials({"materials": [{"name": "a"}, {"name": "b"}], "textures": [],
+                           "samplers": [], "images": []})
+    return Mesh(m.positions, m.faces, m.attributes, material, materials)
 
 
 def test_varints_and_zigzag_by_hand():
@@ -68,7 +94,8 @@ def test_grid_rounds_to_within_half_a_step():
     assert default_bits(pm) == grid_of(pm).bits
 
 
-@pytest.mark.parametrize("name", ["spot", "torus", "grid", "two_boxes", "icosphere"])
+@pytest.mark.parametrize("name", ["spot", "torus", "grid", "two_boxes", "icosphere",
+                                  "textured_sphere", "hard_sphere"])
 def test_forward_and_back_reproduce_the_levels_exactly(name):
     pm = progressive(name)
     grid = grid_of(pm)
@@ -95,14 +122,84 @@ def test_any_chain_of_packets_lands_on_the_level(data):
 
 
 def test_packets_are_compact_and_predict_every_fan_on_spot():
-    pm = progressive("spot")
+    pm = _geometry_only("spot")
     n0, n = pm.base_vertices, pm.vertex_count
     data = encode_packet(pm, n0, n)
     packet = decode_packet(data)
     assert packet.records == n - n0 and set(packet.streams[FAN]) == {0}
-    # 9.3 bytes per split at the default 12 bits (docs/packets.md); OpenMesh's record is 24
+    assert packet.attribute_grids == () and len(packet.streams) == 7
+    # 9.2 bytes per split at the default 12 bits (docs/packets.md); OpenMesh's record is 24
     assert len(data) / (n - n0) < 10
     assert len(encode_packet(pm, n, n0)) / (n - n0) < 4
+
+
+def test_packets_with_uvs_stay_compact_on_spot():
+    """spot with its UVs: about 12.9 bytes per split forward, 4.6 backward (docs/packets.md)."""
+    pm = progressive("spot")
+    assert pm.attribute_layout == (("TEXCOORD_0", 2),)
+    n0, n = pm.base_vertices, pm.vertex_count
+    packet = decode_packet(encode_packet(pm, n0, n))
+    assert [g.name for g in packet.attribute_grids] == ["TEXCOORD_0"]
+    assert len(encode_packet(pm, n0, n)) / (n - n0) < 13.5
+    assert len(encode_packet(pm, n, n0)) / (n - n0) < 5.5
+    # nearly every changed corner's wedge is the first candidate (code 0); few fall
+    # back to a wedge id (a wedge no corner of its vertex holds at that level)
+    reader, codes = _Reader(packet.streams[WEDGE_CORNER], "wedge_corner"), []
+    while not reader.done():
+        codes.append(reader.varint())
+    codes = np.array(codes)
+    assert np.mean(codes == 0) > 0.9 and np.mean(codes > 8) < 0.02
+
+
+def test_version_1_packets_still_decode():
+    """A geometry-only version 2 packet is a version 1 packet but for its version byte."""
+    pm = progressive("grid")
+    data = encode_packet(pm, 40, 80)
+    assert data[4] == 2
+    old = data[:4] + bytes([1]) + data[5:]
+    start = quantized_level(pm, 40, grid_of(pm))
+    _same(apply_packet(start, old), apply_packet(start, data))
+    with pytest.raises(PacketError, match="reserved"):
+        decode_packet(old[:6] + bytes([1]) + old[7:])
+
+
+def test_attribute_grids_round_values_to_within_half_a_step():
+    pm = progressive("textured_sphere")
+    normal, uv = attribute_grids_of(pm)
+    assert (normal.encoding, normal.bits, uv.encoding, uv.bits) == ("octahedral", 10, "linear", 12)
+    values = pm.wedge_values
+    q = uv.quantize(values[:, 3:])
+    assert q.min() >= 0 and q.max() <= 2**12 - 1
+    assert np.abs(uv.dequantize(q) - values[:, 3:]).max() <= uv.step / 2 + 1e-12
+    n = normal.dequantize(normal.quantize(values[:, :3]))
+    angle = np.degrees(np.arccos(np.clip((n * values[:, :3]).sum(axis=1), -1, 1)))
+    assert angle.max() < 0.25 and angle.mean() < 0.1   # degrees
+    # the axes are exact: the octahedral grid has a row and a column at 0
+    axes = np.eye(3)[[0, 1, 2, 0, 1, 2]] * [[1], [1], [1], [-1], [-1], [-1]]
+    np.testing.assert_array_equal(normal.dequantize(normal.quantize(axes)), axes)
+    assert [g.bits for g in attribute_grids_of(pm, attribute_bits={"NORMAL": 12})] == [12, 12]
+    with pytest.raises(ValueError, match="no attribute named COLOR_0"):
+        attribute_grids_of(pm, attribute_bits={"COLOR_0": 8})
+
+
+def test_packets_carry_face_materials():
+    pm = build(_with_materials())
+    grid = grid_of(pm)
+    n0, n = pm.base_vertices, pm.vertex_count
+    levels = [n0, (n0 + n) // 2, n, n0 + 7, n]
+    state = quantized_level(pm, levels[0], grid)
+    assert state.face_material is not None
+    for a, b in pairwise(levels):
+        data = encode_packet(pm, a, b)
+        assert data == naive_packets.encode_packet(pm, a, b)
+        state = apply_packet(state, data)
+        _same(state, quantized_level(pm, b, grid))
+    assert set(state.face_material.tolist()) == {-1, 0, 1}
+    with pytest.raises(PacketError, match="materials"):
+        apply_packet(replace(state, face_material=None), encode_packet(pm, n, n0))
+    with pytest.raises(PacketError, match="attribute"):
+        apply_packet(replace(state, attribute_grids=attribute_grids_of(
+            pm, attribute_bits={"TEXCOORD_0": 11})), encode_packet(pm, n, n0))
 
 
 def test_empty_packet_is_the_identity():
@@ -196,15 +293,17 @@ def _some_levels(pm):
     return sorted({n0, n0 + 1, (2 * n0 + n) // 3, (n0 + n) // 2, n - 1, n})
 
 
-def _assert_same_bytes(pm, pairs, bits_options=(None, 10)):
+def _assert_same_bytes(pm, pairs, bits_options=(None, 10), attribute_bits=None):
     for a, b in pairs:
         for bits in bits_options:
-            ours, reference = encode_packet(pm, a, b, bits=bits), naive_packets.encode_packet(
-                pm, a, b, bits=bits)
+            ours = encode_packet(pm, a, b, bits=bits, attribute_bits=attribute_bits)
+            reference = naive_packets.encode_packet(pm, a, b, bits=bits,
+                                                    attribute_bits=attribute_bits)
             assert ours == reference, f"levels {a} -> {b}, bits {bits}: the bytes differ"
 
 
-@pytest.mark.parametrize("name", ["spot", "torus", "grid", "two_boxes", "icosphere"])
+@pytest.mark.parametrize("name", ["spot", "torus", "grid", "two_boxes", "icosphere",
+                                  "textured_sphere", "hard_sphere"])
 def test_compiled_encoder_writes_the_reference_bytes(name):
     pm = progressive(name)
     levels = _some_levels(pm)
@@ -229,11 +328,22 @@ def test_compiled_encoder_writes_the_reference_bytes_with_listed_fans(name):
 @settings(max_examples=30, deadline=None)
 @given(st.data())
 def test_compiled_encoder_matches_the_reference_between_any_levels(data):
-    pm = progressive(data.draw(st.sampled_from(["torus", "grid", "icosphere"])))
+    name = data.draw(st.sampled_from(["torus", "grid", "icosphere", "textured_sphere",
+                                      "hard_sphere", "materials"]))
+    pm = build(_with_materials()) if name == "materials" else progressive(name)
     level = st.integers(pm.base_vertices, pm.vertex_count)
     a, b = data.draw(level), data.draw(level)
     bits = data.draw(st.sampled_from([None, MIN_BITS, 10, 16, MAX_BITS]))
-    _assert_same_bytes(pm, [(a, b)], bits_options=(bits,))
+    attribute_bits = None
+    if pm.has_attributes:
+        attribute_bits = {"NORMAL": data.draw(st.sampled_from([MIN_BITS, 10, 16])),
+                          "TEXCOORD_0": data.draw(st.sampled_from([MIN_BITS, 12, MAX_BITS]))}
+    _assert_same_bytes(pm, [(a, b)], bits_options=(bits,), attribute_bits=attribute_bits)
+    # and the packet lands on the level
+    grid, grids = grid_of(pm, bits=bits), attribute_grids_of(pm, attribute_bits=attribute_bits)
+    there = apply_packet(quantized_level(pm, a, grid, grids),
+                         encode_packet(pm, a, b, bits=bits, attribute_bits=attribute_bits))
+    _same(there, quantized_level(pm, b, grid, grids))
 
 
 def test_compiled_encoder_with_64_bit_ids_writes_the_same_bytes(monkeypatch):
@@ -288,7 +398,8 @@ def test_kernel_sorts_and_searches(size):
 
 
 @pytest.mark.parametrize("name", ["conrod.stl", "office_chair.obj", "non_manif_hole.ply",
-                                  "soup.stl", "joined_tetrahedra.obj", "brain.ply"])
+                                  "soup.stl", "joined_tetrahedra.obj", "brain.ply", "Duck.glb",
+                                  "bunny10k_textured/bunny10k_textured.obj"])
 def test_compiled_encoder_writes_the_reference_bytes_on_shared_meshes(shared_meshes, name):
     pm = progressive(name)
     n0, n = pm.base_vertices, pm.vertex_count

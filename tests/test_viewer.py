@@ -3,7 +3,9 @@
 The browser test drives a real ``lodserver serve`` through the viewer's UI and
 checks that the level the page holds after streaming packets back and forth
 is exactly ``GET /lod?format=json`` at that level (counts and a SHA-256 of the
-integer positions and faces), and that the mesh is drawn. It needs Debian's
+integer positions and faces, and with attributes of the wedges' values, the
+corners' wedges and the faces' materials), and that the mesh is drawn, with
+its texture when it has one. It needs Debian's
 ``chromium`` and the Python ``playwright`` package (never ``playwright
 install``), and skips without them.
 """
@@ -20,7 +22,7 @@ from fastapi.testclient import TestClient
 from lodserver.api.main import create_app
 from lodserver.api.settings import Settings
 
-from .meshes import DATA, SHARED
+from .meshes import DATA, SHARED, textured_spot_glb
 from .test_server_process import _serve
 
 CHROMIUM_ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
@@ -99,6 +101,11 @@ def _expected(client, mesh_id, level):
     assert document["vertex_count"] == level
     data = (np.asarray(document["positions"], dtype="<i4").tobytes()
             + np.asarray(document["faces"], dtype="<u4").tobytes())
+    if "layout" in document:
+        data += (np.asarray(document["wedges"], dtype="<i4").tobytes()
+                 + np.asarray(document["corners"], dtype="<u4").tobytes())
+    if "face_material" in document:
+        data += np.asarray(document["face_material"], dtype="<i4").tobytes()
     return document["face_count"], hashlib.sha256(data).hexdigest()
 
 
@@ -121,11 +128,38 @@ def _drawn_fraction(page, png: bytes) -> float:
     }""", [base64.b64encode(png).decode(), list(BACKGROUND)])
 
 
-@pytest.mark.parametrize("name", ["spot", "conrod"])
+def _dark_fraction(page, png: bytes) -> float:
+    """The fraction of the drawn pixels that are dark (luminance under 90): about
+    5% for the untextured, lit spot, about 20% with its texture's black patches."""
+    return page.evaluate("""async ([png, background]) => {
+        const blob = await (await fetch(`data:image/png;base64,${png}`)).blob();
+        const bitmap = await createImageBitmap(blob);
+        const canvas = new OffscreenCanvas(bitmap.width, bitmap.height);
+        const g = canvas.getContext('2d');
+        g.drawImage(bitmap, 0, 0);
+        const pixels = g.getImageData(0, 0, bitmap.width, bitmap.height).data;
+        let drawn = 0, dark = 0;
+        for (let i = 0; i < pixels.length; i += 4) {
+          const [r, gr, b] = [pixels[i], pixels[i + 1], pixels[i + 2]];
+          const d = Math.abs(r - background[0]) + Math.abs(gr - background[1])
+                  + Math.abs(b - background[2]);
+          if (d <= 24) continue;
+          drawn++;
+          if (0.299 * r + 0.587 * gr + 0.114 * b < 90) dark++;
+        }
+        return drawn ? dark / drawn : 0;
+    }""", [base64.b64encode(png).decode(), list(BACKGROUND)])
+
+
+@pytest.mark.parametrize("name", ["spot", "conrod", "textured-spot"])
 def test_viewer_levels_equal_the_server_levels(name, chromium, server, tmp_path):
     # conrod (non-manifold, welded from an STL) has splits whose moved corners
-    # are listed rather than predicted: the decoder's other path.
-    path = DATA / "spot.obj" if name == "spot" else SHARED / "conrod.stl"
+    # are listed rather than predicted: the decoder's other path. spot.obj has
+    # UVs (wedges, no material); textured-spot is a GLB of spot with its texture.
+    path = {"spot": DATA / "spot.obj", "conrod": SHARED / "conrod.stl",
+            "textured-spot": tmp_path / "spot.glb"}[name]
+    if name == "textured-spot":
+        path.write_bytes(textured_spot_glb())
     if not path.is_file():
         pytest.skip(f"shared mesh not found at {path}")
     mesh = _upload_and_wait(server, path)
@@ -178,6 +212,10 @@ def test_viewer_levels_equal_the_server_levels(name, chromium, server, tmp_path)
         page.evaluate("document.getElementById('panel').style.visibility = 'hidden'")
         png = page.screenshot(path=str(tmp_path / f"{name}.png"))
         assert _drawn_fraction(page, png) > 0.03, f"the mesh is not drawn: see {tmp_path}"
+        if name == "textured-spot":
+            assert any(url.endswith(f"/meshes/{mesh['id']}/materials") for url in requests)
+            assert any(url.endswith(f"/meshes/{mesh['id']}/images/0") for url in requests)
+            assert _dark_fraction(page, png) > 0.1, f"the texture is not drawn: see {tmp_path}"
         assert not failures, failures
     finally:
         page.close()

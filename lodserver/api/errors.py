@@ -4,6 +4,7 @@
 error                      code  when
 =========================  ====  ==============================================
 UnknownMeshError           404   no mesh has the id (or it is malformed)
+AbsentError                404   the mesh has no materials, or no such image
 NotReadyError              409   the mesh is queued, building or failed
 LimitError                 413   upload larger than allowed, or too many triangles
 UnsupportedUpload          415   not multipart, or a file type lodserver cannot read
@@ -24,6 +25,7 @@ from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 from starlette.exceptions import HTTPException
 
+from ..appearance import AbsentError
 from ..codec import ArtefactError
 from ..jobs import LimitError
 from ..mesh import MeshError
@@ -33,8 +35,8 @@ from .upload import UnsupportedUpload
 
 log = logging.getLogger(__name__)
 
-_STATUS = {UnknownMeshError: 404, NotReadyError: 409, LimitError: 413, UnsupportedUpload: 415,
-           MeshError: 422}
+_STATUS = {UnknownMeshError: 404, AbsentError: 404, NotReadyError: 409, LimitError: 413,
+           UnsupportedUpload: 415, MeshError: 422}
 
 
 def _message(status: int, message: str, headers=None) -> JSONResponse:

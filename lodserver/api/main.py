@@ -18,7 +18,7 @@ from ..jobs import JobRunner
 from ..store import LocalStore
 from .caching import BodyCache
 from .errors import add_error_handlers
-from .routes import health, lods, meshes, viewer
+from .routes import health, lods, materials, meshes, viewer
 from .settings import Settings, get_settings
 
 
@@ -58,7 +58,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
                            allow_headers=["Authorization", "If-None-Match"],
                            expose_headers=["ETag", "Location"])
     add_error_handlers(app)
-    for module in (meshes, lods, health, viewer):
+    for module in (meshes, lods, materials, health, viewer):
         app.include_router(module.router)
     viewer.mount_static(app, settings)
     return app

@@ -43,7 +43,9 @@ def get_lod(mesh_id: MeshId, store: StoreDep, cache: CacheDep, request: Request,
     etag = etag_for(store.get(mesh_id=mesh_id).digest, "lod", level, format, bits)
     if is_fresh(request, etag):
         return immutable(None, media_type=FORMATS[format], etag=etag)
-    body = cache.get_or_make(etag, lambda: encode_level(pm, level, file_type=format, bits=bits))
+    href = f"/meshes/{mesh_id}/materials"
+    body = cache.get_or_make(etag, lambda: encode_level(pm, level, file_type=format, bits=bits,
+                                                        materials_href=href))
     return immutable(body, media_type=FORMATS[format], etag=etag,
                      filename=None if format == "json" else f"{mesh_id}-{level}.{format}")
 

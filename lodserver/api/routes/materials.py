@@ -1,0 +1,44 @@
+"""A mesh's materials and their images (immutable, cacheable)."""
+
+from __future__ import annotations
+
+from typing import Annotated
+
+import orjson
+from fastapi import APIRouter, Path, Request, Response
+
+from ...appearance import image_of, materials_document
+from ..caching import etag_for, immutable, is_fresh
+from ..deps import MeshId, StoreDep
+from ..models import Message
+
+router = APIRouter(prefix="/meshes", tags=["materials"])
+
+_ERRORS = {code: {"model": Message} for code in (404, 409)}
+
+
+@router.get("/{mesh_id}/materials", responses={**_ERRORS, 200: {"content": {
+    "application/json": {}}, "description": "glTF materials, textures, samplers and images."}})
+def get_materials(mesh_id: MeshId, store: StoreDep, request: Request) -> Response:
+    """The mesh's glTF material, texture, sampler and image records; each image's
+    ``uri`` (``images/{i}``, relative to this document) is ``GET .../images/{i}``.
+    404 when the mesh has no materials."""
+    pm = store.load(mesh_id=mesh_id)
+    etag = etag_for(store.get(mesh_id=mesh_id).digest, "materials")
+    if is_fresh(request, etag):
+        return immutable(None, media_type="application/json", etag=etag)
+    return immutable(orjson.dumps(materials_document(pm)), media_type="application/json",
+                     etag=etag)
+
+
+@router.get("/{mesh_id}/images/{index}", responses={**_ERRORS, 200: {"content": {
+    "image/png": {}, "image/jpeg": {}}, "description": "The image's bytes, as uploaded."}})
+def get_image(mesh_id: MeshId, store: StoreDep, request: Request,
+              index: Annotated[int, Path(ge=0, le=2**31 - 1)]) -> Response:
+    """Image ``index`` of the mesh's materials, byte for byte, with its media type."""
+    pm = store.load(mesh_id=mesh_id)
+    data, media = image_of(pm, index)
+    etag = etag_for(store.get(mesh_id=mesh_id).digest, "image", index)
+    if is_fresh(request, etag):
+        return immutable(None, media_type=media, etag=etag)
+    return immutable(data, media_type=media, etag=etag)
