@@ -95,6 +95,12 @@ DEFAULT_ATTRIBUTE_WEIGHTS = {"NORMAL": 0.003, "TEXCOORD_0": 0.3, "TEXCOORD_1": 0
 # re-ranking keeps the order cheapest-first to within the factor).
 VOLUME_SLACK = 1.1
 
+# A collapse where both endpoints keep a wedge the other has no partner for
+# (two seams meeting) must drag one of them; its cost is multiplied by this, so
+# such collapses wait until the alternatives cost as much (refusing them
+# outright smears less texture at fine levels but ruins coarse ones).
+SEAM_PENALTY = 4.0
+
 
 @dataclass(frozen=True)
 class CollapseLog:
@@ -347,8 +353,15 @@ def _wedge_terms(a, b, q, faces, face_alive, vhead, cnext, cw, wq, wval, fv, gro
     that would merge two wedges of one vertex, i.e. drag a seam across the
     surface, is refused (returns False).
 
-    ``groups`` receives [pair count, a's wedge, b's wedge, a's wedge, b's wedge].
+    A wedge left out of the pairs keeps its attribute vector wherever its
+    vertex goes (priced by its fixed-value quadric). If both endpoints have
+    such a wedge (two seams meeting), one of them is dragged off its seam
+    whatever the placement: the cost is multiplied by SEAM_PENALTY.
+
+    ``groups`` receives [pair count, a's wedge, b's wedge, a's wedge, b's
+    wedge, -2 if both endpoints keep an unpaired wedge else -1].
     """
+    groups[5] = -1
     for j in range(10):
         q[j] += fv[a, j] + fv[b, j]
     n = 0
@@ -373,6 +386,12 @@ def _wedge_terms(a, b, q, faces, face_alive, vhead, cnext, cw, wq, wval, fv, gro
         if same_a:
             n = 1
     groups[0] = n
+    if n > 0:
+        # fv[v, 10] counts v's wedges; the pairs hold n of each endpoint's
+        a_keeps = fv[a, 10] > n
+        b_keeps = fv[b, 10] > n
+        if a_keeps and b_keeps:
+            groups[5] = -2
     d = wval.shape[1]
     for g in range(n):
         wa = groups[1 + 2 * g]
@@ -385,9 +404,10 @@ def _wedge_terms(a, b, q, faces, face_alive, vhead, cnext, cw, wq, wval, fv, gro
 
 @njit(cache=True, nogil=True)
 def _vertex_fixed(v, faces, face_alive, vhead, cnext, cw, wq, wval, fv, wmark, stamp):
-    """fv[v] = the sum of the fixed-value quadrics of v's wedges; returns the new stamp."""
+    """fv[v, :10] = the sum of the fixed-value quadrics of v's wedges, fv[v, 10]
+    their number; returns the new stamp."""
     stamp += 1
-    for j in range(10):
+    for j in range(11):
         fv[v, j] = 0.0
     c = vhead[v]
     while c >= 0:
@@ -396,6 +416,7 @@ def _vertex_fixed(v, faces, face_alive, vhead, cnext, cw, wq, wval, fv, wmark, s
             if wmark[w] != stamp:
                 wmark[w] = stamp
                 add_fixed(fv[v], wq, w, wval[w], 1.0)
+                fv[v, 10] += 1.0
         c = cnext[c]
     return stamp
 
@@ -442,17 +463,21 @@ def _plan(a, b, pos, quadrics, kind, q, p, faces, face_alive, vhead, cnext, cw, 
     for j in range(11):
         q[j] = quadrics[a, j] + quadrics[b, j]
     groups[0] = 0
+    groups[5] = -1
     if wq.shape[0] > 0 and not _wedge_terms(a, b, q, faces, face_alive, vhead, cnext, cw, wq,
                                             wval, fv, groups):
         return np.inf, a
     if kind[a] == LOCKED or kind[b] == LOCKED:
         s = a if kind[a] == LOCKED else b
         p[0] = pos[s, 0]; p[1] = pos[s, 1]; p[2] = pos[s, 2]
-        return max(quadric_error(q, p[0], p[1], p[2]), 0.0), s
-    cost = optimal_position_xyz(q, pos[a, 0], pos[a, 1], pos[a, 2], pos[b, 0], pos[b, 1],
-                                pos[b, 2], p)
-    # The border vertex survives an interior-border collapse; otherwise either may.
-    s = b if kind[b] > kind[a] else a
+        cost = quadric_error(q, p[0], p[1], p[2])
+    else:
+        cost = optimal_position_xyz(q, pos[a, 0], pos[a, 1], pos[a, 2], pos[b, 0], pos[b, 1],
+                                    pos[b, 2], p)
+        # The border vertex survives an interior-border collapse; otherwise either may.
+        s = b if kind[b] > kind[a] else a
+    if groups[5] == -2:
+        cost *= SEAM_PENALTY
     return max(cost, 0.0), s
 
 
@@ -585,14 +610,14 @@ def _decimate_kernel(pos, world, scale, origin, faces, quadrics, kind, min_verti
     cw = corner_wedge.astype(np.int32)
     d = wval.shape[1]
     has_wedges = wq.shape[0] > 0
-    fv = np.zeros((n if has_wedges else 0, 10), np.float64)
+    fv = np.zeros((n if has_wedges else 0, 11), np.float64)
     wmark = np.zeros(wq.shape[0], np.int64)
     wstamp = 0
     if has_wedges:
         for v in range(n):
             wstamp = _vertex_fixed(v, faces, face_alive, vhead, cnext, cw, wq, wval, fv, wmark,
                                    wstamp)
-    groups = np.zeros(5, np.int64)
+    groups = np.full(6, -1, np.int64)
     value = np.empty(d, np.float64)
     mg_off = np.zeros(n + 1, np.int64)
     mg_s = np.empty(2 * n if has_wedges else 0, np.int64)
@@ -712,6 +737,8 @@ def _decimate_kernel(pos, world, scale, origin, faces, quadrics, kind, min_verti
                 _volume_plane(a, b, pos, faces, face_alive, vhead, cnext, plane)
                 if constrain_to_plane(q, plane[0], plane[1], plane[2], plane[3], p):
                     cost = max(quadric_error(q, p[0], p[1], p[2]), 0.0)
+                    if groups[5] == -2:
+                        cost *= SEAM_PENALTY
                     next_key = hk[0] if hsize > 0 else tau
                     if cost > VOLUME_SLACK * next_key:
                         # dearer than what waits next: back into the queue at its true cost

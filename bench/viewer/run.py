@@ -191,7 +191,9 @@ def main() -> None:
     parser.add_argument("--mesh", type=Path, default=SHARED / "stanford-bunny.obj",
                         help="the mesh whose splits are timed (default: the Stanford bunny)")
     parser.add_argument("--shots", type=Path, nargs="*",
-                        default=[SHARED / "spot" / "spot.obj", SHARED / "stanford-bunny.obj"],
+                        default=[SHARED / "Duck.glb",
+                                 SHARED / "bunny10k_textured" / "bunny10k_textured.obj",
+                                 SHARED / "stanford-bunny.obj"],
                         help="meshes to screenshot at three levels")
     parser.add_argument("--repeats", type=int, default=10)
     parser.add_argument("--chunk", type=int, default=4096, help="splits per packet, as the viewer")
