@@ -351,12 +351,9 @@ def _wedge_terms(a, b, q, faces, face_alive, vhead, cnext, cw, wq, wval, fv, gro
     wherever the vertex goes (its fixed-value quadric, summed per vertex in
     ``fv``). A seam along the edge keeps both sides (two pairs); a collapse
     that would merge two wedges of one vertex, i.e. drag a seam across the
-    surface, is refused (returns False).
-
-    A wedge left out of the pairs keeps its attribute vector wherever its
-    vertex goes (priced by its fixed-value quadric). If both endpoints have
-    such a wedge (two seams meeting), one of them is dragged off its seam
-    whatever the placement: the cost is multiplied by SEAM_PENALTY.
+    surface, is refused (returns False). If both endpoints keep an unpaired
+    wedge (two seams meeting), one of them is dragged off its seam whatever
+    the placement: the caller multiplies the cost by SEAM_PENALTY.
 
     ``groups`` receives [pair count, a's wedge, b's wedge, a's wedge, b's
     wedge, -2 if both endpoints keep an unpaired wedge else -1].

@@ -171,10 +171,6 @@ class Mesh:
             material.setflags(write=False)
             object.__setattr__(self, "face_material", material)
 
-    def with_geometry(self, positions, faces, *, attributes=None, face_material=None) -> "Mesh":
-        """A mesh with new arrays and this mesh's materials."""
-        return Mesh(positions, faces, attributes, face_material, self.materials)
-
     def wedge_vertices(self) -> np.ndarray:
         """(w,) int64: the vertex of every wedge (-1 for a wedge no corner uses)."""
         owner = np.full(self.attributes.wedge_count, -1, dtype=np.int64)

@@ -375,3 +375,31 @@ def test_schema_fuzz_finds_no_server_errors(tmp_path):
                 assert response.json()["message"]
 
         check()
+
+
+def test_build_options_reach_the_build(tmp_path):
+    """method, attributes, weights and volume from the form land in the build."""
+    with _client(tmp_path) as client:
+        clustered = _upload(client, method="cluster").json()["id"]
+        plain = _upload(client, attributes="false", preserve_volume="false").json()["id"]
+        weighted = _upload(client, uv_weight="0.05", normal_weight="0.01").json()["id"]
+        for mesh_id in (clustered, plain, weighted):
+            assert _wait_ready(client, mesh_id)["status"] == "ready"
+
+        def options(mesh_id):
+            return client.get(f"/meshes/{mesh_id}").json()["options"]
+
+        assert options(clustered)["method"] == "cluster"
+        assert options(plain)["attributes"] is False and options(plain)["preserve_volume"] is False
+        assert options(weighted)["attribute_weights"] == {
+            "NORMAL": 0.01, "TEXCOORD_0": 0.05, "TEXCOORD_1": 0.05}
+        # what was built: octree clustering merges down to a triangle (edge
+        # collapse stops at a tetrahedron-like base), and the geometry-only
+        # build serves no wedges while the others do
+        bases = {i: client.get(f"/meshes/{i}").json()["base_vertices"]
+                 for i in (clustered, weighted)}
+        assert bases[clustered] == 3 and bases[weighted] >= 4
+        assert "wedges" not in client.get(f"/meshes/{plain}/lod", params={"ratio": 0.5}).json()
+        assert "wedges" in client.get(f"/meshes/{weighted}/lod", params={"ratio": 0.5}).json()
+        assert _upload(client, method="voxels").status_code == 422
+        assert _upload(client, uv_weight="0").status_code == 422
