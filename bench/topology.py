@@ -131,11 +131,14 @@ def judge(reference, positions, faces, samples):
 def multipart_rows(mesh_dir: Path, samples: int):
     from lodserver import build
     from lodserver.io import load_mesh
+    from lodserver.mesh import Mesh
     rows = []
     for name in MESHES:
         mesh, _ = load_mesh(mesh_dir / name)
+        mesh = Mesh(mesh.positions, mesh.faces)     # geometry only, as the peers get it
         plain = build(mesh)
         paired = build(mesh, pair_threshold=PAIR_THRESHOLD)
+        octree = build(mesh, method="cluster")
         rows.append({"mesh": name, "ratio": 1.0, "method": "input", "target": mesh.face_count,
                      "faces": mesh.face_count,
                      "components": components(mesh.faces, mesh.vertex_count),
@@ -145,6 +148,7 @@ def multipart_rows(mesh_dir: Path, samples: int):
             results = {
                 "lodserver-qem": (lambda t=target: plain.at(faces=t))(),
                 f"lodserver-qem-pairs-{PAIR_THRESHOLD}": (lambda t=target: paired.at(faces=t))(),
+                "lodserver-octree": (lambda t=target: octree.at(faces=t))(),
             }
             for key, value in list(results.items()):
                 results[key] = (value.positions, value.faces)
