@@ -483,6 +483,20 @@ def point_to_mesh_distance(points, positions, faces) -> np.ndarray:
     return np.sqrt(d2)
 
 
+def _judged(reference, candidate, samples):
+    """The two meshes as ``Mesh``, the sample count checked, and the reference's
+    used bounding-box diagonal (errors are reported relative to it)."""
+    reference = _as_mesh(reference)
+    candidate = _as_mesh(candidate)
+    samples = int(samples)
+    if samples < 1:
+        raise ValueError(f"samples must be >= 1, got {samples}")
+    diagonal = _used_diagonal(reference)
+    if not diagonal > 0.0:
+        raise ValueError("the reference mesh has a zero bounding-box diagonal")
+    return reference, candidate, samples, diagonal
+
+
 def surface_distance(reference, candidate, *, samples=200_000, seed=0) -> dict:
     """Two-sided surface distance between a reference mesh and a candidate.
 
@@ -516,14 +530,7 @@ def surface_distance(reference, candidate, *, samples=200_000, seed=0) -> dict:
     unreferenced vertices play no part. Raises ValueError if either surface has
     zero area or the reference diagonal is zero.
     """
-    reference = _as_mesh(reference)
-    candidate = _as_mesh(candidate)
-    samples = int(samples)
-    if samples < 1:
-        raise ValueError(f"samples must be >= 1, got {samples}")
-    diagonal = _used_diagonal(reference)
-    if not diagonal > 0.0:
-        raise ValueError("the reference mesh has a zero bounding-box diagonal")
+    reference, candidate, samples, diagonal = _judged(reference, candidate, samples)
     seed_ref, seed_cand = np.random.SeedSequence(seed).spawn(2)
     on_ref = _sample(reference, samples, seed_ref)
     on_cand = _sample(candidate, samples, seed_cand)
@@ -748,14 +755,7 @@ def attribute_deviation(reference, candidate, *, samples=100_000, seed=0, textur
     is the figure robust to them. Raises ValueError like
     :func:`surface_distance`.
     """
-    reference = _as_mesh(reference)
-    candidate = _as_mesh(candidate)
-    samples = int(samples)
-    if samples < 1:
-        raise ValueError(f"samples must be >= 1, got {samples}")
-    diagonal = _used_diagonal(reference)
-    if not diagonal > 0.0:
-        raise ValueError("the reference mesh has a zero bounding-box diagonal")
+    reference, candidate, samples, diagonal = _judged(reference, candidate, samples)
     image = None if texture is None else _texture_array(texture)
     seed_ref, seed_cand = np.random.SeedSequence(seed).spawn(2)
 
