@@ -23,7 +23,7 @@ from lodserver.api.main import create_app
 from lodserver.api.settings import Settings
 
 from .meshes import DATA, SHARED, textured_spot_glb
-from .test_server_process import _serve
+from .server import serve
 
 CHROMIUM_ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
                  "--disable-background-networking", "--disable-component-update",
@@ -77,7 +77,7 @@ def chromium():
 
 @pytest.fixture(scope="module")
 def server(tmp_path_factory):
-    with _serve(tmp_path_factory.mktemp("viewer") / "data") as client:
+    with serve(tmp_path_factory.mktemp("viewer") / "data") as client:
         yield client
 
 
