@@ -32,14 +32,11 @@ from __future__ import annotations
 
 import argparse
 import asyncio
-import contextlib
 import datetime
 import json
 import os
 import platform
 import random
-import shutil
-import socket
 import subprocess
 import sys
 import tempfile
@@ -52,6 +49,9 @@ import httpx
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+from tests.server import server_process
+
 MESH_DIR = ROOT.parent / "shared" / "meshes"
 OUT = ROOT / "bench" / "out"
 HOST = "127.0.0.1"           # loopback only
@@ -64,44 +64,6 @@ STREAMS = ("vertex", "count", "pattern", "other", "fan", "mask", "position")
 
 
 # ---- the server ----------------------------------------------------------------
-def _free_port() -> int:
-    with socket.socket() as sock:
-        sock.bind((HOST, 0))
-        return sock.getsockname()[1]
-
-
-@contextlib.contextmanager
-def serve(data_dir: Path, log_path: Path, start_timeout: float = 120):
-    """A ``lodserver serve`` subprocess on a free loopback port; yields its base URL
-    and stops it (terminate, then kill) on the way out."""
-    port = _free_port()
-    lodserver = shutil.which("lodserver", path=str(Path(sys.executable).parent))
-    command = ([lodserver] if lodserver else [sys.executable, "-m", "lodserver.cli"]) + [
-        "serve", "--data", str(data_dir), "--host", HOST, "--port", str(port),
-        "--log-level", "warning"]
-    env = {**os.environ, "LODSERVER_TOKEN": ""}
-    with open(log_path, "wb") as log:
-        process = subprocess.Popen(command, env=env, stdout=log, stderr=subprocess.STDOUT)
-    base = f"http://{HOST}:{port}"
-    try:
-        deadline = time.monotonic() + start_timeout
-        while True:
-            with contextlib.suppress(httpx.TransportError):
-                if httpx.get(f"{base}/healthz", timeout=2).status_code == 200:
-                    break
-            if process.poll() is not None or time.monotonic() > deadline:
-                raise RuntimeError(f"lodserver serve did not start; see {log_path}")
-            time.sleep(0.2)
-        yield base, process
-    finally:
-        process.terminate()
-        try:
-            process.wait(timeout=30)
-        except subprocess.TimeoutExpired:
-            process.kill()
-            process.wait()
-
-
 def _process_cpu_seconds(pid: int) -> float | None:
     """User + system CPU time of a process, from /proc (None where unavailable)."""
     try:
@@ -479,7 +441,8 @@ def main(argv=None) -> int:
         "results": []}
     with tempfile.TemporaryDirectory(prefix="lodserver-load-") as folder:
         work = Path(folder)
-        with serve(work / "data", work / "server.log") as (base, process):
+        with server_process(work / "data", log=work / "server.log", warm_kernels=True,
+                            timeout=120) as (base, process):
             for key in args.meshes:
                 if time.monotonic() > deadline:
                     print(f"{key}: skipped, the run's deadline has passed", file=sys.stderr)

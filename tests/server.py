@@ -1,5 +1,6 @@
 """A real ``lodserver serve`` process on a loopback port, for the tests that
-talk to one over HTTP (server process, viewer)."""
+talk to one over HTTP (server process, viewer) and for the benchmarks that
+load one (``bench/load.py``, ``bench/viewer/run.py``)."""
 
 import os
 import socket
@@ -7,9 +8,9 @@ import subprocess
 import sys
 import time
 from contextlib import contextmanager
+from pathlib import Path
 
 import httpx
-import pytest
 
 
 def _free_port() -> int:
@@ -19,18 +20,31 @@ def _free_port() -> int:
 
 
 @contextmanager
-def serve(data_dir):
-    """An httpx client for a ``lodserver serve`` on a free loopback port, storing
-    in ``data_dir``; the process is stopped on exit."""
+def server_process(data_dir, *, log: Path | None = None, warm_kernels: bool = False,
+                   timeout: float = 60):
+    """Run ``lodserver serve`` on a free loopback port, storing in ``data_dir``;
+    yield (base URL, process) once ``/healthz`` answers, stop it on exit.
+
+    Its output goes to ``log`` (a file path) or is kept for the error message.
+    ``warm_kernels`` compiles the kernels at start-up, as a deployed server
+    does; tests skip it. Raises RuntimeError if the server does not start
+    within ``timeout`` seconds.
+    """
     port = _free_port()
-    # the interpreter running the tests, not whatever `lodserver` is first on PATH
+    # the interpreter running the caller, not whatever `lodserver` is first on PATH
     command = [sys.executable, "-m", "lodserver.cli", "serve", "--data", str(data_dir),
                "--host", "127.0.0.1", "--port", str(port), "--log-level", "warning"]
-    env = {**os.environ, "LODSERVER_TOKEN": "", "LODSERVER_WARM_KERNELS": "false"}
-    process = subprocess.Popen(command, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
+    env = {**os.environ, "LODSERVER_TOKEN": "",
+           "LODSERVER_WARM_KERNELS": "true" if warm_kernels else "false"}
+    if log is None:
+        process = subprocess.Popen(command, env=env, stdout=subprocess.PIPE,
+                                   stderr=subprocess.STDOUT)
+    else:
+        with open(log, "wb") as out:
+            process = subprocess.Popen(command, env=env, stdout=out, stderr=subprocess.STDOUT)
     base = f"http://127.0.0.1:{port}"
     try:
-        deadline = time.monotonic() + 60
+        deadline = time.monotonic() + timeout
         while True:
             try:
                 if httpx.get(f"{base}/healthz", timeout=1).status_code == 200:
@@ -38,11 +52,12 @@ def serve(data_dir):
             except httpx.TransportError:
                 pass
             if process.poll() is not None or time.monotonic() > deadline:
+                if log is not None:
+                    raise RuntimeError(f"lodserver serve did not start; see {log}")
                 out = process.stdout.read().decode(errors="replace") if process.stdout else ""
-                pytest.fail(f"lodserver serve did not start: {out[-2000:]}")
+                raise RuntimeError(f"lodserver serve did not start: {out[-2000:]}")
             time.sleep(0.2)
-        with httpx.Client(base_url=base, timeout=60) as client:
-            yield client
+        yield base, process
     finally:
         process.terminate()
         try:
@@ -50,3 +65,11 @@ def serve(data_dir):
         except subprocess.TimeoutExpired:
             process.kill()
             process.wait()
+
+
+@contextmanager
+def serve(data_dir, *, timeout: float = 60, **options):
+    """An httpx client for :func:`server_process` (same options)."""
+    with server_process(data_dir, timeout=timeout, **options) as (base, _), \
+            httpx.Client(base_url=base, timeout=timeout) as client:
+        yield client

@@ -23,19 +23,19 @@ import argparse
 import json
 import os
 import shutil
-import socket
 import statistics
-import subprocess
 import sys
 import tempfile
 import time
-from contextlib import contextmanager
 from pathlib import Path
 
 import httpx
 from playwright.sync_api import sync_playwright
 
 ROOT = Path(__file__).resolve().parents[2]
+sys.path.insert(0, str(ROOT))
+from tests.server import serve
+
 SHARED = ROOT.parent / "shared" / "meshes"
 CHROMIUM_ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
                  "--disable-background-networking", "--disable-component-update",
@@ -91,38 +91,6 @@ SET_LEVEL_JS = """(level) => {
   input.value = level;
   input.dispatchEvent(new Event('change', { bubbles: true }));
 }"""
-
-
-def _free_port() -> int:
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        return sock.getsockname()[1]
-
-
-@contextmanager
-def serve(data_dir: Path):
-    """A ``lodserver serve`` subprocess; yields an httpx client for it."""
-    port = _free_port()
-    env = {**os.environ, "LODSERVER_TOKEN": "", "LODSERVER_DATA_DIR": str(data_dir)}
-    process = subprocess.Popen([sys.executable, "-m", "lodserver.cli", "serve", "--port", str(port),
-                                "--log-level", "warning"], env=env, cwd=ROOT)
-    base = f"http://127.0.0.1:{port}"
-    try:
-        deadline = time.monotonic() + 120
-        while True:
-            try:
-                if httpx.get(f"{base}/healthz", timeout=1).status_code == 200:
-                    break
-            except httpx.TransportError:
-                pass
-            if process.poll() is not None or time.monotonic() > deadline:
-                raise SystemExit("lodserver serve did not start")
-            time.sleep(0.2)
-        with httpx.Client(base_url=base, timeout=120) as client:
-            yield client
-    finally:
-        process.terminate()
-        process.wait(timeout=30)
 
 
 def upload(client: httpx.Client, path: Path) -> dict:
@@ -206,7 +174,7 @@ def main() -> None:
 
     result = {"machine": {"cpus": os.cpu_count(), "load_average": os.getloadavg()}}
     with tempfile.TemporaryDirectory(prefix="lodserver-viewer-") as data, \
-            serve(Path(data)) as client, sync_playwright() as playwright:
+            serve(Path(data), warm_kernels=True, timeout=120) as client, sync_playwright() as playwright:
         browser = playwright.chromium.launch(executable_path=executable, args=CHROMIUM_ARGS)
         result["chromium"] = browser.version
         meshes = {path: upload(client, path) for path in dict.fromkeys([args.mesh, *args.shots])}
