@@ -73,3 +73,18 @@ def serve(data_dir, *, timeout: float = 60, **options):
     with server_process(data_dir, timeout=timeout, **options) as (base, _), \
             httpx.Client(base_url=base, timeout=timeout) as client:
         yield client
+
+
+def upload_and_wait(client, path):
+    """Upload ``path`` through ``client`` and wait (up to 2 min) until it is built;
+    its ``GET /meshes/{id}`` body."""
+    with open(path, "rb") as file:
+        created = client.post("/meshes", files={"file": (path.name, file)})
+    assert created.status_code == 202, created.text
+    mesh_id = created.json()["id"]
+    deadline = time.monotonic() + 120
+    while (body := client.get(f"/meshes/{mesh_id}").json())["status"] != "ready":
+        assert body["status"] != "failed", body["failure"]
+        assert time.monotonic() < deadline, "the build did not finish"
+        time.sleep(0.2)
+    return body

@@ -1,26 +1,17 @@
 """A real ``lodserver serve`` process on a loopback port, driven over HTTP."""
 
-import time
 
 import numpy as np
 
 from lodserver.packets import apply_packet, state_from_json
 
 from .meshes import DATA
-from .server import serve
+from .server import serve, upload_and_wait
 
 
 def test_upload_build_serve_and_stream_packets(tmp_path):
     with serve(tmp_path / "data") as client:
-        with open(DATA / "spot.obj", "rb") as file:
-            created = client.post("/meshes", files={"file": ("spot.obj", file)})
-        assert created.status_code == 202, created.text
-        mesh_id = created.json()["id"]
-        deadline = time.monotonic() + 120
-        while (body := client.get(f"/meshes/{mesh_id}").json())["status"] != "ready":
-            assert body["status"] != "failed", body["failure"]
-            assert time.monotonic() < deadline, "the build did not finish"
-            time.sleep(0.2)
+        mesh_id = upload_and_wait(client, DATA / "spot.obj")["id"]
 
         def lod(vertices):
             response = client.get(f"/meshes/{mesh_id}/lod", params={"vertices": vertices})

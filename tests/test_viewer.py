@@ -13,7 +13,6 @@ install``), and skips without them.
 import base64
 import hashlib
 import shutil
-import time
 
 import numpy as np
 import pytest
@@ -23,7 +22,7 @@ from lodserver.api.main import create_app
 from lodserver.api.settings import Settings
 
 from .meshes import DATA, SHARED, textured_spot_glb
-from .server import serve
+from .server import serve, upload_and_wait
 
 CHROMIUM_ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
                  "--disable-background-networking", "--disable-component-update",
@@ -81,19 +80,6 @@ def server(tmp_path_factory):
         yield client
 
 
-def _upload_and_wait(client, path):
-    with open(path, "rb") as file:
-        created = client.post("/meshes", files={"file": (path.name, file)})
-    assert created.status_code == 202, created.text
-    mesh_id = created.json()["id"]
-    deadline = time.monotonic() + 120
-    while (body := client.get(f"/meshes/{mesh_id}").json())["status"] != "ready":
-        assert body["status"] != "failed", body["failure"]
-        assert time.monotonic() < deadline, "the build did not finish"
-        time.sleep(0.2)
-    return body
-
-
 def _expected(client, mesh_id, level):
     """(faces, SHA-256) of the server's quantized level, hashed as the page does."""
     document = client.get(f"/meshes/{mesh_id}/lod",
@@ -109,29 +95,12 @@ def _expected(client, mesh_id, level):
     return document["face_count"], hashlib.sha256(data).hexdigest()
 
 
-def _drawn_fraction(page, png: bytes) -> float:
-    """The fraction of a screenshot's pixels that are not the background (decoded in the page)."""
-    return page.evaluate("""async ([png, background]) => {
-        const blob = await (await fetch(`data:image/png;base64,${png}`)).blob();
-        const bitmap = await createImageBitmap(blob);
-        const canvas = new OffscreenCanvas(bitmap.width, bitmap.height);
-        const g = canvas.getContext('2d');
-        g.drawImage(bitmap, 0, 0);
-        const pixels = g.getImageData(0, 0, bitmap.width, bitmap.height).data;
-        let drawn = 0;
-        for (let i = 0; i < pixels.length; i += 4) {
-          const d = Math.abs(pixels[i] - background[0]) + Math.abs(pixels[i + 1] - background[1])
-                  + Math.abs(pixels[i + 2] - background[2]);
-          if (d > 24) drawn++;
-        }
-        return drawn / (pixels.length / 4);
-    }""", [base64.b64encode(png).decode(), list(BACKGROUND)])
-
-
-def _dark_fraction(page, png: bytes) -> float:
-    """The fraction of the drawn pixels that are dark (luminance under 90): about
-    5% for the untextured, lit spot, about 20% with its texture's black patches."""
-    return page.evaluate("""async ([png, background]) => {
+def _pixel_fractions(page, png: bytes) -> tuple[float, float]:
+    """(drawn, dark) for a screenshot, decoded in the page: the fraction of its
+    pixels that are not the background, and the fraction of those that are dark
+    (luminance under 90): about 5% for the untextured, lit spot, about 20% with
+    its texture's black patches."""
+    drawn, dark = page.evaluate("""async ([png, background]) => {
         const blob = await (await fetch(`data:image/png;base64,${png}`)).blob();
         const bitmap = await createImageBitmap(blob);
         const canvas = new OffscreenCanvas(bitmap.width, bitmap.height);
@@ -147,8 +116,9 @@ def _dark_fraction(page, png: bytes) -> float:
           drawn++;
           if (0.299 * r + 0.587 * gr + 0.114 * b < 90) dark++;
         }
-        return drawn ? dark / drawn : 0;
+        return [drawn / (pixels.length / 4), drawn ? dark / drawn : 0];
     }""", [base64.b64encode(png).decode(), list(BACKGROUND)])
+    return drawn, dark
 
 
 @pytest.mark.parametrize("name", ["spot", "conrod", "textured-spot"])
@@ -162,7 +132,7 @@ def test_viewer_levels_equal_the_server_levels(name, chromium, server, tmp_path)
         path.write_bytes(textured_spot_glb())
     if not path.is_file():
         pytest.skip(f"shared mesh not found at {path}")
-    mesh = _upload_and_wait(server, path)
+    mesh = upload_and_wait(server, path)
     page = chromium.new_page(viewport=VIEWPORT)
     failures, requests = [], []
     page.on("pageerror", lambda error: failures.append(error))
@@ -211,11 +181,11 @@ def test_viewer_levels_equal_the_server_levels(name, chromium, server, tmp_path)
         page.evaluate("lodViewer.settled()")
         page.evaluate("document.getElementById('panel').style.visibility = 'hidden'")
         png = page.screenshot(path=str(tmp_path / f"{name}.png"))
-        assert _drawn_fraction(page, png) > 0.03, f"the mesh is not drawn: see {tmp_path}"
+        assert _pixel_fractions(page, png)[0] > 0.03, f"the mesh is not drawn: see {tmp_path}"
         if name == "textured-spot":
             assert any(url.endswith(f"/meshes/{mesh['id']}/materials") for url in requests)
             assert any(url.endswith(f"/meshes/{mesh['id']}/images/0") for url in requests)
-            assert _dark_fraction(page, png) > 0.1, f"the texture is not drawn: see {tmp_path}"
+            assert _pixel_fractions(page, png)[1] > 0.1, f"the texture is not drawn: see {tmp_path}"
         assert not failures, failures
     finally:
         page.close()
