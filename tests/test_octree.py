@@ -75,9 +75,13 @@ def test_clustering_joins_parts():
     assert components(pm.at(pm.base_vertices)) == 1
 
 
-def test_error_grows_towards_the_base(clustered):
-    _, pm = clustered
-    assert pm.error_at_level(pm.base_vertices) >= pm.error_at_level(pm.vertex_count // 2) >= 0
+def test_errors_are_distances_within_the_cells(clustered):
+    """A representative stays inside its cell, so its RMS distance to the
+    planes of the cell's faces is at most the cell's diagonal: positive at the
+    base, and never more than the mesh's bounding-box diagonal (mesh units)."""
+    m, pm = clustered
+    assert 0 < pm.error_at_level(pm.base_vertices) <= m.bounding_box_diagonal
+    assert np.all(pm.error >= 0)
 
 
 def test_cluster_build_from_the_cli(tmp_path):
