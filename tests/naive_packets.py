@@ -17,8 +17,6 @@ and each changed corner's wedge as a code (docs/packets.md).
 
 from __future__ import annotations
 
-import zlib
-
 from lodserver.packets import (
     _FAN_LISTED,
     _FAN_PREDICTED,
@@ -45,6 +43,7 @@ from lodserver.packets import (
     _split_guesses,
     _Working,
     attribute_grids_of,
+    deflate_body,
     grid_of,
     pack_header,
     quantize_wedges,
@@ -99,7 +98,7 @@ def encode_packet(pm: ProgressiveMesh, start: int, stop: int, *,
         body += stream
     header = pack_header(grid, grids, has_materials, start, stop, pm.faces_at_level(start),
                          pm.faces_at_level(stop), len(body))
-    return header + zlib.compress(bytes(body), 9)
+    return header + deflate_body(bytes(body))   # the deflate level is not the format's
 
 
 def _ancestor_below(parent, x: int, count: int) -> int:

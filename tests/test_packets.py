@@ -24,14 +24,17 @@ from lodserver.packets import (
     PacketError,
     _put_varint,
     _Reader,
-    _zz as _zigzag,  # the compiled zigzag the encoder uses
     apply_packet,
     attribute_grids_of,
     decode_packet,
     default_bits,
     encode_packet,
     grid_of,
+    packet_between,
     quantized_level,
+)
+from lodserver.packets import (
+    _zz as _zigzag,  # the compiled zigzag the encoder uses
 )
 from lodserver.progressive import ProgressiveMesh
 
@@ -346,6 +349,38 @@ def test_compiled_encoder_matches_the_reference_between_any_levels(data):
     _same(there, quantized_level(pm, b, grid, grids))
 
 
+@settings(max_examples=40, deadline=None)
+@given(st.data())
+def test_packets_cut_from_the_encoded_records_are_the_encoded_packets(data):
+    """The server's packets are slices of every record encoded once: the same bytes
+    as encoding the packet on its own, between any two levels, both ways."""
+    name = data.draw(st.sampled_from(["spot", "torus", "textured_sphere", "hard_sphere",
+                                      "materials", "book"]))
+    pm = {"materials": _materials_built, "book": lambda: _built("book")}.get(
+        name, lambda: progressive(name))()
+    level = st.integers(pm.base_vertices, pm.vertex_count)
+    a, b = data.draw(level), data.draw(level)
+    bits = data.draw(st.sampled_from([None, default_bits(pm), 10]))
+    assert packet_between(pm, a, b, bits=bits) == encode_packet(pm, a, b, bits=bits)
+
+
+@cache
+def _materials_built():
+    return build(_with_materials())
+
+
+def test_encoded_records_cover_the_full_packet_and_its_reverse():
+    pm = progressive("textured_sphere")
+    n0, n = pm.base_vertices, pm.vertex_count
+    for forward in (True, False):
+        records = packets.record_streams(pm, forward=forward)
+        assert records.marks.shape == (len(decode_packet(encode_packet(pm, n0, n)).streams),
+                                       n - n0 + 1)
+        assert np.all(np.diff(records.marks.astype(np.int64), axis=1) >= 0)
+        whole = decode_packet(encode_packet(pm, *((n0, n) if forward else (n, n0))))
+        assert tuple(bytes(s) for s in records.slices(0, n - n0)) == whole.streams
+
+
 def test_compiled_encoder_with_64_bit_ids_writes_the_same_bytes(monkeypatch):
     """Meshes past 2**31 corners run the kernels on int64 ids: same bytes."""
     pm = _built("book")
@@ -406,6 +441,9 @@ def test_compiled_encoder_writes_the_reference_bytes_on_shared_meshes(shared_mes
     middle = (n0 + n) // 2
     _assert_same_bytes(pm, [(n0, n), (n, n0), (middle, n), (n, middle), (middle, min(n0 + 1, n))],
                        bits_options=(None,))
+    near = min(n0 + 1, n)
+    for a, b in [(n0, n), (n, n0), (middle, n), (n, middle), (middle, near), (near, middle)]:
+        assert packet_between(pm, a, b) == encode_packet(pm, a, b), (a, b)
 
 
 def test_compiled_encoder_writes_the_reference_bytes_on_the_stanford_bunny(shared_meshes):

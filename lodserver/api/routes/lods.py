@@ -7,7 +7,7 @@ from typing import Annotated, Literal
 from fastapi import APIRouter, Query, Request, Response
 
 from ...export import FORMATS, check_level, checked_bits, encode_level, resolve_level
-from ...packets import MAX_BITS, MIN_BITS, encode_packet
+from ...packets import MAX_BITS, MIN_BITS, packet_between
 from ..caching import etag_for, immutable, is_fresh
 from ..deps import CacheDep, MeshId, StoreDep
 from ..models import Message
@@ -64,5 +64,5 @@ def get_splits(mesh_id: MeshId, store: StoreDep, cache: CacheDep, request: Reque
     etag = etag_for(store.get(mesh_id=mesh_id).digest, "splits", start, to, bits)
     if is_fresh(request, etag):
         return immutable(None, media_type="application/octet-stream", etag=etag)
-    body = cache.get_or_make(etag, lambda: encode_packet(pm, start, to, bits=bits))
+    body = cache.get_or_make(etag, lambda: packet_between(pm, start, to, bits=bits))
     return immutable(body, media_type="application/octet-stream", etag=etag)
