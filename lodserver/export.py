@@ -28,6 +28,7 @@ from __future__ import annotations
 import numpy as np
 import orjson
 
+from .gltf import level_glb
 from .io import encode_mesh
 from .mesh import MeshError
 from .packets import check_bits, grid_of, quantized_level
@@ -69,8 +70,12 @@ def checked_bits(bits: int | None) -> int | None:
 
 
 def encode_level(pm: ProgressiveMesh, level: int, *, file_type: str,
-                 bits: int | None = None, materials_href: str | None = None) -> bytes:
+                 bits: int | None = None, materials_href: str | None = None,
+                 copy: bool = True) -> bytes | memoryview:
     """The bytes of ``level`` in ``file_type`` (one of :data:`FORMATS`).
+
+    ``copy=False`` allows a read-only memoryview in place of bytes where that
+    saves a copy (the GLB of a geometry-only level, written in place).
 
     ``bits`` sets the grid of the ``json`` form (default ``packets.default_bits``)
     and must match the packets the client applies to it. ``materials_href`` is
@@ -101,6 +106,12 @@ def encode_level(pm: ProgressiveMesh, level: int, *, file_type: str,
         # orjson writes numpy arrays directly: the same bytes as json.dumps of
         # their lists, 7x faster on a million-face level.
         return orjson.dumps(document, option=orjson.OPT_SERIALIZE_NUMPY)
+    if file_type == "glb" and not pm.has_attributes and pm.face_material is None \
+            and pm.materials is None:
+        # the server's hot path: the level is written straight into the file
+        return level_glb(level, pm.faces_at_level(level),
+                         lambda positions, faces: pm.write_level(level, positions, faces),
+                         copy=copy)
     return encode_mesh(pm.at(level), file_type)
 
 

@@ -705,6 +705,59 @@ def geometry_glb(positions, faces) -> bytes:
     return _pack_glb(document, memoryview(vertices).cast("B"), memoryview(indices).cast("B"))
 
 
+def level_glb(vertex_count: int, face_count: int, fill, *, copy: bool = True) -> bytes:
+    """:func:`geometry_glb` of a mesh whose arrays ``fill(vertices, indices)``
+    writes straight into the file's buffer: ``vertices`` (vertex_count, 3) float32,
+    ``indices`` (face_count, 3) uint32.
+
+    For the server's levels of a million faces: no float64 or int64 copies of the
+    level, no conversions, one copy into the returned bytes. The JSON chunk is
+    written after the arrays (it holds their bounds) into room reserved for the
+    longest bounds, and padded with spaces like any JSON chunk. ``copy=False``
+    returns a read-only memoryview of that buffer instead of bytes: a server
+    sends it as it is, saving a copy of every byte (and the page faults of a
+    fresh buffer the size of the file).
+    """
+    vertex_bytes, index_bytes = 12 * vertex_count, 12 * face_count
+    document = {
+        "asset": {"version": "2.0", "generator": "lodserver"},
+        "scene": 0,
+        "scenes": [{"nodes": [0]}],
+        "nodes": [{"mesh": 0}],
+        "meshes": [{"primitives": [{"attributes": {"POSITION": 0}, "indices": 1, "mode": 4}]}],
+        "accessors": [
+            {"bufferView": 0, "componentType": 5126, "count": vertex_count, "type": "VEC3",
+             "min": [], "max": []},
+            {"bufferView": 1, "componentType": 5125, "count": 3 * face_count, "type": "SCALAR"},
+        ],
+        "bufferViews": [
+            {"buffer": 0, "byteOffset": 0, "byteLength": vertex_bytes, "target": 34962},
+            {"buffer": 0, "byteOffset": vertex_bytes, "byteLength": index_bytes, "target": 34963},
+        ],
+        "buffers": [{"byteLength": vertex_bytes + index_bytes}],
+    }
+    # six floats of at most 24 characters (repr of a float32's double) and their commas
+    room = len(json.dumps(document, separators=(",", ":"))) + 6 * 25
+    room += -room % 4
+    at = 12 + 8 + room + 8                  # where the BIN chunk's data starts
+    out = np.empty(at + vertex_bytes + index_bytes, dtype=np.uint8)
+    vertices = out[at:at + vertex_bytes].view("<f4").reshape(vertex_count, 3)
+    indices = out[at + vertex_bytes:].view("<u4").reshape(face_count, 3)
+    fill(vertices, indices)
+    document["accessors"][0]["min"], document["accessors"][0]["max"] = _bounds(vertices)
+    header = json.dumps(document, separators=(",", ":")).encode()
+    header += b" " * (room - len(header))
+    out[:20] = np.frombuffer(struct.pack("<4sIII4s", b"glTF", 2, len(out), room, b"JSON"),
+                             dtype=np.uint8)
+    out[20:20 + room] = np.frombuffer(header, dtype=np.uint8)
+    out[20 + room:at] = np.frombuffer(struct.pack("<I4s", vertex_bytes + index_bytes, b"BIN\x00"),
+                                      dtype=np.uint8)
+    if not copy:
+        out.flags.writeable = False
+        return memoryview(out)
+    return out.tobytes()
+
+
 def _bounds(values: np.ndarray) -> tuple[list, list]:
     """Per-column min and max of (n, k) ``values``, as lists.
 

@@ -69,18 +69,19 @@ def _faces_at(full_faces, parent, face_count, level, out):
     """Corners of the first ``face_count`` faces at level ``level``.
 
     Each full-detail corner reads its first ancestor below ``level``. Parents
-    come before their children, so one pass finds every vertex's ancestor and
-    the corners are a gather: cheaper than walking up from each corner.
+    come before their children, so one pass finds the ancestor of every vertex
+    from ``level`` on and the corners are a gather: cheaper than walking up
+    from each corner.
     """
     n = parent.shape[0]
-    below = np.empty(max(n, level), dtype=np.int64)
-    for x in range(min(level, n)):
-        below[x] = x
+    below = np.empty(max(n - level, 0), dtype=parent.dtype)
     for x in range(level, n):
-        below[x] = below[parent[x]]
+        p = parent[x]
+        below[x - level] = p if p < level else below[p - level]
     for f in range(face_count):
         for k in range(3):
-            out[f, k] = below[full_faces[f, k]]
+            x = full_faces[f, k]
+            out[f, k] = x if x < level else below[x - level]
 
 
 @njit(cache=True, nogil=True)
@@ -417,6 +418,14 @@ class ProgressiveMesh:
         faces = np.empty((self.faces_at_level(level), 3), dtype=np.int64)
         _faces_at(self.faces, self.parent, len(faces), level, faces)
         return positions, faces
+
+    def write_level(self, level: int, positions: np.ndarray, faces: np.ndarray) -> None:
+        """Write the arrays of ``level`` into ``positions`` (level, 3) and ``faces``
+        (faces_at_level(level), 3), of any numeric dtype (cast on the way in)."""
+        level = self._check_level(level)
+        _positions_at(self.positions, self.coarse_position, self.parent, self.base_vertices,
+                      level, positions)
+        _faces_at(self.faces, self.parent, len(faces), level, faces)
 
     def cursor(self, level=None) -> Cursor:
         """A mutable view at ``level`` (default: the base) that moves by splits and collapses."""

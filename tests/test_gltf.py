@@ -252,9 +252,20 @@ def _geometry_only() -> bytes:
     return encode_mesh(Mesh(mesh.positions, mesh.faces), "glb")
 
 
+def _served_level() -> bytes:
+    """A level as the server writes it: straight into the GLB buffer."""
+    from lodserver.build import build
+    from lodserver.export import encode_level
+
+    mesh, _ = load_mesh(DATA / "spot.obj")
+    pm = build(Mesh(mesh.positions, mesh.faces))
+    return encode_level(pm, pm.level_for(ratio=0.3), file_type="glb")
+
+
 # name: (shared file or None, bytes from a path or None)
 VALIDATED = {
     "geometry only": (None, lambda _: _geometry_only()),
+    "a level of spot as the server writes it": (None, lambda _: _served_level()),
     "generated sphere, two materials and an unused image": (None, lambda _: encode_glb(uv_sphere()[0])),
     "generated sphere, every attribute": (None, lambda _: encode_glb(sphere_with_every_attribute()[0])),
     "spot (tests/data, UVs)": (None, lambda _: encode_glb(load_mesh(DATA / "spot.obj")[0])),
@@ -544,6 +555,31 @@ def test_positions_only_glb_bytes_have_not_changed():
 
     data = _geometry_only()
     assert hashlib.sha256(data).hexdigest().startswith("b83edef3e61df7bb")
+
+
+def test_served_levels_are_the_fast_path_glb_but_for_json_padding():
+    """``level_glb`` (the server's levels) holds the same JSON document and the same
+    binary chunk as ``geometry_glb`` of the level's arrays."""
+    from lodserver.build import build
+    from lodserver.export import encode_level
+    from lodserver.gltf import geometry_glb
+
+    mesh, _ = load_mesh(DATA / "spot.obj")
+    pm = build(Mesh(mesh.positions, mesh.faces))
+    for level in (pm.base_vertices, pm.level_for(ratio=0.5), pm.vertex_count):
+        served = bytes(encode_level(pm, level, file_type="glb", copy=False))
+        direct = geometry_glb(*pm.arrays_at(level))
+        chunks = []
+        for data in (served, direct):
+            magic, version, total = struct.unpack_from("<4sII", data)
+            assert (magic, version, total) == (b"glTF", 2, len(data))
+            length, kind = struct.unpack_from("<I4s", data, 12)
+            assert kind == b"JSON" and length % 4 == 0
+            document = json.loads(data[20:20 + length])
+            size, kind = struct.unpack_from("<I4s", data, 20 + length)
+            assert kind == b"BIN\x00" and 28 + length + size == len(data)
+            chunks.append((document, data[28 + length:]))
+        assert chunks[0] == chunks[1]
 
 
 # --- lodserver export ------------------------------------------------------------------------

@@ -35,7 +35,15 @@ def is_fresh(request: Request, etag: str) -> bool:
     return "*" in tags or etag in tags
 
 
-def immutable(body: bytes | None, *, media_type: str, etag: str,
+class BufferResponse(Response):
+    """A response whose body is any bytes-like object (bytes or a byte memoryview),
+    sent as it is: a level of tens of megabytes is not copied once more."""
+
+    def render(self, content) -> bytes | memoryview:
+        return b"" if content is None else content
+
+
+def immutable(body: bytes | memoryview | None, *, media_type: str, etag: str,
               filename: str | None = None) -> Response:
     """The response for ``body``, or a 304 when ``body`` is None."""
     headers = {"ETag": etag, "Cache-Control": IMMUTABLE}
@@ -43,7 +51,7 @@ def immutable(body: bytes | None, *, media_type: str, etag: str,
         return Response(status_code=304, headers=headers)
     if filename:
         headers["Content-Disposition"] = f'inline; filename="{filename}"'
-    return Response(body, media_type=media_type, headers=headers)
+    return BufferResponse(body, media_type=media_type, headers=headers)
 
 
 class BodyCache:

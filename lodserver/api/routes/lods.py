@@ -45,7 +45,7 @@ def get_lod(mesh_id: MeshId, store: StoreDep, cache: CacheDep, request: Request,
         return immutable(None, media_type=FORMATS[format], etag=etag)
     href = f"/meshes/{mesh_id}/materials"
     body = cache.get_or_make(etag, lambda: encode_level(pm, level, file_type=format, bits=bits,
-                                                        materials_href=href))
+                                                        materials_href=href, copy=False))
     return immutable(body, media_type=FORMATS[format], etag=etag,
                      filename=None if format == "json" else f"{mesh_id}-{level}.{format}")
 
