@@ -84,8 +84,11 @@ def _prepare_packets(store: Store, mesh_id: str) -> None:
 
     try:
         pm = store.load(mesh_id=mesh_id)
-        packet_between(pm, pm.base_vertices, pm.vertex_count)
-        packet_between(pm, pm.vertex_count, pm.base_vertices)
+        # both directions at once: the kernels and deflate release the GIL
+        with ThreadPoolExecutor(2) as pool:
+            for done in [pool.submit(packet_between, pm, *ends) for ends in
+                         ((pm.base_vertices, pm.vertex_count), (pm.vertex_count, pm.base_vertices))]:
+                done.result()
     except Exception:       # the mesh is served either way; its first packet is just slower
         log.exception("could not prepare the packets of mesh %s", mesh_id)
 

@@ -954,7 +954,7 @@ def record_streams(pm: ProgressiveMesh, *, forward: bool, bits: int | None = Non
     streams = tuple(np.array(s, copy=True) for s in
                     _encode_streams(pm, start, stop, grid, grids, marks))
     bounds = range(0, n - n0 - chunk + 1, chunk)
-    chunks = tuple(tuple(_deflate_segment(stream[m[i]:m[i + chunk]], 9) for i in bounds)
+    chunks = tuple(tuple(_deflate_segment(stream[m[i]:m[i + chunk]]) for i in bounds)
                    for stream, m in zip(streams, marks))
     return RecordStreams(forward, streams, marks, chunk, chunks)
 
