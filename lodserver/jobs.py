@@ -111,6 +111,11 @@ class JobRunner:
         self.max_triangles = max_triangles
         self._pool = ThreadPoolExecutor(max_workers=max(1, workers), thread_name_prefix="build")
         self._cancel: dict[str, threading.Event] = {}
+        # Meshes parsed when their upload was checked, for their build to reuse:
+        # a million-face file is not parsed twice. Only a few are kept (memory);
+        # the others, and builds resumed after a restart, parse their file again.
+        self._parsed: dict[str, tuple[Mesh, LoadReport]] = {}
+        self._keep_parsed = max(1, workers) + 1
         self._lock = threading.Lock()
         self._closing = False
 
@@ -131,13 +136,17 @@ class JobRunner:
         """
         try:
             try:
-                check_mesh_file(source, file_type=file_type, max_triangles=self.max_triangles)
+                parsed = check_mesh_file(source, file_type=file_type,
+                                         max_triangles=self.max_triangles)
             except MeshError as exc:
                 raise type(exc)(str(exc).replace(str(source), name)) from exc
             record = self.store.create(name=name, source=source, file_type=file_type,
                                        options=options)
         finally:
             Path(source).unlink(missing_ok=True)
+        with self._lock:
+            if len(self._parsed) < self._keep_parsed:
+                self._parsed[record.id] = parsed
         self.submit(record.id)
         return record
 
@@ -157,6 +166,7 @@ class JobRunner:
     def cancel(self, mesh_id: str) -> None:
         """Stop a queued or running build (its mesh is being deleted)."""
         with self._lock:
+            self._parsed.pop(mesh_id, None)
             event = self._cancel.get(mesh_id)
         if event is not None:
             event.set()
@@ -203,9 +213,11 @@ class JobRunner:
         record = store.get(mesh_id=mesh_id)
         source = store.source_path(mesh_id=mesh_id)
         store.mark_building(mesh_id=mesh_id)
+        with self._lock:
+            parsed = self._parsed.pop(mesh_id, None)
         try:
-            mesh, report = check_mesh_file(source, file_type=record.file_type,
-                                           max_triangles=self.max_triangles)
+            mesh, report = parsed or check_mesh_file(source, file_type=record.file_type,
+                                                     max_triangles=self.max_triangles)
         except MeshError as exc:
             # name the upload, not the server's file
             store.mark_failed(mesh_id=mesh_id, reason=str(exc).replace(str(source), record.name))

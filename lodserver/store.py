@@ -200,6 +200,7 @@ class LocalStore(Store):
         self._db.execute("PRAGMA synchronous=NORMAL")
         self._db.executescript(_SCHEMA)
         self._loaded: OrderedDict[str, ProgressiveMesh] = OrderedDict()
+        self._loading: dict[str, threading.Lock] = {}
         # Temporary files of writes interrupted by a crash are never served; drop them.
         for folder in (self.sources, self.artefacts):
             for stale in folder.glob(".*.tmp"):
@@ -299,14 +300,26 @@ class LocalStore(Store):
             if pm is not None:
                 self._loaded.move_to_end(mesh_id)
                 return pm
-        record = self._row(mesh_id)
-        if record.status is not Status.READY:
-            raise NotReadyError(record)
-        pm = load_progressive(self._artefact(mesh_id))
-        with self._lock:
-            self._loaded[mesh_id] = pm
-            while len(self._loaded) > LOADED_CACHE_SIZE:
-                self._loaded.popitem(last=False)
+            loading = self._loading.setdefault(mesh_id, threading.Lock())
+        # One load per mesh at a time: requests racing for a mesh just built share
+        # one object, and with it what is cached on it (its packet records).
+        with loading:
+            with self._lock:
+                pm = self._loaded.get(mesh_id)
+            if pm is not None:
+                return pm
+            try:
+                record = self._row(mesh_id)
+                if record.status is not Status.READY:
+                    raise NotReadyError(record)
+                pm = load_progressive(self._artefact(mesh_id))
+                with self._lock:
+                    self._loaded[mesh_id] = pm
+                    while len(self._loaded) > LOADED_CACHE_SIZE:
+                        self._loaded.popitem(last=False)
+            finally:
+                with self._lock:
+                    self._loading.pop(mesh_id, None)
         return pm
 
     def recover(self) -> list[str]:

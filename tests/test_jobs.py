@@ -79,3 +79,22 @@ def test_shutdown_requeues_a_running_build_but_not_a_finished_one(store, tmp_pat
     assert store.get(mesh_id=slow).status is Status.QUEUED
     assert store.get(mesh_id=done).status is Status.READY
     assert store.recover() == [slow]
+
+
+def test_a_build_reuses_the_mesh_its_upload_check_parsed(store, tmp_path, monkeypatch):
+    """The upload is parsed once: when it is checked; the build takes that mesh."""
+    parsed = []
+    check = jobs_module.check_mesh_file
+
+    def counted(path, **options):
+        parsed.append(path)
+        return check(path, **options)
+
+    monkeypatch.setattr(jobs_module, "check_mesh_file", counted)
+    runner = JobRunner(store)
+    source = tmp_path / "spot.obj"
+    source.write_bytes((DATA / "spot.obj").read_bytes())
+    record = runner.accept(source=source, name="spot.obj", file_type="obj", options={})
+    assert _wait(store, record.id).status is Status.READY
+    runner.shutdown()
+    assert len(parsed) == 1

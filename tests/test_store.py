@@ -109,3 +109,37 @@ def test_artefact_of_a_mesh_deleted_while_building_is_dropped(store, tmp_path):
     with pytest.raises(UnknownMeshError):
         store.put_artefact(mesh_id=record.id, pm=progressive("grid"))
     assert not list(store.artefacts.iterdir())
+
+
+def test_racing_loads_of_one_mesh_share_one_object(tmp_path, monkeypatch):
+    """Requests racing for a mesh just built (and its job preparing its packets)
+    get the same object: what is cached on it is not built twice."""
+    import threading
+
+    from lodserver import store as store_module
+
+    store = LocalStore(tmp_path / "data")
+    record = store.create(name="grid", source=_source(tmp_path), file_type="obj", options={})
+    store.put_artefact(mesh_id=record.id, pm=progressive("grid"))
+    reads = []
+    slow_read = store_module.load_progressive
+
+    def counted(path):
+        reads.append(path)
+        return slow_read(path)
+
+    monkeypatch.setattr(store_module, "load_progressive", counted)
+    start, found = threading.Barrier(6), []
+
+    def load():
+        start.wait()
+        found.append(store.load(mesh_id=record.id))
+
+    threads = [threading.Thread(target=load) for _ in range(6)]
+    for thread in threads:
+        thread.start()
+    for thread in threads:
+        thread.join()
+    assert len(found) == 6 and all(pm is found[0] for pm in found)
+    assert len(reads) == 1
+    store.close()
