@@ -189,3 +189,51 @@ def test_viewer_levels_equal_the_server_levels(name, chromium, server, tmp_path)
         assert not failures, failures
     finally:
         page.close()
+
+
+LONG_PACKETS_JS = """async ({ id, levels, vertexCapacity, faceCapacity }) => {
+  const { LodState } = await import('/viewer/vsplit.js');
+  const document = await (await fetch(`/meshes/${id}/lod?vertices=${levels[0]}&format=json`)).json();
+  const state = LodState.fromJson(document, { vertexCapacity, faceCapacity });
+  const hash = async () => {
+    const bytes = new Uint8Array(12 * (state.vertexCount + state.faceCount));
+    bytes.set(new Uint8Array(state.positions.buffer, 0, 12 * state.vertexCount));
+    bytes.set(new Uint8Array(state.faces.buffer, 0, 12 * state.faceCount), 12 * state.vertexCount);
+    const digest = new Uint8Array(await crypto.subtle.digest('SHA-256', bytes));
+    return Array.from(digest, (b) => b.toString(16).padStart(2, '0')).join('');
+  };
+  const reached = [];
+  for (let i = 1; i < levels.length; i++) {
+    const response = await fetch(`/meshes/${id}/splits?from=${levels[i - 1]}&to=${levels[i]}`);
+    state.apply(await LodState.readPacket(new Uint8Array(await response.arrayBuffer())));
+    reached.push([state.vertexCount, state.faceCount, await hash()]);
+  }
+  return reached;
+}"""
+
+
+def test_the_decoder_reads_packets_chained_from_pre_deflated_chunks(chromium, server, tmp_path):
+    """Packets longer than a chunk of records are deflated from pre-deflated
+    segments (docs/packets.md); the browser's decoder reads them both ways and
+    lands exactly on the server's levels."""
+    import trimesh
+
+    from lodserver.packets import CHUNK_RECORDS
+
+    path = tmp_path / "sphere.ply"
+    path.write_bytes(trimesh.creation.icosphere(5).export(file_type="ply"))   # 10,242 vertices
+    mesh = upload_and_wait(server, path)
+    base, full = mesh["base_vertices"], mesh["vertices"]
+    assert full - base > CHUNK_RECORDS
+    levels = [base, full, base + 3, full - 5, base]
+    page = chromium.new_page()
+    try:
+        page.goto(f"{server.base_url}/healthz")     # any page of the origin can import the decoder
+        reached = page.evaluate(LONG_PACKETS_JS, {"id": mesh["id"], "levels": levels,
+                                                  "vertexCapacity": full,
+                                                  "faceCapacity": mesh["faces"]})
+    finally:
+        page.close()
+    for level, (vertices, faces, digest) in zip(levels[1:], reached):
+        assert vertices == level
+        assert (faces, digest) == _expected(server, mesh["id"], level), f"level {level}"
