@@ -404,6 +404,25 @@ def optimal_position(q, pa, pb, out):
     return optimal_position_xyz(q, pa[0], pa[1], pa[2], pb[0], pb[1], pb[2], out)
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _regularized_cofactors(q):
+    """The regularised ``A = Q[:3, :3] + eps I`` (see REGULARIZATION) of quadric
+    row ``q``: (trace of Q's A, eps, cofactors c00 c01 c02 c11 c12 c22, det),
+    so that ``A^-1 = C / det`` with C symmetric."""
+    trace = q[0] + q[3] + q[5]
+    eps = REGULARIZATION * trace
+    a00 = q[0] + eps; a01 = q[1]; a02 = q[2]
+    a11 = q[3] + eps; a12 = q[4]; a22 = q[5] + eps
+    c00 = a11 * a22 - a12 * a12
+    c01 = a02 * a12 - a01 * a22
+    c02 = a01 * a12 - a02 * a11
+    c11 = a00 * a22 - a02 * a02
+    c12 = a01 * a02 - a00 * a12
+    c22 = a00 * a11 - a01 * a01
+    det = a00 * c00 + a01 * c01 + a02 * c02
+    return trace, eps, c00, c01, c02, c11, c12, c22, det
+
+
 @njit(cache=True, nogil=True)
 def optimal_position_xyz(q, ax, ay, az, bx, by, bz, out):
     """``optimal_position`` with the endpoints as scalars: the kernel calls it
@@ -411,25 +430,15 @@ def optimal_position_xyz(q, ax, ay, az, bx, by, bz, out):
     mx = 0.5 * (ax + bx)
     my = 0.5 * (ay + by)
     mz = 0.5 * (az + bz)
-    trace = q[0] + q[3] + q[5]
-    eps = REGULARIZATION * trace
-    a00 = q[0] + eps; a01 = q[1]; a02 = q[2]
-    a11 = q[3] + eps; a12 = q[4]; a22 = q[5] + eps
+    trace, eps, c00, c01, c02, c11, c12, c22, det = _regularized_cofactors(q)
     r0 = eps * mx - q[6]
     r1 = eps * my - q[7]
     r2 = eps * mz - q[8]
-    c00 = a11 * a22 - a12 * a12
-    c01 = a02 * a12 - a01 * a22
-    c02 = a01 * a12 - a02 * a11
-    det = a00 * c00 + a01 * c01 + a02 * c02
     if trace <= 0.0 or det <= 0.0:
         # no planes at all (or a non-PSD sum from rounding): stay at the midpoint
         out[0] = mx; out[1] = my; out[2] = mz
         best = quadric_error(q, mx, my, mz)
     else:
-        c11 = a00 * a22 - a02 * a02
-        c12 = a01 * a02 - a00 * a12
-        c22 = a00 * a11 - a01 * a01
         inv = 1.0 / det
         out[0] = (c00 * r0 + c01 * r1 + c02 * r2) * inv
         out[1] = (c01 * r0 + c11 * r1 + c12 * r2) * inv
@@ -464,22 +473,12 @@ def constrain_to_plane(q, nx, ny, nz, h, out):
     the collapse then neither adds nor removes volume. Returns False, leaving
     ``out`` alone, when the plane is undefined or ``A`` is singular.
     """
-    trace = q[0] + q[3] + q[5]
     nn = nx * nx + ny * ny + nz * nz
+    trace, _eps, c00, c01, c02, c11, c12, c22, det = _regularized_cofactors(q)
     if trace <= 0.0 or nn <= 0.0:
         return False
-    eps = REGULARIZATION * trace
-    a00 = q[0] + eps; a01 = q[1]; a02 = q[2]
-    a11 = q[3] + eps; a12 = q[4]; a22 = q[5] + eps
-    c00 = a11 * a22 - a12 * a12
-    c01 = a02 * a12 - a01 * a22
-    c02 = a01 * a12 - a02 * a11
-    det = a00 * c00 + a01 * c01 + a02 * c02
     if det <= DET_RELATIVE_EPS * trace * trace * trace:
         return False
-    c11 = a00 * a22 - a02 * a02
-    c12 = a01 * a02 - a00 * a12
-    c22 = a00 * a11 - a01 * a01
     ux = (c00 * nx + c01 * ny + c02 * nz) / det
     uy = (c01 * nx + c11 * ny + c12 * nz) / det
     uz = (c02 * nx + c12 * ny + c22 * nz) / det
