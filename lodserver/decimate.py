@@ -46,7 +46,7 @@ from .quadrics import (
     vertex_quadrics,
     wedge_quadrics,
 )
-from .topology import Census, census
+from .topology import Census, census, link_corners
 
 # Vertex kinds. The rules, as in meshoptimizer's kCanCollapse table:
 #   interior-interior : any collapse, optimal placement;
@@ -569,6 +569,16 @@ def _close_pairs(pos, vertex_alive, faces, face_alive, vhead, cnext, radius, mar
 
 
 @njit(cache=True, nogil=True)
+def _log_arrays(n, m):
+    """Room for the log of at most ``n`` collapses of an ``m``-face mesh:
+    survivor, removed, position (n, 3), error, then the killed faces and the
+    moved corners of each collapse as offsets (n + 1,) and values."""
+    return (np.empty(n, np.int64), np.empty(n, np.int64), np.empty((n, 3), np.float64),
+            np.empty(n, np.float64), np.zeros(n + 1, np.int64), np.empty(m, np.int64),
+            np.zeros(n + 1, np.int64), np.empty(3 * m, np.int64))
+
+
+@njit(cache=True, nogil=True)
 def _decimate_kernel(pos, world, scale, origin, faces, quadrics, kind, min_vertices,
                      max_collapses, flip_cos, pair_radius, progress, corner_wedge, wq, wval,
                      normal_col, normal_len, color_col, color_max, volume):
@@ -598,10 +608,8 @@ def _decimate_kernel(pos, world, scale, origin, faces, quadrics, kind, min_verti
     # Dead faces are unlinked lazily, when the survivor's list is next rebuilt.
     vhead = np.full(n, -1, np.int32)
     cnext = np.full(3 * m, -1, np.int32)
-    for c in range(3 * m - 1, -1, -1):
-        v = faces[c // 3, c % 3]
-        cnext[c] = vhead[v]
-        vhead[v] = c
+    face_count = np.zeros(n, np.int64)     # live faces at each vertex
+    link_corners(faces, vhead, cnext, face_count)
     face_alive = np.ones(m, np.bool_)
     # Wedges: fv[v] caches the fixed-value attribute quadrics of v's wedges
     cw = corner_wedge.astype(np.int32)
@@ -623,9 +631,6 @@ def _decimate_kernel(pos, world, scale, origin, faces, quadrics, kind, min_verti
     nmerged = 0
     plane = np.empty(4, np.float64)
     gq = np.empty(11, np.float64)
-    face_count = np.zeros(n, np.int64)     # live faces at each vertex
-    for c in range(3 * m):
-        face_count[faces[c // 3, c % 3]] += 1
     vertex_alive = face_count > 0
     alive_count = 0
     for v in range(n):
@@ -645,15 +650,8 @@ def _decimate_kernel(pos, world, scale, origin, faces, quadrics, kind, min_verti
     rab = np.empty(3 * m // 2 + 16, np.int64)
     rvs = np.empty(3 * m // 2 + 16, np.int64)
 
-    log_s = np.empty(n, np.int64)
-    log_r = np.empty(n, np.int64)
-    log_p = np.empty((n, 3), np.float64)       # mesh units
-    log_cost = np.empty(n, np.float64)
+    log_s, log_r, log_p, log_cost, killed_off, killed, moved_off, moved = _log_arrays(n, m)
     log_area = np.empty(n, np.float64)
-    killed_off = np.zeros(n + 1, np.int64)
-    killed = np.empty(m, np.int64)
-    moved_off = np.zeros(n + 1, np.int64)
-    moved = np.empty(3 * m, np.int64)
     nk = 0
     nkilled = 0
     nmoved = 0

@@ -34,9 +34,10 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from .decimate import CollapseLog
+from .decimate import CollapseLog, _log_arrays
 from .mesh import Mesh
 from .quadrics import optimal_position_xyz, quadric_error, vertex_quadrics
+from .topology import link_corners
 
 # Finest depth: about this many cells per vertex spacing of a surface of n
 # vertices (cells ~ sqrt(n) along a side), so the first depth merges only
@@ -78,28 +79,16 @@ def _octree_kernel(unit, faces, quadrics, fine_depth):
     faces = faces.copy()
     vhead = np.full(n, -1, np.int64)
     cnext = np.full(3 * m, -1, np.int64)
-    for c in range(3 * m - 1, -1, -1):
-        v = faces[c // 3, c % 3]
-        cnext[c] = vhead[v]
-        vhead[v] = c
-    face_alive = np.ones(m, np.bool_)
     face_count = np.zeros(n, np.int64)
-    for c in range(3 * m):
-        face_count[faces[c // 3, c % 3]] += 1
+    link_corners(faces, vhead, cnext, face_count)
+    face_alive = np.ones(m, np.bool_)
     alive_faces = m
     mark = np.zeros(n, np.int64)
     stamp = 0
     q = quadrics.copy()
     pos = unit.copy()
 
-    log_s = np.empty(n, np.int64)
-    log_r = np.empty(n, np.int64)
-    log_p = np.empty((n, 3), np.float64)
-    log_e = np.empty(n, np.float64)
-    killed_off = np.zeros(n + 1, np.int64)
-    killed = np.empty(m, np.int64)
-    moved_off = np.zeros(n + 1, np.int64)
-    moved = np.empty(3 * m, np.int64)
+    log_s, log_r, log_p, log_e, killed_off, killed, moved_off, moved = _log_arrays(n, m)
     nk = 0
     nkilled = 0
     nmoved = 0

@@ -19,6 +19,21 @@ from numba import njit
 
 
 @njit(cache=True, nogil=True)
+def link_corners(faces, head, nxt, face_count):
+    """Thread every corner ``c = 3 f + k`` onto its vertex's list, in corner order:
+    ``head[v] -> c -> nxt[c] -> ... -> -1``, and count each vertex's faces into
+    ``face_count``. ``head`` (n,) and ``nxt`` (3m,) come filled with -1 and
+    ``face_count`` with 0, in the caller's integer type. The decimation kernels
+    edit these lists in place as faces move and die."""
+    m = faces.shape[0]
+    for c in range(3 * m - 1, -1, -1):
+        v = faces[c // 3, c % 3]
+        nxt[c] = head[v]
+        head[v] = c
+        face_count[v] += 1
+
+
+@njit(cache=True, nogil=True)
 def _vertex_faces(faces, n):
     """CSR of the faces around each vertex, in ascending face order (counting sort)."""
     offsets = np.zeros(n + 1, np.int64)
