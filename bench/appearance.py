@@ -31,26 +31,25 @@ from __future__ import annotations
 
 import argparse
 import ctypes
-import datetime
 import json
-import os
-import platform
 import statistics
 import struct
-import subprocess
 import sys
 import time
 import zlib
-from importlib import metadata
 from pathlib import Path
 
 import numba
 import numpy as np
 
+from machine import machine_info
+
 from lodserver.build import build
 from lodserver.io import load_mesh
 from lodserver.mesh import Attributes, Mesh
 from lodserver.metrics import attribute_deviation
+
+PACKAGES = ("lodserver", "numpy", "numba", "meshoptimizer", "pymeshlab")
 
 BENCH = Path(__file__).resolve().parent
 ROOT = BENCH.parent
@@ -396,29 +395,6 @@ def judge_all(mesh: Mesh, results: dict, texture, samples: int) -> dict:
     return judged, ("file" if normals_from_file else "computed")
 
 
-def machine_info() -> dict:
-    versions = {}
-    for name in ("lodserver", "numpy", "numba", "meshoptimizer", "pymeshlab"):
-        try:
-            versions[name] = metadata.version(name)
-        except metadata.PackageNotFoundError:
-            versions[name] = None
-
-    def git(*args):
-        return subprocess.run(["git", "-C", str(ROOT), *args], capture_output=True,
-                              text=True).stdout.strip()
-
-    return {
-        "date": datetime.datetime.now().astimezone().isoformat(timespec="seconds"),
-        "cpus_usable": len(os.sched_getaffinity(0)),
-        "platform": platform.platform(),
-        "python": platform.python_version(),
-        "packages": versions,
-        "git_commit": git("rev-parse", "--short", "HEAD"),
-        "git_dirty": bool(git("status", "--porcelain", "--", "lodserver")),
-    }
-
-
 def _median_cpu(extra: dict):
     times = extra.get("wall_cpu_s") or extra.get("build_wall_cpu_s")
     return statistics.median(cpu for _, cpu in times) if times else None
@@ -551,7 +527,7 @@ def main(argv=None) -> int:
     if unknown:
         parser.error(f"unknown meshes {unknown}; known: {', '.join(MESHES)}")
 
-    document = {"machine": machine_info(), "settings": {
+    document = {"machine": machine_info(PACKAGES), "settings": {
         "ratios": ratios, "repeats": args.repeats, "samples": args.samples, "seed": SEED,
         "hit_tolerance": HIT_TOLERANCE, "methods": SETTINGS}, "inputs": {}, "rows": []}
     args.out.parent.mkdir(parents=True, exist_ok=True)

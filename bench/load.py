@@ -36,18 +36,14 @@ from __future__ import annotations
 
 import argparse
 import asyncio
-import datetime
 import json
 import os
-import platform
 import random
 import socket
-import subprocess
 import sys
 import tempfile
 import time
 import zlib
-from importlib import metadata
 from pathlib import Path
 
 import httpx
@@ -55,7 +51,10 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
-from tests.server import server_process
+from machine import machine_info  # noqa: E402
+from tests.server import server_process  # noqa: E402
+
+PACKAGES = ("lodserver", "numpy", "numba", "fastapi", "uvicorn", "httptools", "uvloop", "httpx")
 
 MESH_DIR = ROOT.parent / "shared" / "meshes"
 OUT = ROOT / "bench" / "out"
@@ -382,29 +381,6 @@ def bench_mesh(key: str, base: str, work: Path, args, deadline: float, rng: rand
     return result
 
 
-def machine_info() -> dict:
-    cpu = next((line.split(":", 1)[1].strip() for line in
-                Path("/proc/cpuinfo").read_text().splitlines()
-                if line.startswith("model name")), platform.processor())
-    versions = {}
-    for name in ("lodserver", "numpy", "numba", "fastapi", "uvicorn", "httptools", "uvloop",
-                 "httpx"):
-        try:
-            versions[name] = metadata.version(name)
-        except metadata.PackageNotFoundError:
-            versions[name] = None
-    def git(*command):
-        return subprocess.run(["git", "-C", str(ROOT), *command], check=False,
-                              capture_output=True, text=True).stdout.strip()
-    return {"date": datetime.datetime.now().astimezone().isoformat(timespec="seconds"),
-            "cpu_count": os.cpu_count(), "cpu": cpu, "platform": platform.platform(),
-            "python": platform.python_version(), "versions": versions,
-            # the machine may be shared: how busy it was says how to read the numbers
-            "load_average_at_start": os.getloadavg(),
-            "git_commit": git("rev-parse", "HEAD"),
-            "lodserver_uncommitted": git("status", "--porcelain", "--", "lodserver").splitlines()}
-
-
 def tables(results: list[dict]) -> str:
     lines = ["| mesh | phase | kind | ok/asked | req/s | p50 ms | p99 ms | max ms | KiB/resp |",
              "|---|---|---|---|---|---|---|---|---|"]
@@ -502,7 +478,7 @@ def main(argv=None) -> int:
     rng = random.Random(args.seed)
     deadline = time.monotonic() + args.max_seconds
     args.out.parent.mkdir(parents=True, exist_ok=True)
-    document = {"machine": machine_info(), "settings": {
+    document = {"machine": machine_info(PACKAGES), "settings": {
         k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items()},
         "results": []}
     with tempfile.TemporaryDirectory(prefix="lodserver-load-") as folder:

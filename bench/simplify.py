@@ -19,18 +19,14 @@ See bench/README.md for what each column means.
 from __future__ import annotations
 
 import argparse
-import datetime
 import json
 import os
-import platform
 import shutil
 import signal
 import statistics
 import subprocess
 import sys
 import tempfile
-import time
-from importlib import metadata
 from pathlib import Path
 
 import numpy as np
@@ -46,7 +42,11 @@ os.environ["NUMBA_CACHE_DIR"] = str(NUMBA_CACHE)
 
 from lodserver.io import clean_mesh, load_mesh  # noqa: E402
 from lodserver.metrics import surface_distance  # noqa: E402
+from machine import cpu_busy, machine_info  # noqa: E402
 from methods import PEER_SETTINGS, PEERS  # noqa: E402
+
+PACKAGES = ("lodserver", "numpy", "numba", "scipy", "trimesh", "meshoptimizer", "pymeshlab",
+            "fast-simplification")
 
 SHARED_MESHES = {
     "stanford-bunny": "stanford-bunny.obj",
@@ -364,52 +364,6 @@ def comparison_table(comparison) -> str:
     return markdown_table(header, lines)
 
 
-def cpu_busy(seconds: float = 2.0) -> float:
-    """Fraction of all CPUs' time spent busy over the next ``seconds`` (Linux)."""
-    def sample():
-        values = [int(x) for x in Path("/proc/stat").read_text().split("\n", 1)[0].split()[1:]]
-        return sum(values), values[3] + values[4]  # total, idle + iowait
-
-    total, idle = sample()
-    time.sleep(seconds)
-    total2, idle2 = sample()
-    return 1.0 - (idle2 - idle) / max(total2 - total, 1)
-
-
-def machine_info() -> dict:
-    cpu = next((line.split(":", 1)[1].strip() for line in
-                Path("/proc/cpuinfo").read_text().splitlines()
-                if line.startswith("model name")), platform.processor())
-    packages = ["lodserver", "numpy", "numba", "scipy", "trimesh", "meshoptimizer",
-                "pymeshlab", "fast-simplification"]
-    versions = {}
-    for name in packages:
-        try:
-            versions[name] = metadata.version(name)
-        except metadata.PackageNotFoundError:
-            versions[name] = None
-
-    def git(*args):
-        return subprocess.run(["git", "-C", str(ROOT), *args], capture_output=True,
-                              text=True).stdout.strip()
-
-    return {
-        "date": datetime.datetime.now().astimezone().isoformat(timespec="seconds"),
-        "cpu_count": os.cpu_count(),
-        "cpus_usable": len(os.sched_getaffinity(0)),
-        "cpu": cpu,
-        "platform": platform.platform(),
-        "python": platform.python_version(),
-        # Other work on the machine skews every time measured (see also the
-        # per-call CPU times); the load average is useless here, it idles at ~2.
-        "cpu_busy_before": cpu_busy(),
-        "versions": versions,
-        # Someone may be editing lodserver while this runs: say which code ran.
-        "git_commit": git("rev-parse", "HEAD"),
-        "lodserver_uncommitted": git("status", "--porcelain", "--", "lodserver").splitlines(),
-    }
-
-
 # ---------------------------------------------------------------------------
 # Command line
 # ---------------------------------------------------------------------------
@@ -460,7 +414,7 @@ def main(argv=None):
 
     _log("measuring lodserver compile time (empty numba cache) ...")
     results = {
-        "machine": machine_info(),
+        "machine": {**machine_info(PACKAGES), "cpu_busy_before": cpu_busy()},
         "settings": {"ratios": args.ratios, "repeats": args.repeats,
                      "repeats_large": args.repeats_large, "large_faces": LARGE_FACES,
                      "samples": args.samples, "seed": SEED, "timeout_s": args.timeout,
