@@ -24,7 +24,9 @@ def _progress_bar(total_hint: int):
     bar = tqdm(total=total_hint, unit="collapse", disable=None, dynamic_ncols=True,
                desc="decimating", file=sys.stderr)
 
-    def update(done, _expected):
+    def update(done, expected):
+        if not bar.total:
+            bar.total = expected        # known once the mesh is loaded
         bar.update(done - bar.n)
 
     return bar, update
@@ -103,41 +105,66 @@ def _cmd_simplify(args) -> int:
 
 
 def _cmd_export(args) -> int:
-    from .gltf import coverage_from_ratios, encode_lod_chain
-    from .io import encode_mesh, write_atomic
-    from .progressive import ProgressiveMesh
+    from .pipeline import export_folder, export_lods, parse_lods
 
+    ratios = parse_lods(args.lods)
+    if Path(args.source).is_dir():
+        if Path(args.output).suffix.lower() == ".glb":
+            raise MeshError(f"{args.source} is a folder, so -o names the folder to write into, "
+                            f"not a .glb file ({args.output})")
+        return _export_folder(args, ratios, export_folder)
+    bar, update = _progress_bar(0)
     try:
-        ratios = [float(text) for text in args.lods.split(",")]
-    except ValueError:
-        raise MeshError(f"--lods must be comma-separated ratios like 1,0.5,0.2, "
-                        f"got {args.lods!r}") from None
-    if not all(0 < ratio <= 1 for ratio in ratios):
-        raise MeshError(f"every LOD ratio must be in (0, 1], got {args.lods}")
-    coverage = coverage_from_ratios(ratios)  # also checks that the ratios decrease
-    output = Path(args.output)
-    if output.suffix.lower() != ".glb":
-        raise MeshError(f"export writes GLB, so the output must end in .glb, got {output.name}")
+        done = export_lods(args.source, args.output, lods=ratios, separate=args.separate,
+                           progress=update)
+    finally:
+        bar.close()
+    print(f"{', '.join(map(str, done.outputs))}: {_levels(done)}", file=sys.stderr)
+    return 0
+
+
+def _levels(done) -> str:
+    faces = ", ".join(str(count) for count in done.faces)
+    coverage = ", ".join(f"{c:.3g}" for c in done.coverage)
+    text = (f"{len(done.faces)} levels of {faces} faces (screen coverage {coverage}) "
+            f"in {done.seconds:.2f} s")
+    if done.faces[-1] == done.base_faces and len(set(done.faces[-2:])) == 1:
+        # the coarser ratios were out of reach: say so rather than ship copies quietly
+        text += (f"; the mesh simplifies no further than {done.base_faces} faces "
+                 f"(locked, non-manifold or separate parts)")
+    return text
+
+
+def _export_folder(args, ratios, export_folder) -> int:
+    """Every mesh file under ``args.source`` into the folder ``args.output``: a bar
+    over the files on a terminal, a line per file, exit 1 if any failed."""
+    from tqdm import tqdm
+
+    from .pipeline import find_sources
+
+    bar = tqdm(total=len(find_sources(args.source)), unit="asset", disable=None,
+               dynamic_ncols=True, desc="exporting", file=sys.stderr)
+
+    def progress(relative, outcome):
+        if isinstance(outcome, str) and outcome != "up to date":
+            bar.write(f"{relative}: FAILED: {outcome}", file=sys.stderr)
+        elif not isinstance(outcome, str):
+            outputs = ", ".join(str(Path(p).relative_to(args.output)) for p in outcome.outputs)
+            bar.write(f"{relative} -> {outputs}: {_levels(outcome)}", file=sys.stderr)
+        bar.update(1)
+
     start = time.perf_counter()
-    if Path(args.source).suffix.lower() == ".pm":
-        pm = ProgressiveMesh.load(args.source)
-    else:
-        from .build import build
-        pm = build(args.source)
-    levels = [pm.level_for(ratio=ratio) for ratio in ratios]
-    meshes = [pm.at(level) for level in levels]
-    if args.separate:
-        written = [output.with_name(f"{output.stem}_lod{i}{output.suffix}")
-                   for i in range(len(meshes))]
-        for path, mesh in zip(written, meshes):
-            write_atomic(path, encode_mesh(mesh, "glb"))
-    else:
-        written = [output]
-        write_atomic(output, encode_lod_chain(meshes, coverage))
-    faces = ", ".join(str(mesh.face_count) for mesh in meshes)
-    print(f"{', '.join(map(str, written))}: {len(meshes)} levels of {faces} faces "
-          f"(screen coverage {', '.join(f'{c:.3g}' for c in coverage)}) in "
-          f"{time.perf_counter() - start:.2f} s", file=sys.stderr)
+    try:
+        report = export_folder(args.source, args.output, lods=ratios, separate=args.separate,
+                               jobs=args.jobs, force=args.force, progress=progress)
+    finally:
+        bar.close()
+    print(f"{args.output}: {report.total} assets in {time.perf_counter() - start:.2f} s: "
+          f"{len(report.written)} written, {len(report.up_to_date)} up to date, "
+          f"{len(report.failed)} failed", file=sys.stderr)
+    if report.failed:
+        reasons = "; ".join(f"{path}: {reason}" for path, reason in report.failed.items())
+        raise MeshError(f"{len(report.failed)} of {report.total} assets failed: {reasons}")
     return 0
 
 
@@ -214,15 +241,24 @@ def _parser() -> argparse.ArgumentParser:
     p.set_defaults(run=_cmd_simplify)
 
     p = sub.add_parser("export",
-                       help="write levels of detail as one GLB (MSFT_lod) or one GLB each")
-    p.add_argument("source", help="a .pm artefact, or a mesh file to build one from")
+                       help="write levels of detail as one GLB (MSFT_lod) or one GLB each, "
+                            "for a file or for every mesh file under a folder")
+    p.add_argument("source", help="a .pm artefact or a mesh file to build one from; or a "
+                   "folder: every mesh file under it, its layout mirrored in OUTPUT")
     p.add_argument("--lods", default="1,0.5,0.2,0.05", metavar="R1,R2,...",
                    help="face ratios of the levels, finest first, each in (0, 1] "
                         "(default 1,0.5,0.2,0.05); level i's screen coverage hint is "
                         "0.5*sqrt(R(i+1)/R1), the last level's 0")
-    p.add_argument("-o", "--output", required=True, help="the .glb file to write")
+    p.add_argument("-o", "--output", required=True,
+                   help="the .glb file to write; for a folder source, the folder to write into")
     p.add_argument("--separate", action="store_true",
                    help="write OUT_lod0.glb, OUT_lod1.glb, ... instead of one file with MSFT_lod")
+    p.add_argument("--jobs", type=int, default=1,
+                   help="folder source: meshes built at once (default 1; each holds its mesh "
+                        "in memory)")
+    p.add_argument("--force", action="store_true",
+                   help="folder source: rebuild every mesh, even those whose file and options "
+                        "match the last run (lodserver-export.json in OUTPUT)")
     p.set_defaults(run=_cmd_export)
 
     p = sub.add_parser("info", help="print counts and the error curve of a .pm artefact as JSON")
