@@ -116,7 +116,7 @@ def _cmd_export(args) -> int:
     bar, update = _progress_bar(0)
     try:
         done = export_lods(args.source, args.output, lods=ratios, separate=args.separate,
-                           progress=update)
+                           reach=args.reach, progress=update)
     finally:
         bar.close()
     print(f"{', '.join(map(str, done.outputs))}: {_levels(done)}", file=sys.stderr)
@@ -128,10 +128,14 @@ def _levels(done) -> str:
     coverage = ", ".join(f"{c:.3g}" for c in done.coverage)
     text = (f"{len(done.faces)} levels of {faces} faces (screen coverage {coverage}) "
             f"in {done.seconds:.2f} s")
-    if done.faces[-1] == done.base_faces and len(set(done.faces[-2:])) == 1:
+    if done.clustered:
+        levels = ", ".join(str(i) for i in done.clustered)
+        text += (f"; level {levels} by vertex clustering (edge collapse stops at "
+                 f"{done.base_faces} faces), positions only")
+    elif done.faces[-1] == done.base_faces and len(set(done.faces[-2:])) == 1:
         # the coarser ratios were out of reach: say so rather than ship copies quietly
         text += (f"; the mesh simplifies no further than {done.base_faces} faces "
-                 f"(locked, non-manifold or separate parts)")
+                 f"(locked, non-manifold or separate parts; --reach cluster meets the budget)")
     return text
 
 
@@ -156,7 +160,8 @@ def _export_folder(args, ratios, export_folder) -> int:
     start = time.perf_counter()
     try:
         report = export_folder(args.source, args.output, lods=ratios, separate=args.separate,
-                               jobs=args.jobs, force=args.force, progress=progress)
+                               reach=args.reach, jobs=args.jobs, force=args.force,
+                               progress=progress)
     finally:
         bar.close()
     print(f"{args.output}: {report.total} assets in {time.perf_counter() - start:.2f} s: "
@@ -253,6 +258,11 @@ def _parser() -> argparse.ArgumentParser:
                    help="the .glb file to write; for a folder source, the folder to write into")
     p.add_argument("--separate", action="store_true",
                    help="write OUT_lod0.glb, OUT_lod1.glb, ... instead of one file with MSFT_lod")
+    p.add_argument("--reach", choices=("none", "cluster"), default="none",
+                   help="levels edge collapse cannot bring down to their budget (locked, "
+                        "non-manifold or separate parts): keep the coarsest it reaches (none, "
+                        "default) or make them by vertex clustering, which joins parts but "
+                        "keeps positions only (cluster)")
     p.add_argument("--jobs", type=int, default=1,
                    help="folder source: meshes built at once (default 1; each holds its mesh "
                         "in memory)")

@@ -25,7 +25,7 @@ from pathlib import Path
 
 from .gltf import coverage_from_ratios, encode_lod_chain
 from .io import SUPPORTED_INPUT, encode_mesh, write_atomic
-from .mesh import MeshError
+from .mesh import Mesh, MeshError
 from .progressive import ProgressiveMesh
 
 DEFAULT_LODS = (1.0, 0.5, 0.2, 0.05)
@@ -61,11 +61,18 @@ class Exported:
     faces: list[int]            # per level, finest first
     coverage: list[float]       # MSFT_screencoverage per level
     seconds: float
-    base_faces: int = 0         # the coarsest the mesh simplifies to: ratios below it stop there
+    base_faces: int = 0         # the coarsest edge collapse reaches: ratios below it stop there
+    clustered: list[int] = field(default_factory=list)   # levels made by clustering (reach)
+
+
+# A level whose edge-collapse mesh overshoots its face budget by more than this is
+# out of reach of edge collapse (locked, non-manifold or separate parts).
+REACH_SLACK = 1.1
+REACH_METHODS = ("none", "cluster")
 
 
 def export_lods(source, output, *, lods=DEFAULT_LODS, separate: bool = False,
-                progress=None) -> Exported:
+                reach: str = "none", progress=None) -> Exported:
     """Write the levels of detail of ``source`` to ``output`` (a ``.glb`` path).
 
     Parameters
@@ -76,6 +83,12 @@ def export_lods(source, output, *, lods=DEFAULT_LODS, separate: bool = False,
         Face ratios of the levels, finest first, strictly decreasing, in (0, 1].
     separate : bool
         Write ``OUT_lod0.glb``, ``OUT_lod1.glb``, ... instead of one file.
+    reach : str
+        ``"none"``: a level edge collapse cannot bring down to its budget stays
+        at the coarsest it reaches. ``"cluster"``: such a level is made by vertex
+        clustering of the full mesh instead (``cluster.cluster``), which joins
+        parts and meets the budget but keeps positions only (no UVs, normals or
+        materials: a textured asset's far level is drawn untextured).
     progress : callable, optional
         ``progress(done, expected)`` during a build, as for ``build``.
 
@@ -87,6 +100,8 @@ def export_lods(source, output, *, lods=DEFAULT_LODS, separate: bool = False,
     """
     ratios = check_lods(lods)
     coverage = coverage_from_ratios(ratios)
+    if reach not in REACH_METHODS:
+        raise MeshError(f"reach must be one of {', '.join(REACH_METHODS)}, got {reach!r}")
     source, output = Path(source), Path(output)
     if output.suffix.lower() != ".glb":
         raise MeshError(f"levels of detail are written as GLB, so the output must end in .glb, "
@@ -100,7 +115,18 @@ def export_lods(source, output, *, lods=DEFAULT_LODS, separate: bool = False,
             pm = build(source, progress=progress)
         except ValueError as exc:       # argument checks deep in the build
             raise MeshError(str(exc)) from exc
-    meshes = [pm.at(pm.level_for(ratio=ratio)) for ratio in ratios]
+    meshes, clustered = [], []
+    for ratio in ratios:
+        mesh = pm.at(pm.level_for(ratio=ratio))
+        budget = max(1, round(ratio * pm.face_count))
+        if reach == "cluster" and mesh.face_count > REACH_SLACK * budget:
+            from .cluster import cluster
+            full = pm.at(pm.vertex_count)
+            joined = cluster(Mesh(full.positions, full.faces), target_faces=budget)
+            if joined.face_count < mesh.face_count:
+                mesh = joined
+                clustered.append(len(meshes))
+        meshes.append(mesh)
     if separate:
         outputs = [output.with_name(f"{output.stem}_lod{i}{output.suffix}")
                    for i in range(len(meshes))]
@@ -111,7 +137,8 @@ def export_lods(source, output, *, lods=DEFAULT_LODS, separate: bool = False,
     for path, blob in zip(outputs, blobs):
         write_atomic(path, blob)
     return Exported(source, outputs, [mesh.face_count for mesh in meshes], coverage,
-                    time.perf_counter() - start, pm.faces_at_level(pm.base_vertices))
+                    time.perf_counter() - start, pm.faces_at_level(pm.base_vertices),
+                    clustered)
 
 
 @dataclass
@@ -147,15 +174,16 @@ def find_sources(folder) -> list[Path]:
     return found
 
 
-def export_folder(source, output, *, lods=DEFAULT_LODS, separate: bool = False, jobs: int = 1,
-                  force: bool = False, progress=None) -> FolderReport:
+def export_folder(source, output, *, lods=DEFAULT_LODS, separate: bool = False,
+                  reach: str = "none", jobs: int = 1, force: bool = False,
+                  progress=None) -> FolderReport:
     """Export every mesh file under ``source`` into ``output`` (see the module docstring).
 
     Parameters
     ----------
     source, output : path
         Folders; ``output`` is created. ``source/a/b.obj`` goes to ``output/a/b.glb``.
-    lods, separate
+    lods, separate, reach
         As for :func:`export_lods`.
     jobs : int
         Sources built at once (threads: the compiled kernels release the GIL).
@@ -187,7 +215,9 @@ def export_folder(source, output, *, lods=DEFAULT_LODS, separate: bool = False, 
     if jobs < 1:
         raise MeshError(f"jobs must be at least 1, got {jobs}")
     output.mkdir(parents=True, exist_ok=True)
-    options = {"lods": list(ratios), "separate": separate}
+    if reach not in REACH_METHODS:
+        raise MeshError(f"reach must be one of {', '.join(REACH_METHODS)}, got {reach!r}")
+    options = {"lods": list(ratios), "separate": separate, "reach": reach}
     manifest_path = output / MANIFEST
     manifest = _read_manifest(manifest_path)
     report = FolderReport()
@@ -222,7 +252,7 @@ def export_folder(source, output, *, lods=DEFAULT_LODS, separate: bool = False, 
 
     def one(relative):
         return export_lods(source / relative, output / relative.with_suffix(".glb"),
-                           lods=ratios, separate=separate)
+                           lods=ratios, separate=separate, reach=reach)
 
     try:
         with ThreadPoolExecutor(max_workers=jobs) as pool:

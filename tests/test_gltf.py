@@ -262,6 +262,18 @@ def _served_level() -> bytes:
     return encode_level(pm, pm.level_for(ratio=0.3), file_type="glb")
 
 
+def _reached_chain(path: Path) -> bytes:
+    """A chain whose coarsest level edge collapse cannot reach (the engine's parts):
+    made by clustering, positions only, beside levels with materials."""
+    from lodserver.pipeline import export_lods
+
+    with tempfile.TemporaryDirectory() as folder:
+        out = Path(folder) / "chain.glb"
+        done = export_lods(path, out, lods=(1, 0.1, 0.02), reach="cluster")
+        assert done.clustered == [2]
+        return out.read_bytes()
+
+
 # name: (shared file or None, bytes from a path or None)
 VALIDATED = {
     "geometry only": (None, lambda _: _geometry_only()),
@@ -278,6 +290,8 @@ VALIDATED = {
     "2CylinderEngine.glb": ("2CylinderEngine.glb", lambda p: encode_glb(load_mesh(p)[0])),
     "Laurana50k.ply (vertex colours)": ("Laurana50k.ply", lambda p: encode_glb(load_mesh(p)[0])),
     "LOD chain of Duck": ("Duck.glb", _chain_of),
+    "LOD chain of 2CylinderEngine, its far level clustered": ("2CylinderEngine.glb",
+                                                               lambda p: _reached_chain(p)),
 }
 
 

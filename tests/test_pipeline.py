@@ -4,13 +4,14 @@ import json
 import shutil
 import struct
 
+import numpy as np
 import pytest
 import trimesh
 
 from lodserver.cli import main
 from lodserver.io import load_mesh
 from lodserver.mesh import MeshError
-from lodserver.pipeline import MANIFEST, export_folder, find_sources
+from lodserver.pipeline import MANIFEST, export_folder, export_lods, find_sources
 
 from .meshes import DATA
 
@@ -151,9 +152,41 @@ def test_manifest_records_sources_options_and_outputs(tmp_path):
     assert manifest["version"] == 1 and sorted(manifest["sources"]) == ["props/ball.ply",
                                                                         "spot.obj"]
     entry = manifest["sources"]["spot.obj"]
-    assert entry["options"] == {"lods": [1.0, 0.5], "separate": False}
+    assert entry["options"] == {"lods": [1.0, 0.5], "separate": False, "reach": "none"}
     assert entry["outputs"] == ["spot.glb"] and len(entry["sha256"]) == 64
     # an unreadable manifest only means everything is rebuilt
     (out / MANIFEST).write_text("{not json")
     assert len(export_folder(source, out, lods=(1, 0.5)).written) == 2
     assert len(json.loads((out / MANIFEST).read_text())["sources"]) == 2
+
+
+def _soup(path, count=300):
+    """``count`` separate triangles on a plane: edge collapse cannot merge any."""
+    rng = np.random.default_rng(3)
+    corners = rng.random((count, 1, 3)) * [10, 10, 0] + rng.random((count, 3, 3)) * [0.3, 0.3, 0]
+    positions = corners.reshape(-1, 3)
+    faces = np.arange(3 * count).reshape(-1, 3)
+    path.write_bytes(trimesh.Trimesh(positions, faces, process=False).export(file_type="ply"))
+    return path
+
+
+def test_reach_cluster_meets_budgets_edge_collapse_cannot(tmp_path):
+    source = _soup(tmp_path / "soup.ply")
+    stuck = export_lods(source, tmp_path / "stuck.glb", lods=(1, 0.2))
+    assert stuck.faces == [300, 300] and stuck.clustered == [] and stuck.base_faces == 300
+    reached = export_lods(source, tmp_path / "reached.glb", lods=(1, 0.2), reach="cluster")
+    assert reached.faces[0] == 300 and reached.faces[1] <= 1.1 * 60
+    assert reached.clustered == [1]
+    document = _glb_json(tmp_path / "reached.glb")
+    assert document["nodes"][0]["extensions"]["MSFT_lod"]["ids"] == [1]
+    with pytest.raises(MeshError, match="reach must be one of"):
+        export_lods(source, tmp_path / "x.glb", reach="sloppy")
+
+
+def test_cli_says_which_levels_were_clustered(tmp_path, capsys):
+    source = _soup(tmp_path / "soup.ply")
+    assert main(["export", str(source), "-o", str(tmp_path / "a.glb"), "--lods", "1,0.2"]) == 0
+    assert "--reach cluster meets the budget" in capsys.readouterr().err
+    assert main(["export", str(source), "-o", str(tmp_path / "b.glb"), "--lods", "1,0.2",
+                 "--reach", "cluster"]) == 0
+    assert "level 1 by vertex clustering" in capsys.readouterr().err
