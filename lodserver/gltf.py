@@ -681,19 +681,26 @@ def geometry_glb(positions, faces) -> bytes:
     """
     vertices = np.ascontiguousarray(positions, dtype="<f4")
     indices = np.ascontiguousarray(faces, dtype="<u4").ravel()
-    vertex_bytes, index_bytes = vertices.nbytes, indices.nbytes
-    lo, hi = _bounds(vertices)
-    document = {
+    # glTF requires POSITION bounds, taken from the float32 values written
+    document = _geometry_document(len(vertices), len(indices) // 3, *_bounds(vertices))
+    # both sizes are multiples of 4, so the chunk needs no padding
+    return _pack_glb(document, memoryview(vertices).cast("B"), memoryview(indices).cast("B"))
+
+
+def _geometry_document(vertex_count: int, face_count: int, lo: list, hi: list) -> dict:
+    """The glTF document of one triangle mesh: POSITION (float32, bounds ``lo``,
+    ``hi``) then uint32 indices, back to back in buffer 0."""
+    vertex_bytes, index_bytes = 12 * vertex_count, 12 * face_count
+    return {
         "asset": {"version": "2.0", "generator": "lodserver"},
         "scene": 0,
         "scenes": [{"nodes": [0]}],
         "nodes": [{"mesh": 0}],
         "meshes": [{"primitives": [{"attributes": {"POSITION": 0}, "indices": 1, "mode": 4}]}],
         "accessors": [
-            # glTF requires POSITION bounds, taken from the float32 values written
-            {"bufferView": 0, "componentType": 5126, "count": len(vertices), "type": "VEC3",
+            {"bufferView": 0, "componentType": 5126, "count": vertex_count, "type": "VEC3",
              "min": lo, "max": hi},
-            {"bufferView": 1, "componentType": 5125, "count": len(indices), "type": "SCALAR"},
+            {"bufferView": 1, "componentType": 5125, "count": 3 * face_count, "type": "SCALAR"},
         ],
         "bufferViews": [
             {"buffer": 0, "byteOffset": 0, "byteLength": vertex_bytes, "target": 34962},
@@ -701,8 +708,6 @@ def geometry_glb(positions, faces) -> bytes:
         ],
         "buffers": [{"byteLength": vertex_bytes + index_bytes}],
     }
-    # both sizes are multiples of 4, so the chunk needs no padding
-    return _pack_glb(document, memoryview(vertices).cast("B"), memoryview(indices).cast("B"))
 
 
 def level_glb(vertex_count: int, face_count: int, fill, *, copy: bool = True) -> bytes:
@@ -719,32 +724,16 @@ def level_glb(vertex_count: int, face_count: int, fill, *, copy: bool = True) ->
     fresh buffer the size of the file).
     """
     vertex_bytes, index_bytes = 12 * vertex_count, 12 * face_count
-    document = {
-        "asset": {"version": "2.0", "generator": "lodserver"},
-        "scene": 0,
-        "scenes": [{"nodes": [0]}],
-        "nodes": [{"mesh": 0}],
-        "meshes": [{"primitives": [{"attributes": {"POSITION": 0}, "indices": 1, "mode": 4}]}],
-        "accessors": [
-            {"bufferView": 0, "componentType": 5126, "count": vertex_count, "type": "VEC3",
-             "min": [], "max": []},
-            {"bufferView": 1, "componentType": 5125, "count": 3 * face_count, "type": "SCALAR"},
-        ],
-        "bufferViews": [
-            {"buffer": 0, "byteOffset": 0, "byteLength": vertex_bytes, "target": 34962},
-            {"buffer": 0, "byteOffset": vertex_bytes, "byteLength": index_bytes, "target": 34963},
-        ],
-        "buffers": [{"byteLength": vertex_bytes + index_bytes}],
-    }
     # six floats of at most 24 characters (repr of a float32's double) and their commas
-    room = len(json.dumps(document, separators=(",", ":"))) + 6 * 25
+    empty = _geometry_document(vertex_count, face_count, [], [])
+    room = len(json.dumps(empty, separators=(",", ":"))) + 6 * 25
     room += -room % 4
     at = 12 + 8 + room + 8                  # where the BIN chunk's data starts
     out = np.empty(at + vertex_bytes + index_bytes, dtype=np.uint8)
     vertices = out[at:at + vertex_bytes].view("<f4").reshape(vertex_count, 3)
     indices = out[at + vertex_bytes:].view("<u4").reshape(face_count, 3)
     fill(vertices, indices)
-    document["accessors"][0]["min"], document["accessors"][0]["max"] = _bounds(vertices)
+    document = _geometry_document(vertex_count, face_count, *_bounds(vertices))
     header = json.dumps(document, separators=(",", ":")).encode()
     header += b" " * (room - len(header))
     out[:20] = np.frombuffer(struct.pack("<4sIII4s", b"glTF", 2, len(out), room, b"JSON"),

@@ -790,7 +790,7 @@ def _assemble(pm: ProgressiveMesh, grid: Grid, grids: tuple, start: int, stop: i
 
 def deflate_body(body: bytes) -> bytes:
     """The zlib stream of a packet body. The level is not part of the format:
-    on big bodies 9 packs only ~0.1% tighter than 6, at twice the time."""
+    on a 5.6 MB body 9 packed 0.24% tighter than 6, in 1.75 times as long."""
     return zlib.compress(body, 9 if len(body) < 2**20 else 6)
 
 
@@ -892,11 +892,6 @@ class RecordStreams:
     marks: np.ndarray       # (streams, records + 1): each stream's length before a record
     chunk: int = CHUNK_RECORDS
     chunks: tuple = ()      # per stream, a tuple of bytes
-
-    @property
-    def nbytes(self) -> int:
-        return (sum(s.nbytes for s in self.streams) + self.marks.nbytes
-                + sum(len(c) for stream in self.chunks for c in stream))
 
     def slices(self, first: int, last: int) -> list:
         """The streams of records ``first .. last-1`` (counted in this direction)."""

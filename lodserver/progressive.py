@@ -280,8 +280,7 @@ class ProgressiveMesh:
     # ---- derived arrays -------------------------------------------------
     def _derive(self):
         n, n0 = self.vertex_count, self.base_vertices
-        children, child_offsets, fine, new = _hierarchy(self.parent, n0, self.positions,
-                                                        self.coarse_position)
+        fine, new = _hierarchy(self.parent, n0, self.positions, self.coarse_position)
 
         # birth_faces: each face's corners at the first level it appears in.
         birth = np.empty_like(self.faces)
@@ -291,13 +290,11 @@ class ProgressiveMesh:
         # faces of split t live at level t+1: climb while >= t+1
         _faces_at_levels(self.faces, self.parent, m0, owner + 1, birth)
 
-        derived = dict(children=children, child_offsets=child_offsets, fine_position=fine,
-                       new_position=new, birth_faces=birth,
+        derived = dict(fine_position=fine, new_position=new, birth_faces=birth,
                        level_error=_level_error(self.error))
         if self.has_attributes:
             w0 = int(self.wedge_counts[0])
-            (derived["wedge_children"], derived["wedge_child_offsets"],
-             derived["wedge_fine_value"], derived["wedge_new_value"]) = _hierarchy(
+            derived["wedge_fine_value"], derived["wedge_new_value"] = _hierarchy(
                 self.wedge_parent, w0, self.wedge_values, self.wedge_coarse_value)
             # corners of each face at the level it appears in, as for birth_faces
             corners = np.empty_like(self.corner_wedges)
@@ -468,8 +465,8 @@ def _faces_at_levels(full_faces, parent, start, levels, out):
 
 
 def _hierarchy(parent, n0, full, coarse):
-    """The vertex (or wedge) hierarchy as CSR children lists, and the values
-    a split writes going forward.
+    """The values a split writes going forward, from the vertex (or wedge)
+    hierarchy: each vertex's children, ascending, as CSR lists.
 
     Parameters
     ----------
@@ -479,8 +476,6 @@ def _hierarchy(parent, n0, full, coarse):
 
     Returns
     -------
-    children : (n - n0,) int64, child_offsets : (n + 1,) int64
-        ``children[child_offsets[x]:child_offsets[x+1]]``, ascending.
     fine : (n - n0, d)
         The parent's value just after split ``t``: the value left by its next
         collapse above ``t`` (its next child), else its full-detail value.
@@ -509,7 +504,7 @@ def _hierarchy(parent, n0, full, coarse):
     new = full[n0:].copy()
     fc = first_child[n0:]
     new[fc >= 0] = coarse[fc[fc >= 0] - n0]
-    return children, child_offsets, fine, new
+    return fine, new
 
 
 def _level_error(error):
