@@ -105,14 +105,14 @@ def _cmd_simplify(args) -> int:
 
 
 def _cmd_export(args) -> int:
-    from .pipeline import export_folder, export_lods, parse_lods
+    from .pipeline import export_lods, parse_lods
 
     ratios = parse_lods(args.lods)
     if Path(args.source).is_dir():
         if Path(args.output).suffix.lower() == ".glb":
             raise MeshError(f"{args.source} is a folder, so -o names the folder to write into, "
                             f"not a .glb file ({args.output})")
-        return _export_folder(args, ratios, export_folder)
+        return _export_folder(args, ratios)
     bar, update = _progress_bar(0)
     try:
         done = export_lods(args.source, args.output, lods=ratios, separate=args.separate,
@@ -139,12 +139,12 @@ def _levels(done) -> str:
     return text
 
 
-def _export_folder(args, ratios, export_folder) -> int:
+def _export_folder(args, ratios) -> int:
     """Every mesh file under ``args.source`` into the folder ``args.output``: a bar
     over the files on a terminal, a line per file, exit 1 if any failed."""
     from tqdm import tqdm
 
-    from .pipeline import find_sources
+    from .pipeline import export_folder, find_sources
 
     bar = tqdm(total=len(find_sources(args.source)), unit="asset", disable=None,
                dynamic_ncols=True, desc="exporting", file=sys.stderr)
