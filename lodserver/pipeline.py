@@ -71,6 +71,32 @@ REACH_SLACK = 1.1
 REACH_METHODS = ("none", "cluster")
 
 
+def lod_chain(pm: ProgressiveMesh, lods=DEFAULT_LODS, *, reach: str = "none"):
+    """The levels of ``pm`` at face ratios ``lods`` (finest first).
+
+    Returns ``(meshes, coverage, clustered)``: the meshes, their screen coverage
+    hints (:func:`gltf.coverage_from_ratios`) and the indices of the levels made
+    by clustering (``reach``, as for :func:`export_lods`). Raises
+    :class:`MeshError` on bad ratios or ``reach``.
+    """
+    ratios = check_lods(lods)
+    if reach not in REACH_METHODS:
+        raise MeshError(f"reach must be one of {', '.join(REACH_METHODS)}, got {reach!r}")
+    meshes, clustered = [], []
+    for ratio in ratios:
+        mesh = pm.at(pm.level_for(ratio=ratio))
+        budget = max(1, round(ratio * pm.face_count))
+        if reach == "cluster" and mesh.face_count > REACH_SLACK * budget:
+            from .cluster import cluster
+            full = pm.at(pm.vertex_count)
+            joined = cluster(Mesh(full.positions, full.faces), target_faces=budget)
+            if joined.face_count < mesh.face_count:
+                mesh = joined
+                clustered.append(len(meshes))
+        meshes.append(mesh)
+    return meshes, coverage_from_ratios(ratios), clustered
+
+
 def export_lods(source, output, *, lods=DEFAULT_LODS, separate: bool = False,
                 reach: str = "none", progress=None) -> Exported:
     """Write the levels of detail of ``source`` to ``output`` (a ``.glb`` path).
@@ -98,9 +124,8 @@ def export_lods(source, output, *, lods=DEFAULT_LODS, separate: bool = False,
         On a bad source, bad ratios or an output that is not ``.glb``. Nothing is
         written then; each file written is complete (``io.write_atomic``).
     """
-    ratios = check_lods(lods)
-    coverage = coverage_from_ratios(ratios)
-    if reach not in REACH_METHODS:
+    check_lods(lods)
+    if reach not in REACH_METHODS:    # checked before a build, not after
         raise MeshError(f"reach must be one of {', '.join(REACH_METHODS)}, got {reach!r}")
     source, output = Path(source), Path(output)
     if output.suffix.lower() != ".glb":
@@ -115,18 +140,7 @@ def export_lods(source, output, *, lods=DEFAULT_LODS, separate: bool = False,
             pm = build(source, progress=progress)
         except ValueError as exc:       # argument checks deep in the build
             raise MeshError(str(exc)) from exc
-    meshes, clustered = [], []
-    for ratio in ratios:
-        mesh = pm.at(pm.level_for(ratio=ratio))
-        budget = max(1, round(ratio * pm.face_count))
-        if reach == "cluster" and mesh.face_count > REACH_SLACK * budget:
-            from .cluster import cluster
-            full = pm.at(pm.vertex_count)
-            joined = cluster(Mesh(full.positions, full.faces), target_faces=budget)
-            if joined.face_count < mesh.face_count:
-                mesh = joined
-                clustered.append(len(meshes))
-        meshes.append(mesh)
+    meshes, coverage, clustered = lod_chain(pm, lods, reach=reach)
     if separate:
         outputs = [output.with_name(f"{output.stem}_lod{i}{output.suffix}")
                    for i in range(len(meshes))]

@@ -1,5 +1,7 @@
 """The HTTP API through the real app (TestClient), with a temporary data directory."""
 
+import json
+import struct
 import time
 
 import numpy as np
@@ -172,7 +174,8 @@ def test_a_mesh_without_materials_says_so(served):
 
 
 @pytest.mark.parametrize("path, params", [("lod", {"ratio": 0.1}), ("lod", {"vertices": 9,
-                         "format": "glb"}), ("splits", {"from": 10, "to": 20})])
+                         "format": "glb"}), ("splits", {"from": 10, "to": 20}),
+                         ("chain", {"lods": "1,0.3"})])
 def test_immutable_responses_carry_etags_and_answer_304(served, path, params):
     client, mesh_id = served
     first = client.get(f"/meshes/{mesh_id}/{path}", params=params)
@@ -184,6 +187,26 @@ def test_immutable_responses_carry_etags_and_answer_304(served, path, params):
     other = client.get(f"/meshes/{mesh_id}/{path}", params=params,
                        headers={"If-None-Match": '"something-else"'})
     assert other.status_code == 200 and other.content == first.content
+
+
+def test_chain_is_one_glb_of_linked_levels(served):
+    client, mesh_id = served
+    response = client.get(f"/meshes/{mesh_id}/chain", params={"lods": "1,0.5,0.1"})
+    assert response.status_code == 200
+    assert response.headers["content-type"] == "model/gltf-binary"
+    data = response.content
+    length, _ = struct.unpack_from("<I4s", data, 12)
+    document = json.loads(data[20:20 + length])
+    assert document["nodes"][0]["extensions"]["MSFT_lod"]["ids"] == [1, 2]
+    faces = [document["accessors"][m["primitives"][0]["indices"]]["count"] // 3
+             for m in document["meshes"]]
+    assert faces[0] == 5856 and faces[0] > faces[1] > faces[2]
+    # the same levels as the lod endpoint's glb
+    level = client.get(f"/meshes/{mesh_id}/lod", params={"ratio": 0.5, "format": "glb"}).content
+    length, _ = struct.unpack_from("<I4s", level, 12)
+    single = json.loads(level[20:20 + length])
+    assert single["accessors"][single["meshes"][0]["primitives"][0]["indices"]]["count"] == (
+        3 * faces[1])
 
 
 @pytest.mark.parametrize("path, params, status, message", [
@@ -200,6 +223,11 @@ def test_immutable_responses_carry_etags_and_answer_304(served, path, params):
     ("splits", {"from": 10}, 422, "to"),
     ("splits", {"from": 1, "to": 20}, 422, "from must be a level"),
     ("splits", {"from": 10, "to": 999999}, 422, "to must be a level"),
+    ("chain", {"lods": "1,2"}, 422, "(0, 1]"),
+    ("chain", {"lods": "0.2,0.5"}, 422, "strictly decreasing"),
+    ("chain", {"lods": "1,half"}, 422, "comma-separated"),
+    ("chain", {"lods": ",".join(str(1 - i / 20) for i in range(17))}, 422, "at most 16"),
+    ("chain", {"reach": "sloppy"}, 422, "reach"),
 ])
 def test_bad_level_parameters_are_422_with_a_message(served, path, params, status, message):
     client, mesh_id = served
@@ -211,7 +239,8 @@ def test_bad_level_parameters_are_422_with_a_message(served, path, params, statu
 @pytest.mark.parametrize("mesh_id", ["AAAAAAAAAAAAAAAAAAAAAA", "nope", "..%2F..%2Fetc"])
 def test_unknown_ids_are_404(served, mesh_id):
     client, _ = served
-    for path in ("", "/lod?ratio=0.5", "/splits?from=4&to=5", "/materials", "/images/0"):
+    for path in ("", "/lod?ratio=0.5", "/splits?from=4&to=5", "/chain", "/materials",
+                 "/images/0"):
         response = client.get(f"/meshes/{mesh_id}{path}")
         assert response.status_code == 404 and response.json()["message"]
     assert client.delete("/meshes/AAAAAAAAAAAAAAAAAAAAAA").status_code == 404
@@ -346,10 +375,11 @@ def test_cors_and_health(tmp_path):
 
 @settings(max_examples=40, deadline=None, suppress_health_check=list(HealthCheck))
 @given(params=st.dictionaries(
-    st.sampled_from(["vertices", "faces", "ratio", "error", "format", "bits", "from", "to"]),
+    st.sampled_from(["vertices", "faces", "ratio", "error", "format", "bits", "from", "to",
+                     "lods", "reach"]),
     st.one_of(st.integers(-2**40, 2**40), st.floats(allow_nan=True), st.text(max_size=5),
               st.sampled_from(["json", "glb", "inf", "-0", "1e309"])), max_size=4),
-       path=st.sampled_from(["lod", "splits"]))
+       path=st.sampled_from(["lod", "splits", "chain"]))
 def test_random_level_queries_never_fail_the_server(served, params, path):
     client, mesh_id = served
     response = client.get(f"/meshes/{mesh_id}/{path}", params=params)

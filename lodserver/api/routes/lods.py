@@ -6,8 +6,10 @@ from typing import Annotated, Literal
 
 from fastapi import APIRouter, Query, Request, Response
 
-from ...export import FORMATS, check_level, checked_bits, encode_level, resolve_level
+from ...export import FORMATS, LevelError, check_level, checked_bits, encode_level, resolve_level
+from ...gltf import encode_lod_chain
 from ...packets import MAX_BITS, MIN_BITS, packet_between
+from ...pipeline import DEFAULT_LODS, lod_chain, parse_lods
 from ..caching import etag_for, immutable, is_fresh
 from ..deps import CacheDep, MeshId, StoreDep
 from ..models import Message
@@ -66,3 +68,31 @@ def get_splits(mesh_id: MeshId, store: StoreDep, cache: CacheDep, request: Reque
         return immutable(None, media_type="application/octet-stream", etag=etag)
     body = cache.get_or_make(etag, lambda: packet_between(pm, start, to, bits=bits))
     return immutable(body, media_type="application/octet-stream", etag=etag)
+
+
+MAX_CHAIN_LEVELS = 16
+
+
+@router.get("/{mesh_id}/chain", responses={**_ERRORS, 200: {"content": {
+    FORMATS["glb"]: {}}, "description": "One GLB: the levels as nodes linked by MSFT_lod."}})
+def get_chain(mesh_id: MeshId, store: StoreDep, cache: CacheDep, request: Request,
+              lods: Annotated[str, Query(max_length=200, description=(
+                  "Face ratios of the levels, finest first, comma-separated, each in (0, 1] "
+                  "and decreasing."))] = ",".join(map(str, DEFAULT_LODS)),
+              reach: Annotated[Literal["none", "cluster"], Query(description=(
+                  "cluster: levels edge collapse cannot bring down to their budget are made "
+                  "by vertex clustering (positions only)."))] = "none") -> Response:
+    """A chain of levels of detail in one GLB, as ``lodserver export`` writes it:
+    node 0 the finest level, ``MSFT_lod`` naming the others, with
+    ``MSFT_screencoverage`` hints."""
+    pm = store.load(mesh_id=mesh_id)
+    ratios = parse_lods(lods)
+    if len(ratios) > MAX_CHAIN_LEVELS:
+        raise LevelError(f"a chain holds at most {MAX_CHAIN_LEVELS} levels, got {len(ratios)}")
+    etag = etag_for(store.get(mesh_id=mesh_id).digest, "chain", ",".join(map(repr, ratios)), reach)
+    if is_fresh(request, etag):
+        return immutable(None, media_type=FORMATS["glb"], etag=etag)
+    body = cache.get_or_make(etag, lambda: encode_lod_chain(*lod_chain(pm, ratios,
+                                                                       reach=reach)[:2]))
+    return immutable(body, media_type=FORMATS["glb"], etag=etag,
+                     filename=f"{mesh_id}-lods.glb")
