@@ -71,6 +71,12 @@ REACH_SLACK = 1.1
 REACH_METHODS = ("none", "cluster")
 
 
+def check_reach(reach: str) -> str:
+    if reach not in REACH_METHODS:
+        raise MeshError(f"reach must be one of {', '.join(REACH_METHODS)}, got {reach!r}")
+    return reach
+
+
 def lod_chain(pm: ProgressiveMesh, lods=DEFAULT_LODS, *, reach: str = "none"):
     """The levels of ``pm`` at face ratios ``lods`` (finest first).
 
@@ -80,16 +86,17 @@ def lod_chain(pm: ProgressiveMesh, lods=DEFAULT_LODS, *, reach: str = "none"):
     :class:`MeshError` on bad ratios or ``reach``.
     """
     ratios = check_lods(lods)
-    if reach not in REACH_METHODS:
-        raise MeshError(f"reach must be one of {', '.join(REACH_METHODS)}, got {reach!r}")
-    meshes, clustered = [], []
+    check_reach(reach)
+    meshes, clustered, full = [], [], None
     for ratio in ratios:
         mesh = pm.at(pm.level_for(ratio=ratio))
         budget = max(1, round(ratio * pm.face_count))
         if reach == "cluster" and mesh.face_count > REACH_SLACK * budget:
             from .cluster import cluster
-            full = pm.at(pm.vertex_count)
-            joined = cluster(Mesh(full.positions, full.faces), target_faces=budget)
+            if full is None:
+                full = pm.at(pm.vertex_count)
+                full = Mesh(full.positions, full.faces)
+            joined = cluster(full, target_faces=budget)
             if joined.face_count < mesh.face_count:
                 mesh = joined
                 clustered.append(len(meshes))
@@ -124,9 +131,8 @@ def export_lods(source, output, *, lods=DEFAULT_LODS, separate: bool = False,
         On a bad source, bad ratios or an output that is not ``.glb``. Nothing is
         written then; each file written is complete (``io.write_atomic``).
     """
-    check_lods(lods)
-    if reach not in REACH_METHODS:    # checked before a build, not after
-        raise MeshError(f"reach must be one of {', '.join(REACH_METHODS)}, got {reach!r}")
+    check_lods(lods)        # before a build, not after
+    check_reach(reach)
     source, output = Path(source), Path(output)
     if output.suffix.lower() != ".glb":
         raise MeshError(f"levels of detail are written as GLB, so the output must end in .glb, "
@@ -220,6 +226,7 @@ def export_folder(source, output, *, lods=DEFAULT_LODS, separate: bool = False,
         If ``source`` is not a folder, holds no mesh file, or the options are bad.
     """
     ratios = check_lods(lods)
+    check_reach(reach)
     source, output = Path(source), Path(output)
     if not source.is_dir():
         raise MeshError(f"{source} is not a folder")
@@ -229,8 +236,6 @@ def export_folder(source, output, *, lods=DEFAULT_LODS, separate: bool = False,
     if jobs < 1:
         raise MeshError(f"jobs must be at least 1, got {jobs}")
     output.mkdir(parents=True, exist_ok=True)
-    if reach not in REACH_METHODS:
-        raise MeshError(f"reach must be one of {', '.join(REACH_METHODS)}, got {reach!r}")
     options = {"lods": list(ratios), "separate": separate, "reach": reach}
     manifest_path = output / MANIFEST
     manifest = _read_manifest(manifest_path)
@@ -254,7 +259,12 @@ def export_folder(source, output, *, lods=DEFAULT_LODS, separate: bool = False,
                 finish(relative, report.failed[relative])
             continue
         relative = group[0]
-        digest = _sha256(source / relative)
+        try:
+            digest = _sha256(source / relative)
+        except OSError as exc:
+            report.failed[relative] = f"cannot read it: {exc.strerror or exc}"
+            finish(relative, report.failed[relative])
+            continue
         entry = manifest.get(str(relative))
         if (not force and entry is not None and entry.get("sha256") == digest
                 and entry.get("options") == options
@@ -290,8 +300,11 @@ def export_folder(source, output, *, lods=DEFAULT_LODS, separate: bool = False,
                 report.failed[relative] = reason
                 finish(relative, reason)
     finally:
-        # what finished is remembered even if the run is cut short
-        document = {"version": _MANIFEST_VERSION, "sources": dict(sorted(manifest.items()))}
+        # what finished is remembered even if the run is cut short; sources that are
+        # gone are forgotten (their outputs are left alone)
+        present = {str(relative) for relative in sources}
+        kept = {name: entry for name, entry in manifest.items() if name in present}
+        document = {"version": _MANIFEST_VERSION, "sources": dict(sorted(kept.items()))}
         write_atomic(manifest_path, (json.dumps(document, indent=1) + "\n").encode())
     report.written.sort(key=lambda e: e.source)
     return report
