@@ -889,7 +889,7 @@ class RecordStreams:
 
     forward: bool
     streams: tuple          # uint8 arrays, body order
-    marks: np.ndarray       # (streams, records + 1): each stream's length before a record
+    marks: tuple            # per stream, (records + 1,): its length before each record
     chunk: int = CHUNK_RECORDS
     chunks: tuple = ()      # per stream, a tuple of bytes
 
@@ -950,10 +950,14 @@ def record_streams(pm: ProgressiveMesh, *, forward: bool, bits: int | None = Non
     # own the bytes: the kernels' buffers are sized for the worst case
     streams = tuple(np.array(s, copy=True) for s in
                     _encode_streams(pm, start, stop, grid, grids, marks))
+    # A stream no record writes to (collapses have no faces to add, predicted fans
+    # no masks) keeps a zero-stride row of zeros instead of 4 bytes per record.
+    rows = tuple(row.copy() if row[-1] else np.broadcast_to(row.dtype.type(0), row.shape)
+                 for row in marks)
     bounds = range(0, n - n0 - chunk + 1, chunk)
     chunks = tuple(tuple(_deflate_segment(stream[m[i]:m[i + chunk]]) for i in bounds)
-                   for stream, m in zip(streams, marks))
-    return RecordStreams(forward, streams, marks, chunk, chunks)
+                   for stream, m in zip(streams, rows))
+    return RecordStreams(forward, streams, rows, chunk, chunks)
 
 
 # The records of the progressive meshes in use, at their default grid only (other
