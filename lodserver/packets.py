@@ -46,6 +46,7 @@ import struct
 import threading
 import weakref
 import zlib
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
@@ -974,6 +975,27 @@ def _cached_records(pm: ProgressiveMesh, forward: bool) -> RecordStreams:
         if slot[1] is None:
             slot[1] = record_streams(pm, forward=forward)
         return slot[1]
+
+
+# One background encoder: records are prepared where a request is likely to need them.
+_background = ThreadPoolExecutor(max_workers=1, thread_name_prefix="packet-records")
+_scheduled: weakref.WeakSet = weakref.WeakSet()
+
+
+def prepare_records(pm: ProgressiveMesh) -> None:
+    """Start encoding ``pm``'s records both ways in the background (once per mesh
+    object): a client that fetched a level's json form asks for packets next, and
+    after a restart nothing has prepared them."""
+    with _records_lock:
+        if pm in _scheduled:
+            return
+        _scheduled.add(pm)
+    _background.submit(_prepare_both, pm)
+
+
+def _prepare_both(pm: ProgressiveMesh) -> None:
+    for forward in (True, False):
+        _cached_records(pm, forward)
 
 
 def packet_between(pm: ProgressiveMesh, start: int, stop: int, *,

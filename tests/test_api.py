@@ -15,6 +15,7 @@ from hypothesis import strategies as st
 from lodserver.api.main import create_app
 from lodserver.api.settings import Settings
 from lodserver.io import load_mesh
+from lodserver import packets
 from lodserver.packets import apply_packet, state_from_json
 
 from .meshes import DATA, textured_spot_glb
@@ -349,10 +350,23 @@ def test_restart_serves_ready_meshes_and_resumes_interrupted_builds(tmp_path):
         interrupted = store.create(name="y", source=source, file_type="obj", options={})
         store.mark_building(mesh_id=interrupted.id)
     with _client(tmp_path) as client:
+        # after a restart nothing has encoded the mesh's packet records ...
+        pm = client.app.state.store.load(mesh_id=ready_id)
+        assert pm not in packets._records
         again = client.get(f"/meshes/{ready_id}/lod", params={"ratio": 0.2})
         assert again.status_code == 200 and again.content == lod.content
         assert again.headers["etag"] == lod.headers["etag"]
         assert _wait_ready(client, interrupted.id)["status"] == "ready"
+        # ... and fetching a json level, where packet clients start, begins that
+        deadline = time.monotonic() + 60
+        while not _records_prepared(pm):
+            assert time.monotonic() < deadline, "the packet records were not prepared"
+            time.sleep(0.05)
+
+
+def _records_prepared(pm) -> bool:
+    slots = packets._records.get(pm, {})
+    return len(slots) == 2 and all(slot[1] is not None for slot in slots.values())
 
 
 def test_delete_removes_the_mesh_and_its_files(tmp_path):

@@ -8,7 +8,7 @@ from fastapi import APIRouter, Query, Request, Response
 
 from ...export import FORMATS, LevelError, check_level, checked_bits, encode_level, resolve_level
 from ...gltf import encode_lod_chain
-from ...packets import MAX_BITS, MIN_BITS, packet_between
+from ...packets import MAX_BITS, MIN_BITS, packet_between, prepare_records
 from ...pipeline import DEFAULT_LODS, lod_chain, parse_lods
 from ..caching import etag_for, immutable, is_fresh
 from ..deps import CacheDep, MeshId, StoreDep
@@ -42,6 +42,8 @@ def get_lod(mesh_id: MeshId, store: StoreDep, cache: CacheDep, request: Request,
     pm = store.load(mesh_id=mesh_id)
     level = resolve_level(pm, vertices=vertices, faces=faces, ratio=ratio, error=error)
     bits = checked_bits(bits) if format == "json" else None
+    if format == "json":
+        prepare_records(pm)     # the json form is where packet clients start
     etag = etag_for(store.get(mesh_id=mesh_id).digest, "lod", level, format, bits)
     if is_fresh(request, etag):
         return immutable(None, media_type=FORMATS[format], etag=etag)
