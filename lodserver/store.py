@@ -39,7 +39,9 @@ from .codec import load_progressive, save_progressive
 from .progressive import ProgressiveMesh
 
 ID_PATTERN = re.compile(r"^[A-Za-z0-9_-]{22}$")
-# Loaded progressive meshes kept in memory: serving a level must not reread the file.
+# Loaded progressive meshes kept in memory by default: serving a level must not
+# reread the file. Each holds its arrays and, once packets were asked for, its
+# encoded records: 144 + 39 MB for the 1.1M-face bunny.
 LOADED_CACHE_SIZE = 8
 
 
@@ -185,7 +187,10 @@ def check_id(mesh_id: str) -> str:
 class LocalStore(Store):
     """The embedded store: a data directory with SQLite and files (module docstring)."""
 
-    def __init__(self, root):
+    def __init__(self, root, *, loaded_meshes: int = LOADED_CACHE_SIZE):
+        if loaded_meshes < 1:
+            raise ValueError(f"loaded_meshes must be at least 1, got {loaded_meshes}")
+        self.loaded_meshes = loaded_meshes
         self.root = Path(root)
         self.sources = self.root / "sources"
         self.artefacts = self.root / "artefacts"
@@ -315,7 +320,7 @@ class LocalStore(Store):
                 pm = load_progressive(self._artefact(mesh_id))
                 with self._lock:
                     self._loaded[mesh_id] = pm
-                    while len(self._loaded) > LOADED_CACHE_SIZE:
+                    while len(self._loaded) > self.loaded_meshes:
                         self._loaded.popitem(last=False)
             finally:
                 with self._lock:

@@ -447,3 +447,13 @@ def test_build_options_reach_the_build(tmp_path):
         assert "wedges" in client.get(f"/meshes/{weighted}/lod", params={"ratio": 0.5}).json()
         assert _upload(client, method="voxels").status_code == 422
         assert _upload(client, uv_weight="0").status_code == 422
+
+
+def test_loaded_meshes_setting_reaches_the_store(tmp_path, monkeypatch):
+    monkeypatch.setenv("LODSERVER_LOADED_MESHES", "3")
+    assert Settings(data_dir=tmp_path / "data").loaded_meshes == 3
+    with _client(tmp_path, loaded_meshes=2) as client:
+        assert client.app.state.store.loaded_meshes == 2
+    monkeypatch.setenv("LODSERVER_LOADED_MESHES", "0")
+    with pytest.raises(ValueError):
+        Settings(data_dir=tmp_path / "data")

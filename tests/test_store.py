@@ -143,3 +143,20 @@ def test_racing_loads_of_one_mesh_share_one_object(tmp_path, monkeypatch):
     assert len(found) == 6 and all(pm is found[0] for pm in found)
     assert len(reads) == 1
     store.close()
+
+
+def test_loaded_meshes_are_bounded(tmp_path):
+    with pytest.raises(ValueError, match="at least 1"):
+        LocalStore(tmp_path / "x", loaded_meshes=0)
+    store = LocalStore(tmp_path / "data", loaded_meshes=1)
+    ids = []
+    for name in ("a", "b"):
+        record = store.create(name=name, source=_source(tmp_path, f"{name}.obj"), file_type="obj",
+                              options={})
+        store.put_artefact(mesh_id=record.id, pm=progressive("grid"))
+        ids.append(record.id)
+    first = store.load(mesh_id=ids[0])
+    assert store.load(mesh_id=ids[0]) is first
+    store.load(mesh_id=ids[1])                  # drops the first from memory
+    assert store.load(mesh_id=ids[0]) is not first
+    store.close()

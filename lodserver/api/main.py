@@ -25,7 +25,7 @@ from .settings import Settings, get_settings
 @asynccontextmanager
 async def lifespan(app: FastAPI):
     settings: Settings = app.state.settings
-    store = LocalStore(settings.data_dir)
+    store = LocalStore(settings.data_dir, loaded_meshes=settings.loaded_meshes)
     jobs = JobRunner(store, workers=settings.workers, max_triangles=settings.max_triangles)
     jobs.start(warm=settings.warm_kernels)
     app.state.store, app.state.jobs, app.state.cache = store, jobs, BodyCache()

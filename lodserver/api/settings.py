@@ -15,6 +15,7 @@ from pydantic import Field, SecretStr, field_validator
 from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict
 
 from ..jobs import DEFAULT_MAX_TRIANGLES
+from ..store import LOADED_CACHE_SIZE
 
 
 class Settings(BaseSettings):
@@ -34,6 +35,10 @@ class Settings(BaseSettings):
         default_factory=list, description="Origins allowed by CORS: comma-separated or a JSON "
         "list; '*' for any.")
     workers: int = Field(1, ge=1, le=64, description="Concurrent builds.")
+    loaded_meshes: int = Field(LOADED_CACHE_SIZE, ge=1, le=4096, description="Progressive "
+                               "meshes kept in memory (least recently used dropped); each "
+                               "holds its arrays and packet records: 183 MB for a mesh of "
+                               "1.1M faces.")
     warm_kernels: bool = Field(True, description="Load the numba kernels at start-up, "
                                "before the first build needs them.")
     static_dir: Path = Field(Path(__file__).resolve().parents[2] / "static",
