@@ -80,15 +80,10 @@ def warm_up() -> None:
 def _prepare_packets(store: Store, mesh_id: str) -> None:
     """Encode every record of a ready mesh both ways, so that its first packet
     request is a slice, not a walk over every split (seconds on a million faces)."""
-    from .packets import packet_between
+    from .packets import encode_records
 
     try:
-        pm = store.load(mesh_id=mesh_id)
-        # both directions at once: the kernels and deflate release the GIL
-        with ThreadPoolExecutor(2) as pool:
-            for done in [pool.submit(packet_between, pm, *ends) for ends in
-                         ((pm.base_vertices, pm.vertex_count), (pm.vertex_count, pm.base_vertices))]:
-                done.result()
+        encode_records(store.load(mesh_id=mesh_id))
     except Exception:       # the mesh is served either way; its first packet is just slower
         log.exception("could not prepare the packets of mesh %s", mesh_id)
 

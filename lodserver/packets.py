@@ -54,6 +54,7 @@ from numba import njit
 
 from .mesh import ATTRIBUTE_WIDTHS, MeshError
 from .progressive import ProgressiveMesh, _ancestor_below
+from .quadrics import symmetric_cofactors
 
 MAGIC = b"LODV"
 PACKET_VERSION = 2
@@ -977,25 +978,28 @@ def _cached_records(pm: ProgressiveMesh, forward: bool) -> RecordStreams:
         return slot[1]
 
 
+def encode_records(pm: ProgressiveMesh) -> None:
+    """Encode ``pm``'s records both ways now, at once (the kernels and deflate
+    release the GIL), unless they are cached already; later packets are slices."""
+    with ThreadPoolExecutor(2) as pool:
+        for done in [pool.submit(_cached_records, pm, forward) for forward in (True, False)]:
+            done.result()
+
+
 # One background encoder: records are prepared where a request is likely to need them.
 _background = ThreadPoolExecutor(max_workers=1, thread_name_prefix="packet-records")
 _scheduled: weakref.WeakSet = weakref.WeakSet()
 
 
 def prepare_records(pm: ProgressiveMesh) -> None:
-    """Start encoding ``pm``'s records both ways in the background (once per mesh
-    object): a client that fetched a level's json form asks for packets next, and
-    after a restart nothing has prepared them."""
+    """:func:`encode_records` in the background, once per mesh object: a client
+    that fetched a level's json form asks for packets next, and after a restart
+    nothing has prepared them."""
     with _records_lock:
         if pm in _scheduled:
             return
         _scheduled.add(pm)
-    _background.submit(_prepare_both, pm)
-
-
-def _prepare_both(pm: ProgressiveMesh) -> None:
-    for forward in (True, False):
-        _cached_records(pm, forward)
+    _background.submit(encode_records, pm)
 
 
 def packet_between(pm: ProgressiveMesh, start: int, stop: int, *,
@@ -1493,16 +1497,8 @@ def _gradient_kernel(faces, positions, wedges, values, held, d, s, p, coarse, ou
     if edges < 2:
         return False
     damping = (m00 + m11 + m22) * _GRADIENT_DAMPING + 1e-9
-    m00 += damping
-    m11 += damping
-    m22 += damping
-    c00 = m11 * m22 - m12 * m12
-    c01 = m02 * m12 - m01 * m22
-    c02 = m01 * m12 - m02 * m11
-    c11 = m00 * m22 - m02 * m02
-    c12 = m01 * m02 - m00 * m12
-    c22 = m00 * m11 - m01 * m01
-    det = m00 * c00 + m01 * c01 + m02 * c02
+    c00, c01, c02, c11, c12, c22, det = symmetric_cofactors(m00 + damping, m01, m02,
+                                                            m11 + damping, m12, m22 + damping)
     if not det > 0:
         return False
     i00, i01, i02 = c00 / det, c01 / det, c02 / det

@@ -405,14 +405,11 @@ def optimal_position(q, pa, pb, out):
 
 
 @njit(cache=True, nogil=True, inline="always")
-def _regularized_cofactors(q):
-    """The regularised ``A = Q[:3, :3] + eps I`` (see REGULARIZATION) of quadric
-    row ``q``: (trace of Q's A, eps, cofactors c00 c01 c02 c11 c12 c22, det),
-    so that ``A^-1 = C / det`` with C symmetric."""
-    trace = q[0] + q[3] + q[5]
-    eps = REGULARIZATION * trace
-    a00 = q[0] + eps; a01 = q[1]; a02 = q[2]
-    a11 = q[3] + eps; a12 = q[4]; a22 = q[5] + eps
+def symmetric_cofactors(a00, a01, a02, a11, a12, a22):
+    """Cofactors (c00, c01, c02, c11, c12, c22) and determinant of the symmetric
+    3x3 matrix with upper triangle ``a``: ``A^-1 = C / det``. The packet format
+    spells out these operations in this order (docs/packets.md), so every
+    language gets the same bits: keep them as they are."""
     c00 = a11 * a22 - a12 * a12
     c01 = a02 * a12 - a01 * a22
     c02 = a01 * a12 - a02 * a11
@@ -420,7 +417,18 @@ def _regularized_cofactors(q):
     c12 = a01 * a02 - a00 * a12
     c22 = a00 * a11 - a01 * a01
     det = a00 * c00 + a01 * c01 + a02 * c02
-    return trace, eps, c00, c01, c02, c11, c12, c22, det
+    return c00, c01, c02, c11, c12, c22, det
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _regularized_cofactors(q):
+    """The regularised ``A = Q[:3, :3] + eps I`` (see REGULARIZATION) of quadric
+    row ``q``: (trace of Q's A, eps, cofactors c00 c01 c02 c11 c12 c22, det),
+    so that ``A^-1 = C / det`` with C symmetric."""
+    trace = q[0] + q[3] + q[5]
+    eps = REGULARIZATION * trace
+    return (trace, eps, *symmetric_cofactors(q[0] + eps, q[1], q[2], q[3] + eps, q[4],
+                                             q[5] + eps))
 
 
 @njit(cache=True, nogil=True)
