@@ -24,6 +24,7 @@ from lodserver.gltf import coverage_from_ratios, encode_glb, encode_lod_chain, f
 from lodserver.io import clean_mesh, encode_mesh, load_mesh, save_mesh
 from lodserver.mesh import Materials, Mesh, MeshError
 
+from .conftest import need
 from .meshes import DATA
 
 REPO = Path(__file__).resolve().parents[1]
@@ -200,7 +201,7 @@ def gltf_validator():
     """``validate(glb_bytes) -> report`` with the pinned Khronos glTF validator."""
     node, npm = shutil.which("node"), shutil.which("npm")
     if node is None or npm is None:
-        pytest.skip("the Khronos glTF validator needs node and npm, and they are not on PATH")
+        need("the Khronos glTF validator needs node and npm, and they are not on PATH")
     package = VALIDATOR_PREFIX / "node_modules" / "gltf-validator" / "package.json"
     installed = package.is_file() and json.loads(package.read_text()).get("version")
     if installed != VALIDATOR_VERSION:
@@ -211,10 +212,10 @@ def gltf_validator():
                  "--no-save", "--loglevel=error", f"gltf-validator@{VALIDATOR_VERSION}"],
                 capture_output=True, text=True, timeout=600, check=False)
         except (OSError, subprocess.TimeoutExpired) as exc:
-            pytest.skip(f"installing gltf-validator@{VALIDATOR_VERSION} with npm failed: {exc}")
+            need(f"installing gltf-validator@{VALIDATOR_VERSION} with npm failed: {exc}")
         if result.returncode != 0 or not package.is_file():
             tail = " ".join(result.stderr.strip().splitlines()[-3:])
-            pytest.skip(f"installing gltf-validator@{VALIDATOR_VERSION} with npm failed: {tail}")
+            need(f"installing gltf-validator@{VALIDATOR_VERSION} with npm failed: {tail}")
 
     def validate(data: bytes) -> dict:
         with tempfile.TemporaryDirectory() as folder:

@@ -21,6 +21,7 @@ from fastapi.testclient import TestClient
 from lodserver.api.main import create_app
 from lodserver.api.settings import Settings
 
+from .conftest import need
 from .meshes import DATA, SHARED, textured_spot_glb
 from .server import serve, upload_and_wait
 
@@ -65,9 +66,11 @@ def chromium():
     """A launched headless Chromium (Playwright over Debian's binary), or a skip."""
     executable = shutil.which("chromium") or shutil.which("chromium-browser")
     if executable is None:
-        pytest.skip("no chromium binary on PATH (Debian: apt-get install chromium)")
-    sync_api = pytest.importorskip("playwright.sync_api",
-                                   reason="the playwright package is not installed")
+        need("no chromium binary on PATH (Debian: apt-get install chromium)")
+    try:
+        from playwright import sync_api
+    except ImportError:
+        need("the playwright package is not installed")
     with sync_api.sync_playwright() as playwright:
         browser = playwright.chromium.launch(executable_path=executable, args=CHROMIUM_ARGS)
         yield browser
