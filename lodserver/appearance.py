@@ -9,11 +9,8 @@ relative URIs), and fetches the images it needs (:func:`image_of`).
 
 from __future__ import annotations
 
+from .io.images import image_type
 from .progressive import ProgressiveMesh
-
-# Image kinds recognized by their first bytes when a record has no mimeType.
-_SIGNATURES = ((b"\x89PNG\r\n\x1a\n", "image/png"), (b"\xff\xd8\xff", "image/jpeg"),
-               (b"RIFF", "image/webp"), (b"\xabKTX 20\xbb", "image/ktx2"))
 
 
 class AbsentError(LookupError):
@@ -35,29 +32,34 @@ def materials_document(pm: ProgressiveMesh, *, image_uri=lambda i: f"images/{i}"
                           "without attributes)")
     gltf = pm.materials.gltf
     document = {key: list(gltf.get(key, ())) for key in ("materials", "textures", "samplers")}
+    # the type the bytes are (image_of sends no other), whatever the record says
     document["images"] = [
-        {**record, "uri": image_uri(i), "mimeType": image_of(pm, i)[1]}
-        for i, record in enumerate(gltf.get("images", ()))]
+        {**record, "uri": image_uri(i),
+         "mimeType": image_type(data) or "application/octet-stream"}
+        for i, (record, data) in enumerate(zip(gltf.get("images", ()), pm.materials.images))]
     if gltf.get("extensionsRequired"):
         document["extensionsRequired"] = list(gltf["extensionsRequired"])
     return document
 
 
 def image_of(pm: ProgressiveMesh, index: int) -> tuple[bytes, str]:
-    """The bytes of image ``index`` and its media type.
+    """The bytes of image ``index`` and its media type, sniffed from the bytes.
+
+    Only image types are ever returned (PNG, JPEG, WebP, KTX2): the loaders
+    refuse anything else, and bytes stored before they did (an artefact whose
+    "image" is HTML, say) are refused here rather than served as what their
+    record claims.
 
     Raises
     ------
     AbsentError
-        When the mesh has no such image.
+        When the mesh has no such image, or its bytes are no image type.
     """
     images = pm.materials.images if pm.materials is not None else ()
     if not 0 <= index < len(images):
         raise AbsentError(f"this mesh has {len(images)} images; there is no image {index}")
     data = images[index]
-    records = pm.materials.gltf.get("images", ())
-    media = records[index].get("mimeType") if index < len(records) else None
-    if not media:
-        media = next((kind for magic, kind in _SIGNATURES if data.startswith(magic)),
-                     "application/octet-stream")
+    media = image_type(data)
+    if media is None:
+        raise AbsentError(f"image {index} of this mesh is not a PNG, JPEG, WebP or KTX2 image")
     return data, media

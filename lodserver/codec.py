@@ -32,14 +32,13 @@ raises ``ArtefactError`` with a sentence saying what is wrong.
 from __future__ import annotations
 
 import json
-import os
 import struct
-import tempfile
 import zlib
 from pathlib import Path
 
 import numpy as np
 
+from .io.files import write_atomic
 from .mesh import Materials, MeshError
 from .progressive import WEDGE_ARRAYS, ProgressiveMesh
 
@@ -162,24 +161,10 @@ def decode_progressive(data: bytes, *, source: str = "the artefact") -> Progress
 
 
 def save_progressive(pm: ProgressiveMesh, path) -> None:
-    """Write ``pm`` to ``path`` atomically: a temporary file in the same
-    directory, flushed to disk, then renamed over the target."""
-    path = Path(path)
-    data = encode_progressive(pm)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        # mkstemp makes the file private (0600); give it the usual umask-based mode
-        umask = os.umask(0)
-        os.umask(umask)
-        os.fchmod(fd, 0o666 & ~umask)
-        with os.fdopen(fd, "wb") as f:
-            f.write(data)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    """Write ``pm`` to ``path`` atomically (:func:`lodserver.io.files.write_atomic`):
+    a temporary file in the same directory, flushed to disk, then renamed over
+    the target."""
+    write_atomic(path, encode_progressive(pm))
 
 
 def load_progressive(path) -> ProgressiveMesh:
