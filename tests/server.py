@@ -21,9 +21,11 @@ def _free_port() -> int:
 
 @contextmanager
 def server_process(data_dir, *, log: Path | None = None, warm_kernels: bool = False,
-                   timeout: float = 60):
+                   timeout: float = 60, env: dict | None = None):
     """Run ``lodserver serve`` on a free loopback port, storing in ``data_dir``;
     yield (base URL, process) once ``/healthz`` answers, stop it on exit.
+
+    ``env`` adds environment variables (``LODSERVER_*`` settings, ``TMPDIR``).
 
     Its output goes to ``log`` (a file path) or is kept for the error message.
     ``warm_kernels`` compiles the kernels at start-up, as a deployed server
@@ -35,7 +37,7 @@ def server_process(data_dir, *, log: Path | None = None, warm_kernels: bool = Fa
     command = [sys.executable, "-m", "lodserver.cli", "serve", "--data", str(data_dir),
                "--host", "127.0.0.1", "--port", str(port), "--log-level", "warning"]
     env = {**os.environ, "LODSERVER_TOKEN": "",
-           "LODSERVER_WARM_KERNELS": "true" if warm_kernels else "false"}
+           "LODSERVER_WARM_KERNELS": "true" if warm_kernels else "false", **(env or {})}
     if log is None:
         process = subprocess.Popen(command, env=env, stdout=subprocess.PIPE,
                                    stderr=subprocess.STDOUT)

@@ -3,12 +3,13 @@
 from __future__ import annotations
 
 import hmac
+from collections.abc import AsyncIterator
 from typing import Annotated
 
 from fastapi import Depends, HTTPException, Path, Request
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 
-from ..jobs import JobRunner
+from ..jobs import RETRY_AFTER, JobRunner, ParserBusy
 from ..store import ID_PATTERN, Store
 from .caching import BodyCache
 from .settings import Settings, get_settings
@@ -55,9 +56,22 @@ def require_token(settings: SettingsDep,
 TokenDep = Annotated[None, Depends(require_token)]
 
 
-async def get_upload(_: TokenDep, request: Request, settings: SettingsDep) -> Upload:
-    """The streamed upload; the token is checked first, so no body is read without it."""
-    return await receive_upload(request, limit=settings.max_upload_bytes)
+async def get_upload(_: TokenDep, request: Request, settings: SettingsDep,
+                     store: StoreDep, jobs: JobsDep) -> AsyncIterator[Upload]:
+    """The streamed upload, removed once the request is done with it.
+
+    The token is checked first, so no body is read without it; and when the
+    parse queue is already full the upload is refused (503) before its body is read.
+    """
+    if jobs.parser is not None and jobs.parser.full:
+        raise ParserBusy("the server is parsing as many uploads as it can; try again in "
+                         f"{RETRY_AFTER} seconds")
+    upload = await receive_upload(request, limit=settings.max_upload_bytes, store=store)
+    try:
+        yield upload
+    finally:
+        # synchronous: also when the request is cancelled
+        upload.discard()
 
 
 UploadDep = Annotated[Upload, Depends(get_upload)]

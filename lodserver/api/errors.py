@@ -5,20 +5,31 @@ error                      code  when
 =========================  ====  ==============================================
 UnknownMeshError           404   no mesh has the id (or it is malformed)
 AbsentError                404   the mesh has no materials, or no such image
-NotReadyError              409   the mesh is queued, building or failed
-LimitError                 413   upload larger than allowed, or too many triangles
+NotReadyError              409   the mesh is queued, building, failed, or its
+                                 artefact was found corrupt (and quarantined)
+LimitError                 413   upload larger than allowed, too many triangles,
+                                 or its parse ran out of memory
 UnsupportedUpload          415   not multipart, or a file type lodserver cannot read
 MeshError, LevelError      422   not a mesh / bad level parameters
 RequestValidationError     422   parameters of the wrong type or range
-ArtefactError, PacketError 500   a stored artefact or an encoder is broken (a bug)
+ParserBusy                 503   the parse queue is full (with Retry-After)
+OSError, SQLite errors     503   the server cannot use its storage right now
+StorageFullError           507   the disk is full (also ENOSPC, SQLITE_FULL)
+ArtefactError, PacketError 500   an encoder is broken (a bug)
+anything else              500   a bug: one generic sentence, details in the log
 =========================  ====  ==============================================
 
-Bodies are always ``{"message": "..."}``.
+Bodies are always ``{"message": "..."}``: one sentence, which never names a
+server path (the data directory and the temporary directory are scrubbed
+from every message as a last guard; the code raising names the upload instead).
 """
 
 from __future__ import annotations
 
 import logging
+import re
+import sqlite3
+import tempfile
 
 from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
@@ -27,25 +38,62 @@ from starlette.exceptions import HTTPException
 
 from ..appearance import AbsentError
 from ..codec import ArtefactError
-from ..jobs import LimitError
+from ..jobs import LimitError, ParserBusy
 from ..mesh import MeshError
 from ..packets import PacketError
-from ..store import NotReadyError, UnknownMeshError
+from ..store import NotReadyError, StorageFullError, UnknownMeshError, is_disk_full
 from .upload import UnsupportedUpload
 
 log = logging.getLogger(__name__)
 
 _STATUS = {UnknownMeshError: 404, AbsentError: 404, NotReadyError: 409, LimitError: 413,
-           UnsupportedUpload: 415, MeshError: 422}
+           UnsupportedUpload: 415, MeshError: 422, StorageFullError: 507}
+_DISK_FULL = "the server has run out of disk space; try again later"
 
 
-def _message(status: int, message: str, headers=None) -> JSONResponse:
+def scrub_paths(message: str, roots) -> str:
+    """``message`` with every path under one of ``roots`` replaced by "a server file"."""
+    for root in sorted({str(root).rstrip("/") for root in roots if root}, key=len,
+                       reverse=True):
+        if len(root) > 1:
+            message = re.sub(re.escape(root) + r"(/[^\s'\":;,()]*)?", "a server file", message)
+    return message
+
+
+def _server_paths(request: Request) -> list[str]:
+    roots = [tempfile.gettempdir()]
+    store = getattr(request.app.state, "store", None)
+    settings = getattr(request.app.state, "settings", None)
+    for root in (getattr(store, "root", None), getattr(settings, "data_dir", None)):
+        if root is not None:
+            roots += [str(root), str(root.absolute()), str(root.resolve())]
+    return roots
+
+
+def _message(status: int, message: str, headers=None, request: Request | None = None
+             ) -> JSONResponse:
+    if request is not None:
+        message = scrub_paths(message, _server_paths(request))
     return JSONResponse({"message": message}, status_code=status, headers=headers)
 
 
 async def _domain_error(request: Request, exc: Exception) -> JSONResponse:
     status = next(code for kind, code in _STATUS.items() if isinstance(exc, kind))
-    return _message(status, str(exc))
+    return _message(status, str(exc), request=request)
+
+
+async def _busy(request: Request, exc: ParserBusy) -> JSONResponse:
+    return _message(503, str(exc), {"Retry-After": str(exc.retry_after)})
+
+
+async def _storage(request: Request, exc: Exception) -> JSONResponse:
+    """An OSError or SQLite error that reached a handler: the server's state, not the client's."""
+    if is_disk_full(exc):
+        log.error("disk full on %s: %s", request.url.path, exc)
+        return _message(507, _DISK_FULL)
+    log.exception("storage error on %s", request.url.path, exc_info=exc)
+    return _message(503, "the server cannot use its storage right now; try again later",
+                    {"Retry-After": "30"})
 
 
 async def _broken(request: Request, exc: Exception) -> JSONResponse:
@@ -64,7 +112,8 @@ async def _validation_error(request: Request, exc: RequestValidationError) -> JS
 
 
 async def _http_error(request: Request, exc: HTTPException) -> JSONResponse:
-    return _message(exc.status_code, str(exc.detail), getattr(exc, "headers", None))
+    return _message(exc.status_code, str(exc.detail), getattr(exc, "headers", None),
+                    request=request)
 
 
 async def _unexpected(request: Request, exc: Exception) -> JSONResponse:
@@ -79,6 +128,9 @@ def add_error_handlers(app: FastAPI) -> None:
         app.add_exception_handler(kind, _broken)
     for kind in _STATUS:
         app.add_exception_handler(kind, _domain_error)
+    app.add_exception_handler(ParserBusy, _busy)
+    for kind in (OSError, sqlite3.Error):
+        app.add_exception_handler(kind, _storage)
     app.add_exception_handler(RequestValidationError, _validation_error)
     app.add_exception_handler(HTTPException, _http_error)
     app.add_exception_handler(Exception, _unexpected)

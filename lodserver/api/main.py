@@ -14,7 +14,7 @@ from fastapi.concurrency import run_in_threadpool
 from fastapi.middleware.cors import CORSMiddleware
 from fastapi.routing import APIRoute
 
-from ..jobs import JobRunner
+from ..jobs import JobRunner, ParsePool
 from ..store import LocalStore
 from .caching import BodyCache
 from .errors import add_error_handlers
@@ -26,7 +26,11 @@ from .settings import Settings, get_settings
 async def lifespan(app: FastAPI):
     settings: Settings = app.state.settings
     store = LocalStore(settings.data_dir, loaded_meshes=settings.loaded_meshes)
-    jobs = JobRunner(store, workers=settings.workers, max_triangles=settings.max_triangles)
+    # its worker processes start on the first parse, not here
+    parser = ParsePool(workers=settings.parse_workers, queue=settings.parse_queue,
+                       memory_bytes=settings.parse_memory_bytes)
+    jobs = JobRunner(store, workers=settings.workers, max_triangles=settings.max_triangles,
+                     parser=parser)
     jobs.start(warm=settings.warm_kernels)
     app.state.store, app.state.jobs, app.state.cache = store, jobs, BodyCache()
     try:
@@ -61,4 +65,6 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     for module in (meshes, lods, materials, health, viewer):
         app.include_router(module.router)
     viewer.mount_static(app, settings)
+    from .bodies import add_bounded_reads   # body files, heavy-request limit, security headers
+    add_bounded_reads(app, settings)
     return app

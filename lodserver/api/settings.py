@@ -14,7 +14,7 @@ from typing import Annotated
 from pydantic import Field, SecretStr, field_validator
 from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict
 
-from ..jobs import DEFAULT_MAX_TRIANGLES
+from ..jobs import DEFAULT_MAX_TRIANGLES, PARSE_MEMORY_BYTES
 from ..store import LOADED_CACHE_SIZE
 
 
@@ -35,15 +35,37 @@ class Settings(BaseSettings):
         default_factory=list, description="Origins allowed by CORS: comma-separated or a JSON "
         "list; '*' for any.")
     workers: int = Field(1, ge=1, le=64, description="Concurrent builds.")
+    parse_workers: int = Field(1, ge=1, le=64, description="Uploads parsed at once, each in "
+                               "a worker process of its own.")
+    parse_queue: int = Field(4, ge=0, le=1024, description="Uploads waiting for a parse "
+                             "worker; past that, POST /meshes answers 503 with Retry-After.")
+    parse_memory_bytes: int = Field(PARSE_MEMORY_BYTES, ge=2**30, description="Address space "
+                                    "of each parse worker, in bytes (its imports take about "
+                                    "0.5 GB); a file needing more is refused with 413.")
     loaded_meshes: int = Field(LOADED_CACHE_SIZE, ge=1, le=4096, description="Progressive "
                                "meshes kept in memory (least recently used dropped); each "
                                "holds its arrays and packet records: 183 MB for a mesh of "
                                "1.1M faces.")
     warm_kernels: bool = Field(True, description="Load the numba kernels at start-up, "
                                "before the first build needs them.")
-    static_dir: Path = Field(Path(__file__).resolve().parents[2] / "static",
-                             description="The browser viewer's files (default: the checkout's "
-                             "static/ folder).")
+    static_dir: Path = Field(default_factory=lambda: next(
+        (path for path in (Path(__file__).resolve().parents[2] / "static",   # a checkout's
+                           Path(__file__).resolve().parents[1] / "_static")  # a wheel's (setup.py)
+         if path.is_dir()), Path(__file__).resolve().parents[2] / "static"),
+        description="The browser viewer's files (default: the checkout's static/ folder, "
+        "else the copy installed with the package).")
+    heavy_requests: int = Field(2, ge=1, le=64, description="Slots for encoding responses "
+                                "that are in no cache (levels, packets of unprepared records "
+                                "or other bits: one slot; chains: all slots); the peak memory "
+                                "of reads is about this many full-detail json levels, or one "
+                                "chain.")
+    heavy_wait_seconds: float = Field(1.0, ge=0, le=60, description="How long a request "
+                                      "waits for a slot before a 503 with Retry-After.")
+    body_file_bytes: int = Field(8 * 2**20, ge=0, description="Bodies larger than this "
+                                 "are written once to a file under data_dir/bodies and "
+                                 "streamed from it; smaller ones are cached in memory.")
+    body_cache_bytes: int = Field(2 * 2**30, ge=0, description="Most bytes of body files "
+                                  "kept (least recently used removed).")
 
     @field_validator("token", mode="before")
     @classmethod

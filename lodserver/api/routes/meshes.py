@@ -25,21 +25,26 @@ _UPLOAD_BODY = {
                for name, field in MeshCreate.model_json_schema()["properties"].items()},
         }}}},
 }
-_ERRORS = {code: {"model": Message} for code in (401, 404, 409, 413, 415, 422)}
+_ERRORS = {code: {"model": Message} for code in (401, 404, 409, 413, 415, 422, 503, 507)}
 
 
 @router.post("", status_code=202, response_model=MeshCreated,
              openapi_extra={"requestBody": _UPLOAD_BODY},
-             responses={code: _ERRORS[code] for code in (401, 413, 415, 422)})
+             responses={code: _ERRORS[code] for code in (401, 413, 415, 422, 503, 507)})
 async def create_mesh(upload: UploadDep, jobs: JobsDep, response: Response) -> MeshCreated:
-    """Upload a mesh; its progressive mesh is built in the background (poll the href)."""
+    """Upload a mesh; its progressive mesh is built in the background (poll the href).
+
+    The file is parsed and checked before the answer (a parse worker process,
+    a few at a time): 503 with Retry-After when that queue is full, 507 when
+    the server has no disk space for it.
+    """
     try:
         form = MeshCreate.model_validate(upload.fields)
     except ValidationError as exc:
-        upload.path.unlink(missing_ok=True)
         raise MeshError("; ".join(f"form field {'.'.join(map(str, e['loc']))!r}: {e['msg']}"
-                                  for e in exc.errors())) from exc
-    record = await run_in_threadpool(jobs.accept, source=upload.path,
+                                  for e in exc.errors())) from None
+    # a thread waits for the parse worker (and the store's rename and row)
+    record = await run_in_threadpool(jobs.accept, source=upload.path, root=upload.folder,
                                      name=form.name or upload.filename,
                                      file_type=upload.file_type, options=form.build_options())
     href = f"/meshes/{record.id}"
