@@ -3,51 +3,24 @@
 from __future__ import annotations
 
 from datetime import datetime, timezone
-from typing import Literal
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, Field
 
-from ..build import attribute_weights
+from ..options import BuildOptions
 from ..store import MeshRecord, Status
 
 
-class MeshCreate(BaseModel):
-    """The form fields of ``POST /meshes`` beside the file; build options of ``build.build``."""
-
-    model_config = ConfigDict(extra="forbid")
+class MeshCreate(BuildOptions):
+    """The form fields of ``POST /meshes`` beside the file: the build options
+    (``options.BuildOptions``, the same names, defaults and ranges as the
+    command line's) and a name."""
 
     name: str | None = Field(None, min_length=1, max_length=200,
                              description="A label; defaults to the uploaded file's name.")
-    boundary_weight: float = Field(1.0, ge=0, le=1e6, allow_inf_nan=False,
-                                   description="Weight of the planes keeping open borders in "
-                                   "place; 0 lets borders shrink.")
-    min_vertices: int = Field(0, ge=0, le=2**31 - 1,
-                              description="Stop decimating at this many vertices.")
-    lock_border: bool = Field(False, description="Never move or remove border vertices.")
-    pair_threshold: str = Field("0", pattern=r"^(\d+\.?\d*|\.\d+)(e[-+]?\d+)?%?$",
-                                description="Also contract vertices closer than this that share "
-                                "no edge (joins parts): mesh units, or a percentage of the "
-                                "bounding-box diagonal such as '1%'. 0: edges only.")
-
-    method: Literal["qem", "cluster"] = Field(
-        "qem", description="qem: quadric edge collapse (best quality, keeps topology and "
-        "attributes); cluster: octree vertex clustering (faster, joins parts, geometry only).")
-    preserve_volume: bool = Field(True, description="Place collapses so the enclosed volume "
-                                  "is kept (thin parts do not shrink away).")
-    attributes: bool = Field(True, description="Simplify normals, UVs and colours with the "
-                             "geometry (wedges, seams kept); false: positions only.")
-    normal_weight: float | None = Field(None, gt=0, le=1e6, allow_inf_nan=False,
-                                        description="Weight of normal error (default 0.003).")
-    uv_weight: float | None = Field(None, gt=0, le=1e6, allow_inf_nan=False,
-                                    description="Weight of UV error (default 0.3).")
-    color_weight: float | None = Field(None, gt=0, le=1e6, allow_inf_nan=False,
-                                       description="Weight of vertex colour error (default 0.3).")
 
     def build_options(self) -> dict:
-        options = self.model_dump(exclude={"name", "normal_weight", "uv_weight", "color_weight"})
-        options["attribute_weights"] = attribute_weights(
-            normal=self.normal_weight, uv=self.uv_weight, color=self.color_weight)
-        return options
+        """The options to store with the mesh and pass to ``build.build``, by name."""
+        return self.model_dump(exclude={"name"})
 
 
 class MeshCreated(BaseModel):

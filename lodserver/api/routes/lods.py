@@ -1,7 +1,14 @@
-"""Levels of detail and the vsplit packets between them (immutable, cacheable)."""
+"""Levels of detail and the vsplit packets between them (immutable, cacheable).
+
+Bodies come from ``Bodies`` (``api/bodies.py``): from memory or a body file when
+encoded before, else encoded under the heavy-request limit (503 when it is
+taken), large ones written to a body file and streamed from it.
+"""
 
 from __future__ import annotations
 
+import threading
+import weakref
 from typing import Annotated, Literal
 
 from fastapi import APIRouter, Query, Request, Response
@@ -10,13 +17,15 @@ from ...export import FORMATS, LevelError, check_level, checked_bits, encode_lev
 from ...gltf import encode_lod_chain
 from ...packets import MAX_BITS, MIN_BITS, packet_between, prepare_records
 from ...pipeline import DEFAULT_LODS, lod_chain, parse_lods
+from ...progressive import ProgressiveMesh
+from ..bodies import LIGHT_FACES, BodiesDep
 from ..caching import etag_for, immutable, is_fresh
-from ..deps import CacheDep, MeshId, StoreDep
+from ..deps import MeshId, StoreDep
 from ..models import Message
 
 router = APIRouter(prefix="/meshes", tags=["lods"])
 
-_ERRORS = {code: {"model": Message} for code in (404, 409, 422)}
+_ERRORS = {code: {"model": Message} for code in (404, 409, 422, 503)}
 _COUNT = Query(ge=1, le=2**31 - 1)
 _LEVEL = {"ge": 0, "le": 2**31 - 1,
           "description": "A level: a vertex count between the mesh's base_vertices and vertices."}
@@ -27,7 +36,7 @@ Bits = Annotated[int | None, Query(ge=MIN_BITS, le=MAX_BITS, description="Quanti
 
 @router.get("/{mesh_id}/lod", responses={**_ERRORS, 200: {"content": {
     media: {} for media in FORMATS.values()}, "description": "The level in the asked format."}})
-def get_lod(mesh_id: MeshId, store: StoreDep, cache: CacheDep, request: Request,
+def get_lod(mesh_id: MeshId, store: StoreDep, bodies: BodiesDep, request: Request,
             vertices: Annotated[int | None, _COUNT] = None,
             faces: Annotated[int | None, _COUNT] = None,
             ratio: Annotated[float | None, Query(gt=0, le=1)] = None,
@@ -48,19 +57,24 @@ def get_lod(mesh_id: MeshId, store: StoreDep, cache: CacheDep, request: Request,
     if is_fresh(request, etag):
         return immutable(None, media_type=FORMATS[format], etag=etag)
     href = f"/meshes/{mesh_id}/materials"
-    body = cache.get_or_make(etag, lambda: encode_level(pm, level, file_type=format, bits=bits,
-                                                        materials_href=href, copy=False))
-    return immutable(body, media_type=FORMATS[format], etag=etag,
-                     filename=None if format == "json" else f"{mesh_id}-{level}.{format}")
+    return bodies.respond(etag, lambda: encode_level(pm, level, file_type=format, bits=bits,
+                                                     materials_href=href, copy=False),
+                          media_type=FORMATS[format],
+                          filename=None if format == "json" else f"{mesh_id}-{level}.{format}",
+                          weight=int(pm.faces_at_level(level) > LIGHT_FACES))
 
 
 @router.get("/{mesh_id}/splits", responses={**_ERRORS, 200: {"content": {
     "application/octet-stream": {}}, "description": "The vsplit packet (docs/packets.md)."}})
-def get_splits(mesh_id: MeshId, store: StoreDep, cache: CacheDep, request: Request,
+def get_splits(mesh_id: MeshId, store: StoreDep, bodies: BodiesDep, request: Request,
                start: Annotated[int, Query(alias="from", **_LEVEL)],
                to: Annotated[int, Query(**_LEVEL)], bits: Bits = None) -> Response:
     """The packet taking a client at level ``from`` to level ``to``: vertex splits
-    forward, edge collapses backward."""
+    forward, edge collapses backward.
+
+    At the default ``bits`` a packet is cut from the mesh's records, encoded once
+    per direction; other ``bits`` are encoded for the packet (under the heavy
+    limit), and each such packet once: its body is cached like a level's."""
     pm = store.load(mesh_id=mesh_id)
     start = check_level(pm, start, name="from")
     to = check_level(pm, to, name="to")
@@ -68,8 +82,34 @@ def get_splits(mesh_id: MeshId, store: StoreDep, cache: CacheDep, request: Reque
     etag = etag_for(store.get(mesh_id=mesh_id).digest, "splits", start, to, bits)
     if is_fresh(request, etag):
         return immutable(None, media_type="application/octet-stream", etag=etag)
-    body = cache.get_or_make(etag, lambda: packet_between(pm, start, to, bits=bits))
-    return immutable(body, media_type="application/octet-stream", etag=etag)
+    forward = to > start
+    light = start == to or (bits is None and _records_ready(pm, forward))
+
+    def make():
+        body = packet_between(pm, start, to, bits=bits)
+        if bits is None and start != to:
+            _mark_records_ready(pm, forward)
+        return body
+
+    return bodies.respond(etag, make, media_type="application/octet-stream",
+                          weight=0 if light else 1)
+
+
+# The directions (forward: splits) whose records packet_between has encoded, per
+# loaded mesh: the records live as long as the mesh object, like this mark. Until
+# then a packet request encodes every record of its direction, which is heavy.
+_ready: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+_ready_lock = threading.Lock()
+
+
+def _records_ready(pm: ProgressiveMesh, forward: bool) -> bool:
+    with _ready_lock:
+        return forward in _ready.get(pm, ())
+
+
+def _mark_records_ready(pm: ProgressiveMesh, forward: bool) -> None:
+    with _ready_lock:
+        _ready.setdefault(pm, set()).add(forward)
 
 
 MAX_CHAIN_LEVELS = 16
@@ -77,7 +117,7 @@ MAX_CHAIN_LEVELS = 16
 
 @router.get("/{mesh_id}/chain", responses={**_ERRORS, 200: {"content": {
     FORMATS["glb"]: {}}, "description": "One GLB: the levels as nodes linked by MSFT_lod."}})
-def get_chain(mesh_id: MeshId, store: StoreDep, cache: CacheDep, request: Request,
+def get_chain(mesh_id: MeshId, store: StoreDep, bodies: BodiesDep, request: Request,
               lods: Annotated[str, Query(max_length=200, description=(
                   "Face ratios of the levels, finest first, comma-separated, each in (0, 1] "
                   "and decreasing."))] = ",".join(map(str, DEFAULT_LODS)),
@@ -86,7 +126,12 @@ def get_chain(mesh_id: MeshId, store: StoreDep, cache: CacheDep, request: Reques
                   "by vertex clustering (positions only)."))] = "none") -> Response:
     """A chain of levels of detail in one GLB, as ``lodserver export`` writes it:
     node 0 the finest level, ``MSFT_lod`` naming the others, with
-    ``MSFT_screencoverage`` hints."""
+    ``MSFT_screencoverage`` hints.
+
+    The encoder holds the whole chain in memory while it builds it (about 700 MB
+    at peak for 16 levels of a 1.1M-face mesh), so an uncached chain of more than
+    ``LIGHT_FACES`` faces takes every heavy slot; it is then written to a body
+    file and streamed from it."""
     pm = store.load(mesh_id=mesh_id)
     ratios = parse_lods(lods)
     if len(ratios) > MAX_CHAIN_LEVELS:
@@ -94,7 +139,10 @@ def get_chain(mesh_id: MeshId, store: StoreDep, cache: CacheDep, request: Reques
     etag = etag_for(store.get(mesh_id=mesh_id).digest, "chain", ",".join(map(repr, ratios)), reach)
     if is_fresh(request, etag):
         return immutable(None, media_type=FORMATS["glb"], etag=etag)
-    body = cache.get_or_make(etag, lambda: encode_lod_chain(*lod_chain(pm, ratios,
-                                                                       reach=reach)[:2]))
-    return immutable(body, media_type=FORMATS["glb"], etag=etag,
-                     filename=f"{mesh_id}-lods.glb")
+    # clustering (reach) works on the full mesh: never light
+    faces = sum(pm.faces_at_level(pm.level_for(ratio=ratio)) for ratio in ratios)
+    return bodies.respond(etag, lambda: encode_lod_chain(*lod_chain(pm, ratios,
+                                                                    reach=reach)[:2]),
+                          media_type=FORMATS["glb"], filename=f"{mesh_id}-lods.glb",
+                          weight=0 if reach == "none" and faces <= LIGHT_FACES
+                          else bodies.heavy.slots)

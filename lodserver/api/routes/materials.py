@@ -7,7 +7,7 @@ from typing import Annotated
 import orjson
 from fastapi import APIRouter, Path, Request, Response
 
-from ...appearance import image_of, materials_document
+from ...appearance import AbsentError, image_of, materials_document
 from ..caching import etag_for, immutable, is_fresh
 from ..deps import MeshId, StoreDep
 from ..models import Message
@@ -15,6 +15,10 @@ from ..models import Message
 router = APIRouter(prefix="/meshes", tags=["materials"])
 
 _ERRORS = {code: {"model": Message} for code in (404, 409)}
+# The only media types an image is served with. The loaders already refuse other
+# images; this keeps a stored record saying text/html (an artefact written before
+# that check, say) from ever reaching a browser as that type.
+IMAGE_TYPES = ("image/png", "image/jpeg", "image/webp", "image/ktx2")
 
 
 @router.get("/{mesh_id}/materials", responses={**_ERRORS, 200: {"content": {
@@ -32,12 +36,16 @@ def get_materials(mesh_id: MeshId, store: StoreDep, request: Request) -> Respons
 
 
 @router.get("/{mesh_id}/images/{index}", responses={**_ERRORS, 200: {"content": {
-    "image/png": {}, "image/jpeg": {}}, "description": "The image's bytes, as uploaded."}})
+    media: {} for media in IMAGE_TYPES}, "description": "The image's bytes, as uploaded."}})
 def get_image(mesh_id: MeshId, store: StoreDep, request: Request,
               index: Annotated[int, Path(ge=0, le=2**31 - 1)]) -> Response:
-    """Image ``index`` of the mesh's materials, byte for byte, with its media type."""
+    """Image ``index`` of the mesh's materials, byte for byte, with its media type
+    (PNG, JPEG, WebP or KTX2; 404 for any other)."""
     pm = store.load(mesh_id=mesh_id)
     data, media = image_of(pm, index)
+    if media not in IMAGE_TYPES:
+        raise AbsentError(f"image {index} of this mesh is not a PNG, JPEG, WebP or KTX2 "
+                          "image, so it is not served")
     etag = etag_for(store.get(mesh_id=mesh_id).digest, "image", index)
     if is_fresh(request, etag):
         return immutable(None, media_type=media, etag=etag)

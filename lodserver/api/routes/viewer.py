@@ -3,16 +3,21 @@
 
 The files are found in ``Settings.static_dir`` (``LODSERVER_STATIC_DIR``; by
 default the checkout's ``static/``). Without them the API still runs and
-``/viewer`` answers 404 with where it looked.
+``/viewer`` answers 404 naming the setting (the folder it looked in goes to the
+log, not to the client).
 """
 
 from __future__ import annotations
+
+import logging
 
 from fastapi import APIRouter, FastAPI, HTTPException, Request
 from fastapi.responses import RedirectResponse
 from fastapi.staticfiles import StaticFiles
 
 from ..deps import SettingsDep
+
+log = logging.getLogger(__name__)
 
 router = APIRouter(tags=["viewer"], include_in_schema=False)
 
@@ -35,8 +40,10 @@ def root(request: Request) -> RedirectResponse:
 def viewer(request: Request, settings: SettingsDep) -> RedirectResponse:
     """``/viewer`` -> ``/viewer/``: the page's relative URLs resolve under the slash."""
     if not (settings.static_dir / "index.html").is_file():
-        raise HTTPException(404, f"the viewer's files are not installed: no index.html in "
-                            f"{settings.static_dir} (set LODSERVER_STATIC_DIR)")
+        log.warning("the viewer's files are not installed: no index.html in %s",
+                    settings.static_dir)
+        raise HTTPException(404, "the viewer's files are not installed on this server; "
+                            "LODSERVER_STATIC_DIR must name the folder holding its index.html")
     return _to_viewer(request)
 
 
