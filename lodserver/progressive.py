@@ -44,19 +44,24 @@ Face materials ride on the faces (``face_material``, renumbered with them).
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
 from numba import njit
 
-from .decimate import CollapseLog
 from .mesh import Attributes, Materials, Mesh
+
+if TYPE_CHECKING:
+    # only for annotations: a progressive mesh reads a collapse log's arrays, and
+    # need not import the simplifier to do so
+    from .decimate import CollapseLog
 
 WEDGE_ARRAYS = ("wedge_values", "corner_wedges", "wedge_parent", "wedge_coarse_value",
                 "wedge_counts")
 
 
 @njit(cache=True, nogil=True, inline="always")
-def _ancestor_below(parent, x, level):
+def ancestor_below(parent, x, level):
     """The vertex a full-detail corner ``x`` reads at ``level``: its first
     ancestor in the vertex hierarchy below ``level``."""
     while x >= level:
@@ -142,7 +147,7 @@ def _apply_wedge_splits(values, corners, level, target, base, wedge_base, wedge_
                 values[x, k] = new_value[i, k]
         for k in range(moved_offsets[j], moved_offsets[j + 1]):
             c = moved_corners[k]
-            corners[c // 3, c % 3] = _ancestor_below(wedge_parent, full_corners[c // 3, c % 3], top)
+            corners[c // 3, c % 3] = ancestor_below(wedge_parent, full_corners[c // 3, c % 3], top)
         for f in range(face_counts[j], face_counts[j + 1]):
             for k in range(3):
                 corners[f, k] = birth_corners[f, k]
@@ -162,7 +167,7 @@ def _apply_wedge_collapses(values, corners, level, target, base, wedge_base, wed
                 values[w, k] = coarse_value[x - wedge_base, k]
         for k in range(moved_offsets[j], moved_offsets[j + 1]):
             c = moved_corners[k]
-            corners[c // 3, c % 3] = _ancestor_below(wedge_parent, full_corners[c // 3, c % 3],
+            corners[c // 3, c % 3] = ancestor_below(wedge_parent, full_corners[c // 3, c % 3],
                                                      bottom)
 
 
@@ -325,13 +330,14 @@ class ProgressiveMesh:
         return range(self.base_vertices, self.vertex_count + 1)
 
     def faces_at_level(self, level: int) -> int:
-        return int(self.face_counts[self._check_level(level) - self.base_vertices])
+        return int(self.face_counts[self.check_level(level) - self.base_vertices])
 
     def error_at_level(self, level: int) -> float:
         """Largest collapse error applied to reach ``level``; 0 at full detail."""
-        return float(self.level_error[self._check_level(level) - self.base_vertices])
+        return float(self.level_error[self.check_level(level) - self.base_vertices])
 
-    def _check_level(self, level) -> int:
+    def check_level(self, level) -> int:
+        """``level`` as an int if it is one of :attr:`levels`, else ValueError."""
         level = int(level)
         if not self.base_vertices <= level <= self.vertex_count:
             raise ValueError(f"level {level} is outside [{self.base_vertices}, {self.vertex_count}]")
@@ -381,9 +387,11 @@ class ProgressiveMesh:
         elif criterion:
             raise ValueError("give a level or one criterion, not both")
         positions, faces = self.arrays_at(level)
-        return self._mesh(level, positions, faces, *self.wedges_at(level))
+        return self.mesh_of(positions, faces, *self.wedges_at(level))
 
-    def _mesh(self, level, positions, faces, values=None, corners=None) -> Mesh:
+    def mesh_of(self, positions, faces, values=None, corners=None) -> Mesh:
+        """A :class:`Mesh` of one level's arrays (as ``arrays_at`` and ``wedges_at``
+        give them), with this mesh's attribute layout, face materials and materials."""
         attributes = None
         if self.has_attributes:
             attributes = Attributes(self.attribute_layout, values, corners)
@@ -397,7 +405,7 @@ class ProgressiveMesh:
         without attributes."""
         if not self.has_attributes:
             return None, None
-        level = self._check_level(level)
+        level = self.check_level(level)
         count = int(self.wedge_counts[level - self.base_vertices])
         values = np.empty((count, self.wedge_values.shape[1]), dtype=np.float64)
         _positions_at(self.wedge_values, self.wedge_coarse_value, self.wedge_parent,
@@ -408,7 +416,7 @@ class ProgressiveMesh:
 
     def arrays_at(self, level: int):
         """(positions (v, 3) float64, faces (f, 3) int64) at ``level``, freshly allocated."""
-        level = self._check_level(level)
+        level = self.check_level(level)
         positions = np.empty((level, 3), dtype=np.float64)
         _positions_at(self.positions, self.coarse_position, self.parent, self.base_vertices,
                       level, positions)
@@ -419,7 +427,7 @@ class ProgressiveMesh:
     def write_level(self, level: int, positions: np.ndarray, faces: np.ndarray) -> None:
         """Write the arrays of ``level`` into ``positions`` (level, 3) and ``faces``
         (faces_at_level(level), 3), of any numeric dtype (cast on the way in)."""
-        level = self._check_level(level)
+        level = self.check_level(level)
         _positions_at(self.positions, self.coarse_position, self.parent, self.base_vertices,
                       level, positions)
         _faces_at(self.faces, self.parent, len(faces), level, faces)
@@ -461,7 +469,7 @@ def _faces_at_levels(full_faces, parent, start, levels, out):
     for i in range(levels.shape[0]):
         f = start + i
         for k in range(3):
-            out[f, k] = _ancestor_below(parent, full_faces[f, k], levels[i])
+            out[f, k] = ancestor_below(parent, full_faces[f, k], levels[i])
 
 
 def _hierarchy(parent, n0, full, coarse):
@@ -523,7 +531,7 @@ class Cursor:
 
     def __init__(self, pm: ProgressiveMesh, level: int):
         self.pm = pm
-        level = pm._check_level(level)
+        level = pm.check_level(level)
         self.positions = np.empty_like(pm.positions)
         self.faces = np.empty_like(pm.faces)
         p, f = pm.arrays_at(level)
@@ -540,7 +548,7 @@ class Cursor:
     def seek(self, level: int) -> Cursor:
         """Move to ``level`` by replaying splits (up) or collapses (down)."""
         pm = self.pm
-        level = pm._check_level(level)
+        level = pm.check_level(level)
         if level > self.level:
             _apply_splits(self.positions, self.faces, self.level, level, pm.base_vertices,
                           pm.parent, pm.fine_position, pm.new_position, pm.face_counts,
@@ -577,7 +585,7 @@ class Cursor:
         return (self.values[:count].copy(), self.corners[:pm.faces_at_level(self.level)].copy())
 
     def mesh(self) -> Mesh:
-        return self.pm._mesh(self.level, *self.arrays(), *self.wedges())
+        return self.pm.mesh_of(*self.arrays(), *self.wedges())
 
 
 def _reverse_blocks(values, offsets):

@@ -1,13 +1,15 @@
 """The original pure-Python packet encoder, kept as the byte-for-byte reference.
 
-This is ``lodserver/packets.py``'s encoder as it was before its hot loops were
-compiled with numba (commit c8f1e29): per-vertex corner *sets*, dict lookups
-for neighbour ranks and the fan walk, and ``bytearray`` streams. It is slow
+This is the encoder of ``lodserver/packets`` as it was before its hot loops were
+compiled with numba (commit c8f1e29, when the package was one module):
+per-vertex corner *sets*, dict lookups for neighbour ranks and the fan walk,
+and ``bytearray`` streams. It is slow
 (seconds for the Stanford bunny) and obviously right; ``tests/test_packets.py``
 checks that the compiled encoder produces exactly these bytes. The corner
-sets (``_Working``) and the fan prediction are the reference decoder's own,
-imported from ``lodserver.packets``: a packet must be decoded the way it was
-predicted when encoded.
+sets (``Working``), the fan prediction and the wedge predictions are the
+reference decoder's own public functions, imported from
+``lodserver.packets.reference``: a packet must be decoded the way it was
+predicted when encoded. Neither file uses the other's private helpers.
 
 Wedges (packet version 2, meshes with attributes) were written here first, in
 the same style, then compiled: per record, the new or removed wedges, their
@@ -17,14 +19,14 @@ and each changed corner's wedge as a code (docs/packets.md).
 
 from __future__ import annotations
 
-from lodserver.packets import (
-    _FAN_LISTED,
-    _FAN_PREDICTED,
-    _IS_NEW,
-    _IS_OTHER,
-    _IS_VS,
+from lodserver.packets.format import (
     COUNT,
     FAN,
+    FAN_LISTED,
+    FAN_PREDICTED,
+    IS_NEW,
+    IS_OTHER,
+    IS_VS,
     MASK,
     OTHER,
     PATTERN,
@@ -34,20 +36,20 @@ from lodserver.packets import (
     WEDGE_COUNT,
     WEDGE_PARENT,
     PacketError,
-    _collapse_ratio,
-    _corner_candidates,
-    _moved_prediction,
-    _predict_fan,
-    _put_varint,
-    _scaled,
-    _split_guesses,
-    _Working,
-    attribute_grids_of,
     deflate_body,
-    grid_of,
     pack_header,
-    quantize_wedges,
+    put_varint,
     stream_names,
+)
+from lodserver.packets.grids import attribute_grids_of, grid_of, quantize_wedges
+from lodserver.packets.reference import (
+    Working,
+    collapse_ratio,
+    corner_candidates,
+    moved_prediction,
+    predict_fan,
+    scaled,
+    split_guesses,
 )
 from lodserver.progressive import ProgressiveMesh
 
@@ -77,12 +79,12 @@ def encode_packet(pm: ProgressiveMesh, start: int, stop: int, *,
     bytes
         Header and deflated streams as documented in ``docs/packets.md``.
     """
-    start, stop = pm._check_level(start), pm._check_level(stop)
+    start, stop = pm.check_level(start), pm.check_level(stop)
     grid = grid_of(pm, bits=bits)
     grids = attribute_grids_of(pm, attribute_bits=attribute_bits)
     has_materials = pm.face_material is not None
     positions, faces = pm.arrays_at(start)
-    state = _Working(grid.quantize(positions), faces, max(start, stop),
+    state = Working(grid.quantize(positions), faces, max(start, stop),
                      max(pm.faces_at_level(start), pm.faces_at_level(stop)))
     values, corners = pm.wedges_at(start)
     state.attach_wedges(None if values is None else quantize_wedges(grids, values), corners,
@@ -94,7 +96,7 @@ def encode_packet(pm: ProgressiveMesh, start: int, stop: int, *,
         _encode_collapses(pm, state, start, stop, grid, grids, streams)
     body = bytearray()
     for stream in streams:
-        _put_varint(body, len(stream))
+        put_varint(body, len(stream))
         body += stream
     header = pack_header(grid, grids, has_materials, start, stop, pm.faces_at_level(start),
                          pm.faces_at_level(stop), len(body))
@@ -118,28 +120,28 @@ def _encode_splits(pm, state, start, stop, grid, grids, streams):
     for t in range(start, stop):
         j = t - n0
         s = int(pm.parent[t])
-        _put_varint(streams[VERTEX], t - 1 - s)
+        put_varint(streams[VERTEX], t - 1 - s)
         held = sorted(state.corners.of(s))
         around = state.neighbours(s)
 
         first, last = int(pm.face_counts[j]), int(pm.face_counts[j + 1])
-        _put_varint(streams[COUNT], last - first)
+        put_varint(streams[COUNT], last - first)
         rank = {v: i for i, v in enumerate(around)}
         added = pm.birth_faces[first:last].tolist()
         for corners in added:
             pattern = 0
             for v in corners:
-                kind = _IS_VS if v == s else _IS_NEW if v == t else _IS_OTHER
+                kind = IS_VS if v == s else IS_NEW if v == t else IS_OTHER
                 pattern = 3 * pattern + kind
-                if kind == _IS_OTHER:
-                    _put_varint(streams[OTHER], rank[v] if v in rank else len(around) + v)
+                if kind == IS_OTHER:
+                    put_varint(streams[OTHER], rank[v] if v in rank else len(around) + v)
             streams[PATTERN].append(pattern)
 
         moved = pm.moved_corners[pm.moved_offsets[j]:pm.moved_offsets[j + 1]].tolist()
-        if _predict_fan(state, s, t, added) == set(moved):
-            streams[FAN].append(_FAN_PREDICTED)
+        if predict_fan(state, s, t, added) == set(moved):
+            streams[FAN].append(FAN_PREDICTED)
         else:
-            streams[FAN].append(_FAN_LISTED)
+            streams[FAN].append(FAN_LISTED)
             rank = {c: i for i, c in enumerate(held)}
             mask = bytearray((len(held) + 7) // 8)
             for c in moved:
@@ -155,10 +157,10 @@ def _encode_splits(pm, state, start, stop, grid, grids, streams):
 
         coarse = state.positions[s].copy()
         for d in (fine[j - (start - n0)] - coarse).tolist():
-            _put_varint(streams[POSITION], _zigzag(d))
+            put_varint(streams[POSITION], _zigzag(d))
         # The collapse placed vs between the two, so new ~ 2 * coarse - fine.
         for d in (new[j - (start - n0)] + fine[j - (start - n0)] - 2 * coarse).tolist():
-            _put_varint(streams[POSITION], _zigzag(d))
+            put_varint(streams[POSITION], _zigzag(d))
         state.positions[s] = fine[j - (start - n0)]
         state.positions[t] = new[j - (start - n0)]
         if grids:
@@ -167,7 +169,7 @@ def _encode_splits(pm, state, start, stop, grid, grids, streams):
                                  wedge_fine, wedge_new, grids, streams)
         if pm.face_material is not None:
             for f in range(first, last):
-                _put_varint(streams[-1], int(pm.face_material[f]) + 1)
+                put_varint(streams[-1], int(pm.face_material[f]) + 1)
                 state.face_material[f] = pm.face_material[f]
 
 
@@ -180,9 +182,9 @@ def _encode_collapses(pm, state, start, stop, grid, grids, streams):
         s = int(pm.parent[t])
         around = state.neighbours(t)
         code = around.index(s) if s in around else len(around) + s
-        _put_varint(streams[VERTEX], code)
+        put_varint(streams[VERTEX], code)
         first, last = int(pm.face_counts[j]), int(pm.face_counts[j + 1])
-        _put_varint(streams[COUNT], last - first)
+        put_varint(streams[COUNT], last - first)
         for _ in range(last - first):
             state.pop_face()
         for c in list(state.corners.of(t)):
@@ -190,9 +192,9 @@ def _encode_collapses(pm, state, start, stop, grid, grids, streams):
         target = coarse[j - (stop - n0)]
         middle = (state.positions[s] + state.positions[t]) >> 1
         for d in (target - middle).tolist():
-            _put_varint(streams[POSITION], _zigzag(d))
+            put_varint(streams[POSITION], _zigzag(d))
         if grids:
-            ratio = _collapse_ratio(state.positions[s].tolist(), state.positions[t].tolist(),
+            ratio = collapse_ratio(state.positions[s].tolist(), state.positions[t].tolist(),
                                     target.tolist())
         state.positions[s] = target
         if grids:
@@ -205,15 +207,15 @@ def _encode_split_wedges(pm, state, s, t, held, moved, first, geometry, fine, ne
     of every moved corner and every corner of its new faces."""
     n0, base = pm.base_vertices, int(pm.wedge_counts[0])
     bottom, top = int(pm.wedge_counts[t - n0]), int(pm.wedge_counts[t - n0 + 1])
-    _put_varint(streams[WEDGE_COUNT], top - bottom)
+    put_varint(streams[WEDGE_COUNT], top - bottom)
     candidates = state.wedges_held(held)
     parents = []
     for x in range(bottom, top):
         p = int(pm.wedge_parent[x])
-        _put_varint(streams[WEDGE_PARENT],
+        put_varint(streams[WEDGE_PARENT],
                     candidates.index(p) if p in candidates else len(candidates) + p)
         parents.append(p)
-        guess_fine, guess_new = _split_guesses(state, s, held, p, geometry, grids)
+        guess_fine, guess_new = split_guesses(state, s, held, p, geometry, grids)
         f, n, at = fine[x - base].tolist(), new[x - base].tolist(), 0
         for i, g in enumerate(grids):
             columns = range(at, at + g.components)
@@ -221,7 +223,7 @@ def _encode_split_wedges(pm, state, s, t, held, moved, first, geometry, fine, ne
             residuals = [f[j] - guess_fine[j] for j in columns]
             residuals += [n[j] - guess_new(j, f[j]) for j in columns]
             for d in residuals:
-                _put_varint(streams[WEDGE_CORNER + 1 + i], _zigzag(d))
+                put_varint(streams[WEDGE_CORNER + 1 + i], _zigzag(d))
         state.wedge_values[p] = fine[x - base].tolist()
         state.wedge_values.append(new[x - base].tolist())
     m = top - bottom
@@ -230,7 +232,7 @@ def _encode_split_wedges(pm, state, s, t, held, moved, first, geometry, fine, ne
             continue
         y = state.wedge_of(c)
         w = _ancestor_below(pm.wedge_parent, int(pm.corner_wedges[c // 3, c % 3]), top)
-        if w == _moved_prediction(parents, bottom, y):
+        if w == moved_prediction(parents, bottom, y):
             code = 0
         elif bottom <= w < top:
             code = 1 + w - bottom
@@ -238,13 +240,13 @@ def _encode_split_wedges(pm, state, s, t, held, moved, first, geometry, fine, ne
             code = m + 1
         else:
             code = m + 2 + w
-        _put_varint(streams[WEDGE_CORNER], code)
+        put_varint(streams[WEDGE_CORNER], code)
         state.set_wedge(c, w)
     for f in range(first, state.face_count):
         for k in range(3):
             w = int(pm.birth_corners[f, k])
-            candidates = _corner_candidates(state, int(state.faces[f, k]), 3 * first, bottom, top)
-            _put_varint(streams[WEDGE_CORNER],
+            candidates = corner_candidates(state, int(state.faces[f, k]), 3 * first, bottom, top)
+            put_varint(streams[WEDGE_CORNER],
                         candidates.index(w) if w in candidates else len(candidates) + w)
             state.set_wedge(3 * f + k, w)
 
@@ -254,19 +256,19 @@ def _encode_collapse_wedges(pm, state, t, s, ratio, coarse, grids, streams):
     its parent and the parent's merged value."""
     n0, base = pm.base_vertices, int(pm.wedge_counts[0])
     bottom, top = int(pm.wedge_counts[t - n0]), int(pm.wedge_counts[t - n0 + 1])
-    _put_varint(streams[WEDGE_COUNT], top - bottom)
+    put_varint(streams[WEDGE_COUNT], top - bottom)
     candidates = [w for w in state.wedges_held(state.corners.of(s)) if w < bottom]
     for x in range(top - 1, bottom - 1, -1):
         p = int(pm.wedge_parent[x])
-        _put_varint(streams[WEDGE_PARENT],
+        put_varint(streams[WEDGE_PARENT],
                     candidates.index(p) if p in candidates else len(candidates) + p)
         merged = coarse[x - base].tolist()
-        predicted = [a + _scaled(ratio, b - a)
+        predicted = [a + scaled(ratio, b - a)
                      for a, b in zip(state.wedge_values[p], state.wedge_values[x])]
         at = 0
         for i, g in enumerate(grids):
             for d, e in zip(merged[at:at + g.components], predicted[at:at + g.components]):
-                _put_varint(streams[WEDGE_CORNER + 1 + i], _zigzag(d - e))
+                put_varint(streams[WEDGE_CORNER + 1 + i], _zigzag(d - e))
             at += g.components
         state.wedge_values[p] = merged
     for c in state.corners.of(s):

@@ -2,6 +2,7 @@
 
 import struct
 import threading
+import time
 import zlib
 from dataclasses import replace
 from functools import cache
@@ -23,8 +24,6 @@ from lodserver.packets import (
     MIN_BITS,
     WEDGE_CORNER,
     PacketError,
-    _put_varint,
-    _Reader,
     apply_packet,
     attribute_grids_of,
     decode_packet,
@@ -34,9 +33,9 @@ from lodserver.packets import (
     packet_between,
     quantized_level,
 )
-from lodserver.packets import (
-    _zz as _zigzag,  # the compiled zigzag the encoder uses
-)
+from lodserver.packets import corners, encode
+from lodserver.packets.corners import zz as _zigzag  # the compiled zigzag the encoder uses
+from lodserver.packets.format import Reader, put_varint
 from lodserver.progressive import ProgressiveMesh
 
 from . import naive_packets
@@ -76,16 +75,16 @@ def _with_materials():
 def test_varints_and_zigzag_by_hand():
     out = bytearray()
     for value in (0, 1, 127, 128, 300, 2**35):
-        _put_varint(out, value)
+        put_varint(out, value)
     assert bytes(out[:5]) == b"\x00\x01\x7f\x80\x01"
     assert bytes(out[5:7]) == b"\xac\x02"  # 300 = 0b10_0101100
-    reader = _Reader(bytes(out), "test")
+    reader = Reader(bytes(out), "test")
     assert [reader.varint() for _ in range(6)] == [0, 1, 127, 128, 300, 2**35]
     assert [_zigzag(v) for v in (0, -1, 1, -2, 2)] == [0, 1, 2, 3, 4]
     out = bytearray()
     for v in (0, -1, 1, -2, 2, -1000, 1000):
-        _put_varint(out, _zigzag(v))
-    reader = _Reader(bytes(out), "test")
+        put_varint(out, _zigzag(v))
+    reader = Reader(bytes(out), "test")
     assert [reader.signed() for _ in range(7)] == [0, -1, 1, -2, 2, -1000, 1000]
 
 
@@ -148,7 +147,7 @@ def test_packets_with_uvs_stay_compact_on_spot():
     assert len(encode_packet(pm, n, n0)) / (n - n0) < 5.5
     # nearly every changed corner's wedge is the first candidate (code 0); few fall
     # back to a wedge id (a wedge no corner of its vertex holds at that level)
-    reader, codes = _Reader(packet.streams[WEDGE_CORNER], "wedge_corner"), []
+    reader, codes = Reader(packet.streams[WEDGE_CORNER], "wedge_corner"), []
     while not reader.done():
         codes.append(reader.varint())
     codes = np.array(codes)
@@ -406,7 +405,7 @@ def _chunked(name):
     whose records are pre-deflated in chunks of 16."""
     pm = build(_with_materials()) if name == "materials" else build(input_mesh(name))
     for forward in (True, False):
-        packets._records.setdefault(pm, {})[forward] = [
+        packets.record_cache.setdefault(pm, {})[forward] = [
             threading.Lock(), packets.record_streams(pm, forward=forward, chunk=16)]
     return pm
 
@@ -417,7 +416,7 @@ def test_compiled_encoder_with_64_bit_ids_writes_the_same_bytes(monkeypatch):
     levels = _some_levels(pm)
     pairs = [(levels[0], levels[-1]), (levels[-1], levels[0]), (levels[2], levels[4])]
     small = [encode_packet(pm, a, b) for a, b in pairs]
-    monkeypatch.setattr(packets, "_index_dtype", lambda corners, vertices: np.int64)
+    monkeypatch.setattr(encode, "index_dtype", lambda corners, vertices: np.int64)
     assert [encode_packet(pm, a, b) for a, b in pairs] == small
     _assert_same_bytes(pm, pairs, bits_options=(None,))
 
@@ -449,17 +448,17 @@ def test_kernel_sorts_and_searches(size):
     rng = np.random.default_rng(size)
     keys = rng.integers(0, max(size // 2, 1), size).astype(np.int64)
     a = keys.copy()
-    packets._sort(a, size)
+    corners.sort_prefix(a, size)
     assert np.array_equal(a, np.sort(keys))
     order = np.full(size, -1, dtype=np.int64)
-    packets._argsort(keys, size, order)
+    corners.argsort_prefix(keys, size, order)
     assert np.array_equal(np.sort(order), np.arange(size))
     assert np.all(np.diff(keys[order]) >= 0)
     for x in range(-1, max(size // 2, 1) + 1):
-        assert packets._search(a, size, x) == np.searchsorted(a, x)
+        assert corners.search(a, size, x) == np.searchsorted(a, x)
         found = np.nonzero(keys == x)[0]
         expected = -1 if len(found) == 0 else -2 if len(found) > 1 else found[0]
-        assert packets._lookup(keys, order, size, x) == expected
+        assert corners.lookup(keys, order, size, x) == expected
 
 
 @pytest.mark.parametrize("name", ["conrod.stl", "office_chair.obj", "non_manif_hole.ply",
@@ -489,3 +488,35 @@ def test_compiled_encoder_writes_the_reference_bytes_on_the_stanford_bunny(share
         ours, direct = packet_between(pm, a, b), encode_packet(pm, a, b)
         assert decode_packet(ours).streams == decode_packet(direct).streams
         assert len(ours) < 1.01 * len(direct)
+
+
+def test_background_encoder_starts_on_first_use_and_shuts_down():
+    """Importing the package starts no thread; prepare_records starts one worker,
+    shutdown_background stops it, and a later preparation starts another."""
+    import subprocess
+    import sys
+
+    code = ("import threading, lodserver.packets; "
+            "print(sorted(t.name for t in threading.enumerate()))")
+    names = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                           check=True).stdout
+    assert "packet-records" not in names
+    pm = build(input_mesh("torus"))
+
+    def workers():
+        return [t for t in threading.enumerate() if t.name.startswith("packet-records")]
+
+    packets.shutdown_background()
+    assert not workers()
+    packets.prepare_records(pm)
+    assert len(workers()) == 1
+    deadline = time.monotonic() + 120
+    while not packets.records_ready(pm):
+        assert time.monotonic() < deadline, "the packet records were not prepared"
+        time.sleep(0.05)
+    packets.shutdown_background()
+    assert not workers()
+    packets.prepare_records(pm)         # scheduled again: a new worker, records already there
+    assert len(workers()) == 1
+    packets.shutdown_background()
+    assert not workers()

@@ -8,6 +8,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from lodserver import build
+from lodserver.progressive import ancestor_below
 
 from .meshes import SHARED, canonical_faces, mesh, progressive
 
@@ -151,6 +152,22 @@ def test_level_selection():
             pm.level_for(**bad)
     with pytest.raises(ValueError):
         pm.at(pm.vertex_count + 1)
+    # check_level is public: the packet encoder checks its levels with it
+    assert pm.check_level(np.int64(pm.base_vertices)) == pm.base_vertices
+    for bad in (pm.base_vertices - 1, pm.vertex_count + 1):
+        with pytest.raises(ValueError, match="outside"):
+            pm.check_level(bad)
+
+
+def test_ancestor_below_is_the_level_a_corner_reads():
+    """The public kernel the packet encoder shares: a full-detail corner at a level
+    reads its first ancestor below that level, as the level's faces say."""
+    pm = progressive("torus")
+    level = (pm.base_vertices + pm.vertex_count) // 2
+    faces = pm.arrays_at(level)[1]
+    expected = np.array([[ancestor_below(pm.parent, int(x), level) for x in row]
+                         for row in pm.faces[:len(faces)]])
+    assert np.array_equal(faces, expected)
 
 
 def test_locked_vertices_never_move_or_vanish():
