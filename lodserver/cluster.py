@@ -20,7 +20,7 @@ import numpy as np
 from numba import njit, prange
 
 from .mesh import Mesh, MeshError
-from .quadrics import REGULARIZATION, vertex_quadrics
+from .quadrics import cell_representatives, to_unit_box, unit_box, vertex_quadrics
 
 # Resolution search bounds: cells along the longest axis.
 _MIN_CELLS = 1
@@ -53,8 +53,7 @@ def cluster(mesh: Mesh, *, cells: int | None = None, cell_size: float | None = N
     if sum(x is not None for x in (cells, cell_size, target_faces)) != 1:
         raise ValueError("give exactly one of cells, cell_size or target_faces")
     positions = np.asarray(mesh.positions, dtype=np.float64)
-    lo = positions.min(axis=0)
-    extent = float((positions.max(axis=0) - lo).max()) or 1.0
+    lo, extent = unit_box(positions)
     # Face planes only (Lindstrom 2000): representatives are kept inside their
     # cells anyway, and skipping the border census saves a pass over the mesh.
     quadrics = vertex_quadrics(positions, mesh.faces, boundary_weight=0)
@@ -83,7 +82,7 @@ def _search_resolution(positions, faces, quadrics, lo, extent, target):
     binary search over the resolution needs only the final clustering.
     """
     faces = np.ascontiguousarray(faces, dtype=np.int64)
-    unit = np.ascontiguousarray((positions - lo) / extent)
+    unit = to_unit_box(positions, lo, extent)
 
     def fits(r):
         return _surviving_faces(unit, faces, r) <= target
@@ -189,16 +188,10 @@ def _cluster_grid(positions, faces, quadrics, lo, extent, cells):
 
     q, mean = _cell_sums(used, cell_of_used, quadrics, positions, k)
 
-    # Regularised solve (A + eps I) p = eps * mean - b, as in quadrics.optimal_position.
-    a = np.empty((k, 3, 3))
-    a[:, 0, 0], a[:, 0, 1], a[:, 0, 2] = q[:, 0], q[:, 1], q[:, 2]
-    a[:, 1, 0], a[:, 1, 1], a[:, 1, 2] = q[:, 1], q[:, 3], q[:, 4]
-    a[:, 2, 0], a[:, 2, 1], a[:, 2, 2] = q[:, 2], q[:, 4], q[:, 5]
-    eps = REGULARIZATION * (q[:, 0] + q[:, 3] + q[:, 5])
-    eps = np.where(eps > 0, eps, 1.0)      # a cell with no planes stays at its mean
-    a += eps[:, None, None] * np.eye(3)
-    rhs = eps[:, None] * mean - q[:, 6:9]
-    representative = np.linalg.solve(a, rhs[:, :, None])[:, :, 0]
+    # The regularised solve (A + eps I) p = eps * mean - b of edge collapse's
+    # placement (quadrics.solve_regularized); a cell with no planes stays at its mean.
+    representative = np.empty((k, 3))
+    cell_representatives(q, mean, representative)
     # Keep each representative inside its cell: a far-off optimum would fold faces.
     cell_lo = lo + np.stack([cell_keys // ((cells + 1) ** 2), (cell_keys // (cells + 1)) % (cells + 1),
                              cell_keys % (cells + 1)], axis=1) * size

@@ -34,9 +34,10 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from .decimate import CollapseLog, _log_arrays
 from .mesh import Mesh
-from .quadrics import optimal_position_xyz, quadric_error, vertex_quadrics
+from .quadrics import optimal_position_xyz, quadric_error, to_unit_box, unit_box, vertex_quadrics
+from .simplify.log import CollapseLog, log_arrays
+from .simplify.queue import grow
 from .topology import link_corners
 
 # Finest depth: about this many cells per vertex spacing of a surface of n
@@ -58,9 +59,8 @@ def octree_log(mesh: Mesh) -> CollapseLog:
     """
     positions = np.asarray(mesh.positions, dtype=np.float64)
     faces = np.ascontiguousarray(mesh.faces, dtype=np.int64)
-    lo = positions.min(axis=0)
-    extent = float((positions.max(axis=0) - lo).max()) or 1.0
-    unit = np.ascontiguousarray((positions - lo) / extent)
+    lo, extent = unit_box(positions)
+    unit = to_unit_box(positions, lo, extent)
     quadrics = vertex_quadrics(unit, faces, boundary_weight=0)
     cells = _FINE_CELLS_PER_SPACING * np.sqrt(max(len(positions), 1))
     depth = int(min(_MAX_DEPTH, max(1, np.ceil(np.log2(cells)))))
@@ -88,7 +88,7 @@ def _octree_kernel(unit, faces, quadrics, fine_depth):
     q = quadrics.copy()
     pos = unit.copy()
 
-    log_s, log_r, log_p, log_e, killed_off, killed, moved_off, moved = _log_arrays(n, m)
+    log_s, log_r, log_p, log_e, killed_off, killed, moved_off, moved = log_arrays(n, m)
     nk = 0
     nkilled = 0
     nmoved = 0
@@ -214,6 +214,10 @@ def _octree_kernel(unit, faces, quadrics, fine_depth):
                                         gone = True
                                         break
                             if not gone:
+                                # a corner moves each time its vertex merges: more
+                                # moves than corners are possible, so grow
+                                if nmoved >= moved.shape[0]:
+                                    moved = grow(moved, nmoved + 1)
                                 moved[nmoved] = c
                                 nmoved += 1
                                 cnext[c] = vhead[s]

@@ -65,6 +65,25 @@ REGULARIZATION = 1e-6
 DET_RELATIVE_EPS = 1e-7
 
 
+def unit_box(positions):
+    """The frame in which the kernels work: ``(lo (3,) float64, extent float)``,
+    the smallest corner of the bounding box of ``positions`` (n, 3) and its
+    longest side (1.0 for a single point), so that ``(positions - lo) / extent``
+    lies in the unit cube. Tolerances are then scale-free and quadric
+    coefficients stay where float64 cancellation is harmless.
+
+    Plain numpy, called from Python (an njit twin would have to reproduce
+    numpy's choice between -0.0 and 0.0 to keep outputs bit for bit)."""
+    positions = np.asarray(positions, dtype=np.float64)
+    lo = positions.min(axis=0)
+    return lo, float((positions.max(axis=0) - lo).max()) or 1.0
+
+
+def to_unit_box(positions, lo, extent):
+    """``(positions - lo) / extent`` as a C-contiguous (n, 3) float64 array."""
+    return np.ascontiguousarray((np.asarray(positions, dtype=np.float64) - lo) / extent)
+
+
 def plane_quadrics(normals, offsets, weights, areas):
     """Quadrics of weighted planes ``n . p + d = 0``.
 
@@ -432,29 +451,42 @@ def _regularized_cofactors(q):
 
 
 @njit(cache=True, nogil=True)
+def solve_regularized(q, mx, my, mz, out):
+    """The one 3x3 solve: write into ``out`` the minimiser of quadric row
+    ``q`` regularised towards ``m = (mx, my, mz)``, i.e. the solution of
+    ``(A + eps I) p = eps m - b`` (see REGULARIZATION), by cofactors.
+
+    Returns False, leaving ``out`` alone, when ``q`` has no planes or the
+    system is not positive definite (a non-PSD sum from rounding)."""
+    trace, eps, c00, c01, c02, c11, c12, c22, det = _regularized_cofactors(q)
+    r0 = eps * mx - q[6]
+    r1 = eps * my - q[7]
+    r2 = eps * mz - q[8]
+    if trace <= 0.0 or det <= 0.0:
+        return False
+    inv = 1.0 / det
+    out[0] = (c00 * r0 + c01 * r1 + c02 * r2) * inv
+    out[1] = (c01 * r0 + c11 * r1 + c12 * r2) * inv
+    out[2] = (c02 * r0 + c12 * r1 + c22 * r2) * inv
+    return True
+
+
+@njit(cache=True, nogil=True)
 def optimal_position_xyz(q, ax, ay, az, bx, by, bz, out):
     """``optimal_position`` with the endpoints as scalars: the kernel calls it
     millions of times, and slicing rows into array views costs more than the solve."""
     mx = 0.5 * (ax + bx)
     my = 0.5 * (ay + by)
     mz = 0.5 * (az + bz)
-    trace, eps, c00, c01, c02, c11, c12, c22, det = _regularized_cofactors(q)
-    r0 = eps * mx - q[6]
-    r1 = eps * my - q[7]
-    r2 = eps * mz - q[8]
-    if trace <= 0.0 or det <= 0.0:
+    if not solve_regularized(q, mx, my, mz, out):
         # no planes at all (or a non-PSD sum from rounding): stay at the midpoint
         out[0] = mx; out[1] = my; out[2] = mz
         best = quadric_error(q, mx, my, mz)
     else:
-        inv = 1.0 / det
-        out[0] = (c00 * r0 + c01 * r1 + c02 * r2) * inv
-        out[1] = (c01 * r0 + c11 * r1 + c12 * r2) * inv
-        out[2] = (c02 * r0 + c12 * r1 + c22 * r2) * inv
         best = quadric_error(q, out[0], out[1], out[2])
         # conditioning of A itself, not of the regularised system
-        raw_det = (q[0] * (q[3] * q[5] - q[4] * q[4]) + q[1] * (q[2] * q[4] - q[1] * q[5])
-                   + q[2] * (q[1] * q[4] - q[2] * q[3]))
+        trace = q[0] + q[3] + q[5]
+        raw_det = symmetric_cofactors(q[0], q[1], q[2], q[3], q[4], q[5])[6]
         if raw_det > DET_RELATIVE_EPS * trace * trace * trace:
             return best
     e = quadric_error(q, mx, my, mz)
@@ -470,6 +502,16 @@ def optimal_position_xyz(q, ax, ay, az, bx, by, bz, out):
         best = e
         out[0] = bx; out[1] = by; out[2] = bz
     return best
+
+
+@njit(cache=True, nogil=True)
+def cell_representatives(q, mean, out):
+    """``solve_regularized`` of every row of ``q`` (k, 11) towards the row of
+    ``mean`` (k, 3), into ``out`` (k, 3); a row without planes (or singular)
+    stays at its mean. Vertex clustering's representatives (Lindstrom 2000)."""
+    for c in range(q.shape[0]):
+        if not solve_regularized(q[c], mean[c, 0], mean[c, 1], mean[c, 2], out[c]):
+            out[c, 0] = mean[c, 0]; out[c, 1] = mean[c, 1]; out[c, 2] = mean[c, 2]
 
 
 @njit(cache=True, nogil=True)

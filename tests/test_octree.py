@@ -104,3 +104,20 @@ def test_multi_part_meshes_end_in_few_parts(shared_meshes, name):
     full = pm.at(pm.vertex_count)
     np.testing.assert_array_equal(canonical_faces(full.positions, full.faces),
                                   canonical_faces(m.positions, m.faces))
+
+
+def test_a_corner_may_move_more_often_than_there_are_corners(shared_meshes):
+    """soup.stl (100 scattered triangles) moves 416 corners over the depths:
+    more than its 300 corners, since a corner moves each time its vertex
+    merges. The log must grow to hold them (it once wrote past its end)."""
+    from lodserver.octree import octree_log
+    m = mesh("soup.stl")
+    log = octree_log(Mesh(m.positions, m.faces))
+    assert len(log.moved_corners) > 3 * m.face_count
+    assert log.moved_offsets[-1] == len(log.moved_corners)
+    pm = build(m, method="cluster")
+    full = pm.at(pm.vertex_count)
+    np.testing.assert_array_equal(canonical_faces(full.positions, full.faces),
+                                  canonical_faces(m.positions, m.faces))
+    for level in range(pm.base_vertices, pm.vertex_count + 1):
+        assert same(pm.cursor(pm.vertex_count).seek(level).mesh(), pm.at(level))
