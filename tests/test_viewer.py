@@ -5,14 +5,17 @@ checks that the level the page holds after streaming packets back and forth
 is exactly ``GET /lod?format=json`` at that level (counts and a SHA-256 of the
 integer positions and faces, and with attributes of the wedges' values, the
 corners' wedges and the faces' materials), and that the mesh is drawn, with
-its texture when it has one. It needs Debian's
+its texture when it has one, under the server's Content-Security-Policy and
+without violating it. It needs Debian's
 ``chromium`` and the Python ``playwright`` package (never ``playwright
 install``), and skips without them.
 """
 
 import base64
 import hashlib
+import re
 import shutil
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -32,6 +35,13 @@ VIEWPORT = {"width": 960, "height": 640}
 BACKGROUND = (0x1D, 0x20, 0x26)     # settings.background in static/main.js
 # Slider positions (0 = base, 1000 = full detail), visited in order from full detail.
 SLIDER_PATH = [350, 0, 1000, 620, 820, 150]
+STATIC = Path(__file__).resolve().parents[1] / "static"
+# Records each violation of the page's Content-Security-Policy (Playwright's init
+# scripts are exempt from it).
+RECORD_VIOLATIONS_JS = """window.cspViolations = [];
+document.addEventListener('securitypolicyviolation', (event) => {
+  window.cspViolations.push(`${event.effectiveDirective} ${event.blockedURI}`);
+});"""
 
 
 # ---- routes -------------------------------------------------------------------
@@ -52,11 +62,30 @@ def test_root_and_viewer_lead_to_the_page(tmp_path):
         assert three.status_code == 200 and "javascript" in three.headers["content-type"]
 
 
+def test_the_page_needs_no_inline_style_or_handlers():
+    """Under style-src 'self' and a hashed import map, the page may hold no
+    <style>, no style= or on*= attribute and no inline script but the import
+    map; the modules may not write markup or style attributes either."""
+    page = (STATIC / "index.html").read_text()
+    assert not re.search(r"<style|\sstyle=|\son[a-z]+=", page, re.I)
+    scripts = re.findall(r"<script([^>]*)>(.*?)</script>", page, re.S)
+    inline = [attributes for attributes, body in scripts if body.strip()]
+    assert inline == [' type="importmap"'], inline
+    assert all('src="./' in attributes for attributes, body in scripts if not body.strip())
+    assert '<link rel="stylesheet" href="./viewer.css">' in page
+    assert (STATIC / "viewer.css").is_file()
+    unsafe = re.compile(r"innerHTML|outerHTML|insertAdjacentHTML|document\.write|"
+                        r"setAttribute\(\s*['\"]style|\beval\(|new Function\b")
+    for module in STATIC.glob("*.js"):
+        assert not unsafe.search(module.read_text()), module.name
+
+
 def test_viewer_without_its_files_says_where_it_looked(tmp_path, monkeypatch):
     monkeypatch.setenv("LODSERVER_STATIC_DIR", str(tmp_path / "nowhere"))
     with _client(tmp_path) as client:
         response = client.get("/viewer")
-        assert response.status_code == 404 and "nowhere" in response.json()["message"]
+        assert response.status_code == 404
+        assert "LODSERVER_STATIC_DIR" in response.json()["message"]   # no server path in it
         assert client.get("/healthz").status_code == 200
 
 
@@ -103,8 +132,10 @@ def _pixel_fractions(page, png: bytes) -> tuple[float, float]:
     pixels that are not the background, and the fraction of those that are dark
     (luminance under 90): about 5% for the untextured, lit spot, about 20% with
     its texture's black patches."""
+    # decoded from a Blob, not fetched as a data: URL, which connect-src 'self' forbids
     drawn, dark = page.evaluate("""async ([png, background]) => {
-        const blob = await (await fetch(`data:image/png;base64,${png}`)).blob();
+        const bytes = Uint8Array.from(atob(png), (c) => c.charCodeAt(0));
+        const blob = new Blob([bytes], { type: 'image/png' });
         const bitmap = await createImageBitmap(blob);
         const canvas = new OffscreenCanvas(bitmap.width, bitmap.height);
         const g = canvas.getContext('2d');
@@ -140,9 +171,15 @@ def test_viewer_levels_equal_the_server_levels(name, chromium, server, tmp_path)
     failures, requests = [], []
     page.on("pageerror", lambda error: failures.append(error))
     page.on("request", lambda request: requests.append(request.url))
+    page.add_init_script(RECORD_VIOLATIONS_JS)
     try:
-        page.goto(f"{server.base_url}/viewer?mesh={mesh['id']}")
-        page.wait_for_function("window.lodViewer?.status().level != null")
+        response = page.goto(f"{server.base_url}/viewer?mesh={mesh['id']}")
+        # the viewer runs under the server's policy (script-src 'self' and the import
+        # map's hash, style-src 'self', ...), and breaks none of it (checked at the end)
+        assert "content-security-policy" in response.all_headers()
+        # a function, not an expression string: Playwright polls a string with eval(),
+        # which the viewer's script-src (no 'unsafe-eval') refuses
+        page.wait_for_function("() => window.lodViewer?.status().level != null")
         status = page.evaluate("lodViewer.settled()")
         assert status["level"] == mesh["vertices"], status   # streamed to full detail first
 
@@ -190,6 +227,7 @@ def test_viewer_levels_equal_the_server_levels(name, chromium, server, tmp_path)
             assert any(url.endswith(f"/meshes/{mesh['id']}/images/0") for url in requests)
             assert _pixel_fractions(page, png)[1] > 0.1, f"the texture is not drawn: see {tmp_path}"
         assert not failures, failures
+        assert page.evaluate("window.cspViolations") == []
     finally:
         page.close()
 
@@ -231,7 +269,9 @@ def test_the_decoder_reads_packets_chained_from_pre_deflated_chunks(chromium, se
     levels = [base, full, base + 3, full - 5, base]
     page = chromium.new_page()
     try:
-        page.goto(f"{server.base_url}/healthz")     # any page of the origin can import the decoder
+        # a document under /viewer/ (the decoder's own file, so the viewer app does not
+        # start): its CSP lets the page import the decoder; the API's forbids scripts
+        page.goto(f"{server.base_url}/viewer/vsplit.js")
         reached = page.evaluate(LONG_PACKETS_JS, {"id": mesh["id"], "levels": levels,
                                                   "vertexCapacity": full,
                                                   "faceCapacity": mesh["faces"]})
