@@ -3,10 +3,35 @@
 Data flow: ``io.load_mesh`` -> ``quadrics`` -> ``decimate`` -> ``progressive``
 -> ``codec`` (the stored ``.pm`` artefact) -> ``store`` -> ``api`` -> ``static/``
 (the viewer); ``pipeline`` turns files and folders into LOD chains (GLB).
+``options.BuildOptions`` holds every build option once, for ``build``, the
+command line and the HTTP form alike.
 """
 
-from .build import build
-from .mesh import Mesh, MeshError
-from .progressive import Cursor, ProgressiveMesh
 
-__all__ = ["build", "Mesh", "MeshError", "ProgressiveMesh", "Cursor"]
+def _version() -> str:
+    """The installed distribution's version; in a bare checkout, pyproject.toml's."""
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version("lodserver")
+    except PackageNotFoundError:
+        import re
+        from pathlib import Path
+
+        try:
+            text = (Path(__file__).resolve().parents[1] / "pyproject.toml").read_text()
+        except OSError:
+            return "unknown"
+        found = re.search(r'^version\s*=\s*"([^"]+)"', text, re.MULTILINE)
+        return found.group(1) if found else "unknown"
+
+
+__version__ = _version()
+
+from .build import build  # noqa: E402  (after __version__: the CLI imports it from here)
+from .mesh import Mesh, MeshError  # noqa: E402
+from .options import BuildOptions  # noqa: E402
+from .progressive import Cursor, ProgressiveMesh  # noqa: E402
+
+__all__ = ["build", "BuildOptions", "Mesh", "MeshError", "ProgressiveMesh", "Cursor",
+           "__version__"]

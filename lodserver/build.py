@@ -4,90 +4,121 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from .decimate import DEFAULT_FLIP_COS, decimate
+import numpy as np
+
+from .decimate import decimate
 from .mesh import Mesh, MeshError
+from .options import METHODS, BuildOptions
 from .progressive import ProgressiveMesh, from_collapse_log
 
-METHODS = ("qem", "cluster")
+__all__ = ["build", "BuildOptions", "METHODS", "distance_from", "kernels_cold"]
+
+# What the first build on a machine spends compiling the kernels numba has not
+# cached yet, measured on 2 cores (spot, an empty NUMBA_CACHE_DIR): told to the
+# user so the first run does not look hung.
+COLD_COMPILE_SECONDS = 40
 
 
-def build(source, *, method: str = "qem", boundary_weight: float = 1.0, locked=None,
-          min_vertices: int = 0,
-          flip_cos: float = DEFAULT_FLIP_COS, pair_threshold: float | str = 0.0,
-          attribute_weights: dict | None = None, preserve_volume: bool = True,
-          attributes: bool = True, seam_weight: float = 1.0, progress=None,
-          cancel=None) -> ProgressiveMesh:
+def build(source, options: BuildOptions | dict | None = None, *, locked=None, progress=None,
+          cancel=None, **overrides) -> ProgressiveMesh:
     """Build the progressive mesh of ``source``.
 
     Parameters
     ----------
     source : Mesh or path
         A path is loaded and cleaned with ``io.load_mesh``.
-    method : str
-        ``"qem"``: quadric edge collapse (``decimate``), manifold-preserving,
-        with attributes. ``"cluster"``: octree vertex clustering recorded as
-        collapses (``octree``): faster on huge inputs, joins parts, geometry
-        only; the options below other than ``attributes`` do not apply to it.
-    pair_threshold : float or str
-        Distance under which vertices that share no edge may be contracted
-        (joining parts): mesh units, or a string like ``"1%"`` for a fraction
-        of the bounding-box diagonal. 0 disables it.
-    attributes : bool
-        Simplify the mesh's normals, UVs and colours with it (default); False
-        builds from positions and faces alone (materials dropped too).
-    boundary_weight, locked, min_vertices, flip_cos, attribute_weights,
-    preserve_volume, seam_weight, progress, cancel
-        See ``decimate.decimate``.
+    options : BuildOptions or dict, optional
+        The build options (``options.BuildOptions``: method, weights, pair
+        threshold, ...); None takes every default. Keywords override single
+        options: ``build(mesh, boundary_weight=2)``.
+    locked : (n,) bool, optional
+        Vertices that must neither move nor vanish (``lock_border`` adds the
+        border vertices to them).
+    progress : callable(done: int, expected: int), optional
+        Called about ten times a second while the kernel runs.
+    cancel : threading.Event, optional
+        When set, decimation stops at the next progress check.
 
     Returns
     -------
     ProgressiveMesh
         Its full level equals the (cleaned) input exactly.
+
+    Raises
+    ------
+    MeshError
+        An option is out of range or malformed (one sentence naming it), or the
+        mesh cannot be used. TypeError for a keyword that is not a build option.
     """
+    options = BuildOptions.check(options, **overrides)
     metadata = {}
     if isinstance(source, Mesh):
         mesh = source
     else:
         from .io import load_mesh
+        if Path(source).is_dir():
+            raise MeshError(f"{source} is a folder; pass a mesh file")
         mesh, report = load_mesh(source)
         metadata["source"] = Path(source).name
         metadata["load_report"] = report.as_dict()
-    if method not in METHODS:
-        raise MeshError(f"method must be one of {', '.join(METHODS)}, got {method!r}")
-    if not attributes or method == "cluster":
+    if not options.attributes or options.method == "cluster":
         mesh = Mesh(mesh.positions, mesh.faces)
-    if method == "cluster":
+    if options.method == "cluster":
         from .octree import octree_log
         log = octree_log(mesh)
-        metadata["options"] = {"method": method}
+        metadata["options"] = {"method": options.method}
         metadata["decimation"] = {"passes": log.passes}
         return from_collapse_log(mesh, log, metadata)
-    threshold = distance_from(pair_threshold, mesh)
-    log = decimate(mesh, boundary_weight=boundary_weight, locked=locked,
-                   min_vertices=min_vertices, flip_cos=flip_cos, pair_threshold=threshold,
-                   attribute_weights=attribute_weights, preserve_volume=preserve_volume,
-                   seam_weight=seam_weight, progress=progress, cancel=cancel)
+    locked = _locked(mesh, locked, options.lock_border)
+    threshold = distance_from(options.pair_threshold, mesh)
+    weights = options.attribute_weights()
+    log = decimate(mesh, boundary_weight=options.boundary_weight, locked=locked,
+                   min_vertices=options.min_vertices, flip_cos=options.flip_cos,
+                   pair_threshold=threshold, attribute_weights=weights,
+                   preserve_volume=options.preserve_volume, seam_weight=options.seam_weight,
+                   progress=progress, cancel=cancel)
     metadata["options"] = {
-        "method": method, "boundary_weight": boundary_weight, "min_vertices": min_vertices, "flip_cos": flip_cos,
-        "pair_threshold": pair_threshold, "preserve_volume": bool(preserve_volume),
-        "seam_weight": seam_weight,
+        **options.model_dump(),
         "attributes": [name for name, _ in mesh.attributes.layout] if mesh.attributes else [],
-        "attribute_weights": dict(attribute_weights or {}),
-        "locked_vertices": 0 if locked is None else int(sum(bool(x) for x in locked))}
+        "attribute_weights": weights,
+        "locked_vertices": 0 if locked is None else int(np.count_nonzero(locked))}
     metadata["decimation"] = {"passes": log.passes, "rejected": log.rejected}
     return from_collapse_log(mesh, log, metadata)
 
 
-def attribute_weights(*, normal=None, uv=None, color=None) -> dict:
-    """``build``'s attribute_weights from per-kind weights; None keeps the default."""
-    weights = {}
-    if normal is not None:
-        weights["NORMAL"] = normal
-    if uv is not None:
-        weights["TEXCOORD_0"] = weights["TEXCOORD_1"] = uv
-    if color is not None:
-        weights["COLOR_0"] = color
-    return weights
+def _locked(mesh: Mesh, locked, lock_border: bool):
+    """(n,) bool or None: ``locked`` with the border vertices added if ``lock_border``."""
+    if not lock_border:
+        return locked
+    from .topology import census
+    mask = np.zeros(mesh.vertex_count, dtype=bool)
+    if locked is not None:
+        mask |= np.asarray(locked, dtype=bool)
+    mask[census(mesh.faces, mesh.vertex_count).on_boundary] = True
+    return mask
+
+
+def kernels_cold(method: str = "qem") -> bool:
+    """True if numba has no usable on-disk cache of ``method``'s main kernel yet,
+    so the next build spends ``COLD_COMPILE_SECONDS`` or so compiling it.
+
+    Reads the kernel's cache index where numba's own locator puts it
+    (``__pycache__`` beside the module, or ``NUMBA_CACHE_DIR``); an index made
+    for an older copy of the source counts as cold, as numba treats it. Answers
+    False when caching is off or numba's layout is not the expected one (then
+    nothing is announced, which is the old behaviour).
+    """
+    try:
+        if method == "cluster":
+            from .octree import _octree_kernel as kernel
+        else:
+            from .decimate import _decimate_kernel as kernel
+        cache = kernel._cache
+        if not hasattr(cache, "_cache_file"):
+            return False        # cache=False: compiled every run, nothing to announce
+        return not cache._cache_file._load_index()
+    except Exception:       # the kernel or numba's internals moved: say nothing, build on
+        return False
 
 
 def distance_from(value, mesh: Mesh) -> float:

@@ -1,65 +1,152 @@
-"""Command line: ``lodserver build | extract | simplify | export | info | serve``.
+"""Command line: lodserver build | extract | simplify | export | info | serve.
 
 Every failure ends with one sentence on stderr and a non-zero exit code:
-1 for bad input or a failed operation, 2 for a malformed command line.
+1 for bad input or a failed operation, 2 for a malformed command line. Every
+command creates the folder of its output when it does not exist. The build
+options of build, export and simplify are generated from ``options.BuildOptions``,
+so their names, defaults and help are the ones the Python API and the HTTP form
+use.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 import time
 from pathlib import Path
 
-import numpy as np
-
+from . import __version__
 from .mesh import MeshError
+from .options import BuildOptions, Flag, describe_error, field_default_text
+
+EXAMPLES = """\
+examples:
+  lodserver build tests/data/spot.obj -o spot.pm
+  lodserver extract spot.pm --ratio 0.1 -o spot_10.glb
+
+'lodserver COMMAND --help' describes one command and its options."""
 
 
-def _progress_bar(total_hint: int):
-    """A tqdm bar on a terminal, nothing otherwise (keeps logs clean)."""
-    from tqdm import tqdm
+class _Progress:
+    """A tqdm bar over collapses on a terminal, nothing otherwise (keeps logs clean).
 
-    bar = tqdm(total=total_hint, unit="collapse", disable=None, dynamic_ncols=True,
-               desc="decimating", file=sys.stderr)
+    The bar appears with the first collapse, not before: while numba compiles
+    the kernels the count stays at 0 for tens of seconds, and a bar frozen at
+    0% looks hung (``_announce_compile`` says what is going on instead).
+    """
 
-    def update(done, expected):
-        if not bar.total:
-            bar.total = expected        # known once the mesh is loaded
-        bar.update(done - bar.n)
+    def __init__(self, desc: str = "decimating"):
+        self.desc = desc
+        self.bar = None
 
-    return bar, update
+    def __call__(self, done: int, expected: int) -> None:
+        if self.bar is None:
+            if done == 0:
+                return
+            from tqdm import tqdm
+            self.bar = tqdm(total=expected, unit="collapse", disable=None, dynamic_ncols=True,
+                            desc=self.desc, file=sys.stderr)
+        self.bar.update(done - self.bar.n)
 
+    def close(self) -> None:
+        if self.bar is not None:
+            self.bar.close()
+
+
+def _announce_compile(method: str = "qem") -> None:
+    """Say so when this run will compile the kernels (an empty numba cache)."""
+    from .build import COLD_COMPILE_SECONDS, kernels_cold
+
+    if kernels_cold(method):
+        print(f"compiling kernels (first run only, ~{COLD_COMPILE_SECONDS} s)", file=sys.stderr,
+              flush=True)
+
+
+def _input_file(path) -> Path:
+    """``path`` as an input file: a folder is refused with what to do instead."""
+    path = Path(path)
+    if path.is_dir():
+        raise MeshError(f"{path} is a folder; pass a mesh file (or use "
+                        f"`lodserver export FOLDER/ -o OUT/`)")
+    return path
+
+
+def _output_file(path) -> Path:
+    """``path`` as an output file: its folder is created if missing (every command alike)."""
+    path = Path(path)
+    if path.is_dir():
+        raise MeshError(f"{path} is a folder; name the file to write")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    return path
+
+
+# --- build options as flags ------------------------------------------------------------
+
+def _flag(name: str) -> tuple[str, Flag]:
+    field = BuildOptions.model_fields[name]
+    spelling = next((m for m in field.metadata if isinstance(m, Flag)), Flag())
+    return spelling.name or "--" + name.replace("_", "-"), spelling
+
+
+def add_option_flags(parser: argparse.ArgumentParser, *, exclude=()) -> None:
+    """One flag per ``BuildOptions`` field (but ``exclude``), its help the field's description.
+
+    A boolean that defaults to False is a switch that turns it on; one that
+    defaults to True a switch that turns it off (``--no-volume``). The parsed
+    value lands in ``args.<field name>``; ``options_from(args)`` validates.
+    """
+    group = parser.add_argument_group("build options")
+    names = [name for name in BuildOptions.model_fields if name not in exclude]
+    parser.set_defaults(option_names=names)    # what options_from reads back
+    for name in names:
+        field = BuildOptions.model_fields[name]
+        flag, spelling = _flag(name)
+        help_text = field.description.replace("%", "%%")
+        if field.annotation is bool:
+            # the help says what the option does and which way the switch turns it
+            state = "on by default; this turns it off" if field.default else "off by default"
+            group.add_argument(flag, dest=name, action="store_false" if field.default else
+                               "store_true", default=field.default,
+                               help=f"{help_text} ({state})")
+            continue
+        choices = getattr(field.annotation, "__args__", None)
+        kind = {int: int, float: float}.get(field.annotation, str)
+        group.add_argument(flag, dest=name, type=kind, default=field.default,
+                           choices=choices, metavar=spelling.metavar or (None if choices else "X"),
+                           help=f"{help_text} (default {field_default_text(name)})")
+
+
+def options_from(args) -> BuildOptions:
+    """The ``BuildOptions`` of parsed ``args``; a bad value is one sentence naming its flag."""
+    from pydantic import ValidationError
+
+    values = {name: getattr(args, name) for name in getattr(args, "option_names", ())}
+    try:
+        return BuildOptions.model_validate(values)
+    except ValidationError as exc:
+        raise MeshError(describe_error(exc, label=lambda name: _flag(name)[0])) from None
+
+
+# --- commands ------------------------------------------------------------------------
 
 def _cmd_build(args) -> int:
-    from .build import attribute_weights, build
-    from .io import load_mesh
+    from .build import build
 
-    mesh, report = load_mesh(args.mesh)
-    locked = None
-    if args.lock_border:
-        from .topology import census
-        locked = np.zeros(mesh.vertex_count, dtype=bool)
-        locked[census(mesh.faces, mesh.vertex_count).on_boundary] = True
-    bar, update = _progress_bar(mesh.vertex_count)
+    options = options_from(args)
+    source, output = _input_file(args.mesh), Path(args.output)
+    _announce_compile(options.method)
+    progress = _Progress()
     start = time.perf_counter()
     try:
-        pm = build(mesh, method=args.method, boundary_weight=args.boundary_weight,
-                   locked=locked, min_vertices=args.min_vertices,
-                   pair_threshold=args.pair_threshold, preserve_volume=not args.no_volume,
-                   attributes=not args.no_attributes,
-                   attribute_weights=attribute_weights(normal=args.normal_weight,
-                                                       uv=args.uv_weight, color=args.color_weight),
-                   progress=update)
-    except ValueError as exc:
+        pm = build(source, options, progress=progress)
+    except ValueError as exc:       # argument checks deep in the kernel's wrapper
         raise MeshError(str(exc)) from exc
     finally:
-        bar.close()
-    pm.metadata["source"] = Path(args.mesh).name
-    pm.metadata["load_report"] = report.as_dict()
-    pm.save(args.output)
-    print(f"{args.output}: {pm.vertex_count} vertices, {pm.face_count} faces, "
+        progress.close()
+    pm.save(_output_file(output))
+    print(f"{output}: {pm.vertex_count} vertices, {pm.face_count} faces, "
           f"{pm.split_count} splits down to a base of {pm.base_vertices} vertices / "
           f"{pm.faces_at_level(pm.base_vertices)} faces in {time.perf_counter() - start:.2f} s",
           file=sys.stderr)
@@ -70,7 +157,7 @@ def _cmd_extract(args) -> int:
     from .io import save_mesh
     from .progressive import ProgressiveMesh
 
-    pm = ProgressiveMesh.load(args.asset)
+    pm = ProgressiveMesh.load(_input_file(args.asset))
     criterion = {name: getattr(args, name) for name in ("vertices", "faces", "ratio", "error")
                  if getattr(args, name) is not None}
     try:
@@ -78,7 +165,7 @@ def _cmd_extract(args) -> int:
     except ValueError as exc:
         raise MeshError(str(exc)) from exc
     mesh = pm.at(level)
-    save_mesh(mesh, args.output)
+    save_mesh(mesh, _output_file(args.output))
     print(f"{args.output}: level {level}, {mesh.vertex_count} vertices, {mesh.face_count} faces, "
           f"error {pm.error_at_level(level):.3g}", file=sys.stderr)
     return 0
@@ -87,7 +174,8 @@ def _cmd_extract(args) -> int:
 def _cmd_simplify(args) -> int:
     from .io import load_mesh, save_mesh
 
-    mesh, _ = load_mesh(args.mesh)
+    options = options_from(args)        # checked before the load: a bad flag fails at once
+    mesh, _ = load_mesh(_input_file(args.mesh))
     target = args.faces if args.faces is not None else max(1, round(args.ratio * mesh.face_count))
     if target < 1 or (args.ratio is not None and not 0 < args.ratio <= 1):
         raise MeshError("the target must be a ratio in (0, 1] or at least one face")
@@ -97,8 +185,15 @@ def _cmd_simplify(args) -> int:
         lod = cluster(mesh, target_faces=target)
     else:
         from .build import build
-        lod = build(mesh).at(faces=target)
-    save_mesh(lod, args.output)
+        _announce_compile()
+        progress = _Progress()
+        try:
+            lod = build(mesh, options, progress=progress).at(faces=target)
+        except ValueError as exc:
+            raise MeshError(str(exc)) from exc
+        finally:
+            progress.close()
+    save_mesh(lod, _output_file(args.output))
     print(f"{args.output}: {lod.vertex_count} vertices, {lod.face_count} faces (target {target}) "
           f"by {args.method} in {time.perf_counter() - start:.2f} s", file=sys.stderr)
     return 0
@@ -108,17 +203,21 @@ def _cmd_export(args) -> int:
     from .pipeline import export_lods, parse_lods
 
     ratios = parse_lods(args.lods)
+    options = options_from(args)
     if Path(args.source).is_dir():
         if Path(args.output).suffix.lower() == ".glb":
             raise MeshError(f"{args.source} is a folder, so -o names the folder to write into, "
                             f"not a .glb file ({args.output})")
-        return _export_folder(args, ratios)
-    bar, update = _progress_bar(0)
+        return _export_folder(args, ratios, options)
+    if Path(args.source).suffix.lower() != ".pm":
+        _announce_compile(options.method)
+    progress = _Progress()
     try:
-        done = export_lods(args.source, args.output, lods=ratios, separate=args.separate,
-                           reach=args.reach, progress=update)
+        done = export_lods(args.source, _output_file(args.output), lods=ratios,
+                           separate=args.separate, reach=args.reach, options=options,
+                           progress=progress)
     finally:
-        bar.close()
+        progress.close()
     print(f"{', '.join(map(str, done.outputs))}: {_levels(done)}", file=sys.stderr)
     return 0
 
@@ -139,14 +238,17 @@ def _levels(done) -> str:
     return text
 
 
-def _export_folder(args, ratios) -> int:
+def _export_folder(args, ratios, options) -> int:
     """Every mesh file under ``args.source`` into the folder ``args.output``: a bar
     over the files on a terminal, a line per file, exit 1 if any failed."""
     from tqdm import tqdm
 
     from .pipeline import export_folder, find_sources
 
-    bar = tqdm(total=len(find_sources(args.source)), unit="asset", disable=None,
+    sources = find_sources(args.source)
+    if any(path.suffix.lower() != ".pm" for path in sources):
+        _announce_compile(options.method)
+    bar = tqdm(total=len(sources), unit="asset", disable=None,
                dynamic_ncols=True, desc="exporting", file=sys.stderr)
 
     def progress(relative, outcome):
@@ -161,7 +263,7 @@ def _export_folder(args, ratios) -> int:
     try:
         report = export_folder(args.source, args.output, lods=ratios, separate=args.separate,
                                reach=args.reach, jobs=args.jobs, force=args.force,
-                               progress=progress)
+                               options=options, progress=progress)
     finally:
         bar.close()
     print(f"{args.output}: {report.total} assets in {time.perf_counter() - start:.2f} s: "
@@ -176,14 +278,13 @@ def _export_folder(args, ratios) -> int:
 def _cmd_info(args) -> int:
     from .progressive import ProgressiveMesh
 
-    pm = ProgressiveMesh.load(args.asset)
+    pm = ProgressiveMesh.load(_input_file(args.asset))
     print(json.dumps(pm.summary(), indent=2))
+    sys.stdout.flush()      # here, where a closed pipe is caught, not at interpreter exit
     return 0
 
 
 def _cmd_serve(args) -> int:
-    import os
-
     import uvicorn
 
     # The app reads its settings from LODSERVER_* variables; the flag is one of them.
@@ -194,60 +295,61 @@ def _cmd_serve(args) -> int:
     return 0
 
 
-def _parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="lodserver", description=__doc__.splitlines()[0])
-    sub = parser.add_subparsers(dest="command", required=True)
+# --- the parser ----------------------------------------------------------------------
 
-    p = sub.add_parser("build", help="build the progressive mesh of a mesh file")
-    p.add_argument("mesh", help="OBJ, PLY, STL, OFF, glTF or GLB file")
-    p.add_argument("-o", "--output", required=True, help="the .pm artefact to write")
-    p.add_argument("--boundary-weight", type=float, default=1.0,
-                   help="weight of the planes that keep open borders in place (default 1)")
-    p.add_argument("--lock-border", action="store_true",
-                   help="never move or remove border vertices (tiles and parts keep stitching)")
-    p.add_argument("--min-vertices", type=int, default=0,
-                   help="stop decimating at this many vertices (default: as far as possible)")
-    p.add_argument("--pair-threshold", default="0", metavar="T",
-                   help="also contract vertices closer than T that share no edge, joining "
-                        "parts: mesh units, or a percentage of the bounding-box diagonal "
-                        "like 1%% (default 0: edges only)")
-    p.add_argument("--method", choices=("qem", "cluster"), default="qem",
-                   help="qem: quadric edge collapse (best quality; keeps topology and "
-                        "attributes); cluster: octree vertex clustering recorded as splits "
-                        "(joins parts; geometry only)")
-    p.add_argument("--no-volume", action="store_true",
-                   help="do not keep the enclosed volume when placing collapses")
-    p.add_argument("--no-attributes", action="store_true",
-                   help="ignore normals, UVs, colours and materials (positions only)")
-    for kind, default in (("normal", "0.003"), ("uv", "0.3"), ("color", "0.3")):
-        p.add_argument(f"--{kind}-weight", type=float, metavar="W",
-                       help=f"weight of {kind} error against geometric error (default {default})")
+MESH_HELP = "OBJ, PLY, STL, OFF, glTF or GLB file"
+OUTPUT_HELP = "PLY, OBJ, GLB, OFF or STL file to write (its folder is created)"
+
+
+def _command(sub, name: str, help_text: str, example: str) -> argparse.ArgumentParser:
+    return sub.add_parser(name, help=help_text, description=help_text[0].upper() + help_text[1:]
+                          + ".", epilog=f"example:\n  {example}",
+                          formatter_class=argparse.RawDescriptionHelpFormatter)
+
+
+def _parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="lodserver", description="Decimate once, serve every level of detail: build a "
+        "progressive mesh of a mesh file, write its levels, or serve them over HTTP.",
+        epilog=EXAMPLES, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--version", action="version", version=f"lodserver {__version__}")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", title="commands")
+
+    p = _command(sub, "build", "build the progressive mesh of a mesh file",
+                 "lodserver build tests/data/spot.obj -o spot.pm --pair-threshold 1%")
+    p.add_argument("mesh", help=MESH_HELP)
+    p.add_argument("-o", "--output", required=True,
+                   help="the .pm artefact to write (its folder is created)")
+    add_option_flags(p)
     p.set_defaults(run=_cmd_build)
 
-    p = sub.add_parser("extract", help="write one level of a .pm artefact as a mesh file")
+    p = _command(sub, "extract", "write one level of a .pm artefact as a mesh file",
+                 "lodserver extract spot.pm --faces 500 -o lods/spot_500.obj")
     p.add_argument("asset", help="the .pm artefact")
     group = p.add_mutually_exclusive_group(required=True)
     group.add_argument("--vertices", type=int, help="at most this many vertices")
     group.add_argument("--faces", type=int, help="at most this many faces")
     group.add_argument("--ratio", type=float, help="this fraction of the faces, in (0, 1]")
     group.add_argument("--error", type=float, help="coarsest level with at most this error (mesh units)")
-    p.add_argument("-o", "--output", required=True, help="PLY, OBJ, GLB, OFF or STL file to write")
+    p.add_argument("-o", "--output", required=True, help=OUTPUT_HELP)
     p.set_defaults(run=_cmd_extract)
 
-    p = sub.add_parser("simplify", help="write one simplified copy of a mesh file (no .pm)")
-    p.add_argument("mesh", help="OBJ, PLY, STL, OFF, glTF or GLB file")
+    p = _command(sub, "simplify", "write one simplified copy of a mesh file (no .pm)",
+                 "lodserver simplify tests/data/spot.obj --ratio 0.1 -o spot_10.obj")
+    p.add_argument("mesh", help=MESH_HELP)
     group = p.add_mutually_exclusive_group(required=True)
     group.add_argument("--faces", type=int, help="at most this many faces")
     group.add_argument("--ratio", type=float, help="this fraction of the faces, in (0, 1]")
     p.add_argument("--method", choices=("qem", "cluster"), default="qem",
-                   help="qem: edge collapse (best quality); cluster: vertex clustering "
-                        "(fastest; may merge parts and change topology)")
-    p.add_argument("-o", "--output", required=True, help="PLY, OBJ, GLB, OFF or STL file to write")
+                   help="qem: edge collapse (best quality; the build options apply); cluster: "
+                        "vertex clustering (fastest; may merge parts and change topology)")
+    p.add_argument("-o", "--output", required=True, help=OUTPUT_HELP)
+    add_option_flags(p, exclude={"method"})
     p.set_defaults(run=_cmd_simplify)
 
-    p = sub.add_parser("export",
-                       help="write levels of detail as one GLB (MSFT_lod) or one GLB each, "
-                            "for a file or for every mesh file under a folder")
+    p = _command(sub, "export", "write levels of detail as one GLB (MSFT_lod) or one GLB "
+                 "each, for a file or for every mesh file under a folder",
+                 "lodserver export assets/ -o lods/ --lods 1,0.25,0.05 --jobs 2")
     p.add_argument("source", help="a .pm artefact or a mesh file to build one from; or a "
                    "folder: every mesh file under it, its layout mirrored in OUTPUT")
     p.add_argument("--lods", default="1,0.5,0.2,0.05", metavar="R1,R2,...",
@@ -255,7 +357,8 @@ def _parser() -> argparse.ArgumentParser:
                         "(default 1,0.5,0.2,0.05); level i's screen coverage hint is "
                         "0.5*sqrt(R(i+1)/R1), the last level's 0")
     p.add_argument("-o", "--output", required=True,
-                   help="the .glb file to write; for a folder source, the folder to write into")
+                   help="the .glb file to write; for a folder source, the folder to write "
+                        "into (created either way)")
     p.add_argument("--separate", action="store_true",
                    help="write OUT_lod0.glb, OUT_lod1.glb, ... instead of one file with MSFT_lod")
     p.add_argument("--reach", choices=("none", "cluster"), default="none",
@@ -269,13 +372,16 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--force", action="store_true",
                    help="folder source: rebuild every mesh, even those whose file and options "
                         "match the last run (lodserver-export.json in OUTPUT)")
+    add_option_flags(p)
     p.set_defaults(run=_cmd_export)
 
-    p = sub.add_parser("info", help="print counts and the error curve of a .pm artefact as JSON")
-    p.add_argument("asset")
+    p = _command(sub, "info", "print counts and the error curve of a .pm artefact as JSON",
+                 "lodserver info spot.pm | head -5")
+    p.add_argument("asset", help="the .pm artefact")
     p.set_defaults(run=_cmd_info)
 
-    p = sub.add_parser("serve", help="run the HTTP API (settings: LODSERVER_* variables)")
+    p = _command(sub, "serve", "run the HTTP API and the viewer (settings: LODSERVER_* "
+                 "variables)", "lodserver serve --data ./lodserver-data --port 8000")
     p.add_argument("--data", type=Path, help="data directory (default: $LODSERVER_DATA_DIR or "
                    "./lodserver-data)")
     p.add_argument("--host", default="127.0.0.1", help="address to listen on (default 127.0.0.1)")
@@ -286,16 +392,38 @@ def _parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _error_text(exc: OSError, args) -> str:
+    """An OSError as one sentence naming the user's file, never a temporary sibling of it."""
+    name = exc.filename
+    output = getattr(args, "output", None)
+    if name is not None and output is not None:
+        # io.write_atomic writes ".NAME.<hex>.tmp" beside the output first
+        if Path(name).name.startswith(f".{Path(output).name}.") and str(name).endswith(".tmp"):
+            name = output
+    return f"{exc.strerror or exc}: {name}" if name else str(exc.strerror or exc)
+
+
 def main(argv=None) -> int:
-    args = _parser().parse_args(argv)
+    parser = _parser()
+    args = parser.parse_args(argv)
+    if args.command is None:
+        parser.print_help(sys.stderr)
+        print("\nlodserver: name a command, such as 'lodserver build MESH -o ASSET.pm'.",
+              file=sys.stderr)
+        return 2
     try:
         return args.run(args)
+    except BrokenPipeError:
+        # `lodserver info x.pm | head -1`: the reader left; nothing more to say. Point
+        # stdout at devnull so the interpreter's final flush does not complain either.
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+        return 141      # what a shell reports for a command ended by SIGPIPE
     except MeshError as exc:
         print(f"lodserver {args.command}: {exc}", file=sys.stderr)
         return 1
     except OSError as exc:
-        print(f"lodserver {args.command}: {exc.strerror or exc}: {exc.filename or ''}".rstrip(": "),
-              file=sys.stderr)
+        print(f"lodserver {args.command}: {_error_text(exc, args)}", file=sys.stderr)
         return 1
 
 

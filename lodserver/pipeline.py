@@ -26,6 +26,7 @@ from pathlib import Path
 from .gltf import coverage_from_ratios, encode_lod_chain
 from .io import SUPPORTED_INPUT, encode_mesh, write_atomic
 from .mesh import Mesh, MeshError
+from .options import BuildOptions
 from .progressive import ProgressiveMesh
 
 DEFAULT_LODS = (1.0, 0.5, 0.2, 0.05)
@@ -105,13 +106,14 @@ def lod_chain(pm: ProgressiveMesh, lods=DEFAULT_LODS, *, reach: str = "none"):
 
 
 def export_lods(source, output, *, lods=DEFAULT_LODS, separate: bool = False,
-                reach: str = "none", progress=None) -> Exported:
+                reach: str = "none", options: BuildOptions | None = None,
+                progress=None) -> Exported:
     """Write the levels of detail of ``source`` to ``output`` (a ``.glb`` path).
 
     Parameters
     ----------
     source : path
-        A ``.pm`` artefact, or a mesh file (built with the default options).
+        A ``.pm`` artefact, or a mesh file (built with ``options``).
     lods : sequence of float
         Face ratios of the levels, finest first, strictly decreasing, in (0, 1].
     separate : bool
@@ -122,6 +124,9 @@ def export_lods(source, output, *, lods=DEFAULT_LODS, separate: bool = False,
         clustering of the full mesh instead (``cluster.cluster``), which joins
         parts and meets the budget but keeps positions only (no UVs, normals or
         materials: a textured asset's far level is drawn untextured).
+    options : BuildOptions, optional
+        How a mesh file is built (``options.BuildOptions``; None: the defaults).
+        A ``.pm`` source was built already and ignores them.
     progress : callable, optional
         ``progress(done, expected)`` during a build, as for ``build``.
 
@@ -133,6 +138,7 @@ def export_lods(source, output, *, lods=DEFAULT_LODS, separate: bool = False,
     """
     check_lods(lods)        # before a build, not after
     check_reach(reach)
+    options = BuildOptions.check(options)
     source, output = Path(source), Path(output)
     if output.suffix.lower() != ".glb":
         raise MeshError(f"levels of detail are written as GLB, so the output must end in .glb, "
@@ -143,7 +149,7 @@ def export_lods(source, output, *, lods=DEFAULT_LODS, separate: bool = False,
     else:
         from .build import build
         try:
-            pm = build(source, progress=progress)
+            pm = build(source, options, progress=progress)
         except ValueError as exc:       # argument checks deep in the build
             raise MeshError(str(exc)) from exc
     meshes, coverage, clustered = lod_chain(pm, lods, reach=reach)
@@ -196,15 +202,16 @@ def find_sources(folder) -> list[Path]:
 
 def export_folder(source, output, *, lods=DEFAULT_LODS, separate: bool = False,
                   reach: str = "none", jobs: int = 1, force: bool = False,
-                  progress=None) -> FolderReport:
+                  options: BuildOptions | None = None, progress=None) -> FolderReport:
     """Export every mesh file under ``source`` into ``output`` (see the module docstring).
 
     Parameters
     ----------
     source, output : path
         Folders; ``output`` is created. ``source/a/b.obj`` goes to ``output/a/b.glb``.
-    lods, separate, reach
-        As for :func:`export_lods`.
+    lods, separate, reach, options
+        As for :func:`export_lods`; the manifest records them all, so changing
+        one rebuilds.
     jobs : int
         Sources built at once (threads: the compiled kernels release the GIL).
         Each holds its mesh in memory.
@@ -227,6 +234,7 @@ def export_folder(source, output, *, lods=DEFAULT_LODS, separate: bool = False,
     """
     ratios = check_lods(lods)
     check_reach(reach)
+    options = BuildOptions.check(options)
     source, output = Path(source), Path(output)
     if not source.is_dir():
         raise MeshError(f"{source} is not a folder")
@@ -236,7 +244,8 @@ def export_folder(source, output, *, lods=DEFAULT_LODS, separate: bool = False,
     if jobs < 1:
         raise MeshError(f"jobs must be at least 1, got {jobs}")
     output.mkdir(parents=True, exist_ok=True)
-    options = {"lods": list(ratios), "separate": separate, "reach": reach}
+    recorded = {"lods": list(ratios), "separate": separate, "reach": reach,
+                "build": options.model_dump()}
     manifest_path = output / MANIFEST
     manifest = _read_manifest(manifest_path)
     report = FolderReport()
@@ -267,7 +276,7 @@ def export_folder(source, output, *, lods=DEFAULT_LODS, separate: bool = False,
             continue
         entry = manifest.get(str(relative))
         if (not force and entry is not None and entry.get("sha256") == digest
-                and entry.get("options") == options
+                and entry.get("options") == recorded
                 and all((output / path).is_file() for path in entry.get("outputs", ()))):
             report.up_to_date.append(relative)
             finish(relative, "up to date")
@@ -276,7 +285,7 @@ def export_folder(source, output, *, lods=DEFAULT_LODS, separate: bool = False,
 
     def one(relative):
         return export_lods(source / relative, output / relative.with_suffix(".glb"),
-                           lods=ratios, separate=separate, reach=reach)
+                           lods=ratios, separate=separate, reach=reach, options=options)
 
     try:
         with ThreadPoolExecutor(max_workers=jobs) as pool:
@@ -291,7 +300,7 @@ def export_folder(source, output, *, lods=DEFAULT_LODS, separate: bool = False,
                     reason = f"internal error: {type(exc).__name__}: {exc}"
                 else:
                     manifest[str(relative)] = {
-                        "sha256": digest, "options": options,
+                        "sha256": digest, "options": recorded,
                         "outputs": [str(p.relative_to(output)) for p in exported.outputs]}
                     report.written.append(exported)
                     finish(relative, exported)

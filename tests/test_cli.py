@@ -86,3 +86,110 @@ def test_simplify_one_shot(tmp_path, method):
                  "-o", str(out)]) == 0
     mesh, _ = load_mesh(out)
     assert 0.5 * 586 <= mesh.face_count <= 586
+
+
+def test_version_and_no_command(capsys):
+    import lodserver
+
+    with pytest.raises(SystemExit) as exited:
+        main(["--version"])
+    assert exited.value.code == 0
+    assert capsys.readouterr().out.strip() == f"lodserver {lodserver.__version__}"
+    assert main([]) == 2
+    err = capsys.readouterr().err
+    for command in ("build", "extract", "simplify", "export", "info", "serve"):
+        assert f"    {command} " in err
+    assert err.strip().splitlines()[-1] == ("lodserver: name a command, such as "
+                                            "'lodserver build MESH -o ASSET.pm'.")
+
+
+@pytest.mark.parametrize("command", ["", "build", "extract", "simplify", "export", "info",
+                                     "serve"])
+def test_help_is_plain_text_with_examples(capsys, command):
+    with pytest.raises(SystemExit):
+        main(([command] if command else []) + ["--help"])
+    text = capsys.readouterr().out
+    assert "``" not in text and ":class:" not in text and ":func:" not in text
+    assert ("examples:" if not command else "example:") in text
+    examples = text.split("example")[1].splitlines()[1:]
+    assert any(line.strip().startswith("lodserver ") for line in examples)
+
+
+def test_every_command_creates_its_output_folder(tmp_path, capsys):
+    spot = str(DATA / "spot.obj")
+    asset = tmp_path / "a" / "b" / "spot.pm"
+    assert main(["build", spot, "-o", str(asset)]) == 0 and asset.is_file()
+    outputs = {"extract": tmp_path / "c" / "d" / "lod.glb",
+               "simplify": tmp_path / "e" / "f" / "lod.obj",
+               "export": tmp_path / "g" / "h" / "chain.glb"}
+    assert main(["extract", str(asset), "--ratio", "0.2", "-o", str(outputs["extract"])]) == 0
+    assert main(["simplify", spot, "--ratio", "0.2", "-o", str(outputs["simplify"])]) == 0
+    assert main(["export", str(asset), "--lods", "1,0.2", "-o", str(outputs["export"])]) == 0
+    assert all(path.is_file() for path in outputs.values())
+    folder = tmp_path / "assets"
+    folder.mkdir()
+    shutil.copy(DATA / "spot.obj", folder)
+    assert main(["export", str(folder), "--lods", "1,0.2", "-o", str(tmp_path / "i" / "j")]) == 0
+    assert (tmp_path / "i" / "j" / "spot.glb").is_file()
+
+
+def test_the_extracted_sample_is_textured(tmp_path):
+    """The README's first command: spot.obj names spot.mtl, which names its texture."""
+    asset, glb = tmp_path / "spot.pm", tmp_path / "spot_10.glb"
+    assert main(["build", str(DATA / "spot.obj"), "-o", str(asset)]) == 0
+    assert main(["extract", str(asset), "--ratio", "0.1", "-o", str(glb)]) == 0
+    level, _ = load_mesh(glb)
+    assert level.materials is not None
+    assert level.materials.images == ((DATA / "spot_texture.png").read_bytes(),)
+    assert [name for name, _ in level.attributes.layout] == ["TEXCOORD_0"]
+
+
+def test_errors_name_the_users_paths_not_temporary_ones(tmp_path, capsys):
+    blocker = tmp_path / "not_a_folder"
+    blocker.write_text("")
+    asset = tmp_path / "spot.pm"
+    assert main(["build", str(DATA / "spot.obj"), "-o", str(asset)]) == 0
+    capsys.readouterr()
+    for argv in (["build", str(DATA / "spot.obj"), "-o", str(blocker / "x.pm")],
+                 ["extract", str(asset), "--ratio", "0.5", "-o", str(blocker / "x.ply")],
+                 ["export", str(asset), "-o", str(blocker / "x.glb")]):
+        assert main(argv) == 1
+        err = capsys.readouterr().err.strip()
+        assert len(err.splitlines()) == 1 and ".tmp" not in err and "Traceback" not in err
+        assert str(blocker) in err
+
+
+@pytest.mark.parametrize("command", ["build", "simplify", "extract", "info"])
+def test_a_folder_given_as_a_mesh_says_so(tmp_path, capsys, command):
+    extra = {"build": ["-o", "x.pm"], "simplify": ["--ratio", "0.5", "-o", "x.obj"],
+             "extract": ["--ratio", "0.5", "-o", "x.obj"], "info": []}[command]
+    assert main([command, str(tmp_path)] + extra) == 1
+    err = capsys.readouterr().err.strip()
+    assert err == (f"lodserver {command}: {tmp_path} is a folder; pass a mesh file (or use "
+                   f"`lodserver export FOLDER/ -o OUT/`)")
+
+
+def test_info_into_a_closed_pipe_exits_quietly(tmp_path):
+    """`lodserver info x.pm | head -1`: the reader is gone before the JSON is written."""
+    asset = tmp_path / "spot.pm"
+    assert main(["build", str(DATA / "spot.obj"), "-o", str(asset)]) == 0
+    process = subprocess.Popen([sys.executable, "-m", "lodserver.cli", "info", str(asset)],
+                               stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    process.stdout.close()          # as head does after its line
+    err = process.stderr.read().decode()
+    assert process.wait(timeout=120) == 141
+    assert err == ""
+
+
+def test_a_cold_numba_cache_is_detected(tmp_path):
+    """An empty NUMBA_CACHE_DIR: the next build compiles (the CLI says so first); after a
+    build in this process the kernels are cached."""
+    from lodserver.build import build, kernels_cold
+
+    probe = "from lodserver.build import kernels_cold; print(kernels_cold(), kernels_cold('cluster'))"
+    env = {**__import__("os").environ, "NUMBA_CACHE_DIR": str(tmp_path / "numba")}
+    result = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True,
+                            env=env, timeout=120)
+    assert result.stdout.split() == ["True", "True"], result.stderr
+    build(DATA / "spot.obj", min_vertices=2900)
+    assert kernels_cold() is False

@@ -11,6 +11,7 @@ import trimesh
 from lodserver.cli import main
 from lodserver.io import load_mesh
 from lodserver.mesh import MeshError
+from lodserver.options import BuildOptions
 from lodserver.pipeline import MANIFEST, export_folder, export_lods, find_sources
 
 from .meshes import DATA
@@ -76,7 +77,11 @@ def test_a_second_run_rebuilds_only_what_changed(tmp_path):
     edited = export_folder(source, out)
     assert [str(e.source.relative_to(source)) for e in edited.written] == ["props/ball.ply"]
     assert (out / "spot.glb").read_bytes() == before
-    # other options, a missing output or force: rebuilt
+    # other options (LODs or build options), a missing output or force: rebuilt
+    assert len(export_folder(source, out, lods=(1, 0.25)).written) == 2
+    changed = BuildOptions(boundary_weight=2)
+    assert len(export_folder(source, out, lods=(1, 0.25), options=changed).written) == 2
+    assert not export_folder(source, out, lods=(1, 0.25), options=changed).written
     assert len(export_folder(source, out, lods=(1, 0.25)).written) == 2
     (out / "spot.glb").unlink()
     assert [str(e.source.relative_to(source))
@@ -152,7 +157,8 @@ def test_manifest_records_sources_options_and_outputs(tmp_path):
     assert manifest["version"] == 1 and sorted(manifest["sources"]) == ["props/ball.ply",
                                                                         "spot.obj"]
     entry = manifest["sources"]["spot.obj"]
-    assert entry["options"] == {"lods": [1.0, 0.5], "separate": False, "reach": "none"}
+    assert entry["options"] == {"lods": [1.0, 0.5], "separate": False, "reach": "none",
+                                "build": BuildOptions().model_dump()}
     assert entry["outputs"] == ["spot.glb"] and len(entry["sha256"]) == 64
     # an unreadable manifest only means everything is rebuilt
     (out / MANIFEST).write_text("{not json")
@@ -214,3 +220,22 @@ def test_an_unreadable_source_fails_alone(tmp_path, monkeypatch):
     export_folder(source, out)
     assert sorted(json.loads((out / MANIFEST).read_text())["sources"]) == ["props/ball.ply"]
     assert (out / "spot.glb").is_file()
+
+
+def test_export_takes_the_build_options_and_creates_the_output_folder(tmp_path, capsys):
+    """export of a mesh file builds with the build flags; -o's folder need not exist."""
+    out = tmp_path / "new" / "deeper" / "spot.glb"
+    assert main(["export", str(DATA / "spot.obj"), "-o", str(out), "--lods", "1,0.1",
+                 "--no-attributes", "--min-vertices", "2000"]) == 0
+    document = _glb_json(out)
+    coarse = document["meshes"][1]["primitives"][0]
+    # positions only (no TEXCOORD_0), and the build stopped at 2000 vertices
+    assert set(coarse["attributes"]) == {"POSITION"}
+    assert document["accessors"][coarse["attributes"]["POSITION"]]["count"] >= 2000
+    finest, _ = load_mesh(out)
+    assert finest.attributes is None
+    capsys.readouterr()
+    assert main(["export", str(DATA / "spot.obj"), "-o", str(tmp_path / "x.glb"),
+                 "--uv-weight", "0"]) == 1
+    err = capsys.readouterr().err
+    assert err.strip() == "lodserver export: --uv-weight must be a positive number, got 0.0"
