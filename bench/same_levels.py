@@ -76,7 +76,7 @@ def _build(mesh, options):
     import numpy as np
 
     from lodserver import build
-    from lodserver.topology import census
+    from lodserver.simplify.topology import census
     options = dict(options)
     if options.pop("lock_border", False):
         options["locked"] = census(mesh.faces, mesh.vertex_count).on_boundary.copy()

@@ -78,7 +78,7 @@ def pymeshlab_clustering(positions, faces, target):
 
 
 def lodserver_cluster(positions, faces, target):
-    from lodserver.cluster import cluster
+    from lodserver.simplify.cluster import cluster
     from lodserver.mesh import Mesh
     lod = cluster(Mesh(positions, faces), target_faces=target)
     return lod.positions, lod.faces

@@ -98,7 +98,7 @@ def lodserver_digest() -> str:
     import lodserver
 
     digest = hashlib.sha1()
-    for path in sorted(Path(lodserver.__file__).parent.glob("*.py")):
+    for path in sorted(Path(lodserver.__file__).parent.rglob("*.py")):
         digest.update(path.read_bytes())
     return digest.hexdigest()[:12]
 

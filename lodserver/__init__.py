@@ -31,7 +31,7 @@ __version__ = _version()
 from .build import build  # noqa: E402  (after __version__: the CLI imports it from here)
 from .mesh import Mesh, MeshError  # noqa: E402
 from .options import BuildOptions  # noqa: E402
-from .progressive import Cursor, ProgressiveMesh  # noqa: E402
+from .progressive.mesh import Cursor, ProgressiveMesh
 
 __all__ = ["build", "BuildOptions", "Mesh", "MeshError", "ProgressiveMesh", "Cursor",
            "__version__"]

@@ -6,10 +6,10 @@ from pathlib import Path
 
 import numpy as np
 
-from .decimate import decimate
+from .simplify.collapse import decimate
 from .mesh import Mesh, MeshError
 from .options import METHODS, BuildOptions
-from .progressive import ProgressiveMesh, from_collapse_log
+from .progressive.mesh import ProgressiveMesh, from_collapse_log
 
 __all__ = ["build", "BuildOptions", "METHODS", "distance_from", "kernels_cold"]
 
@@ -64,7 +64,7 @@ def build(source, options: BuildOptions | dict | None = None, *, locked=None, pr
     if not options.attributes or options.method == "cluster":
         mesh = Mesh(mesh.positions, mesh.faces)
     if options.method == "cluster":
-        from .octree import octree_log
+        from .simplify.octree import octree_log
         log = octree_log(mesh)
         metadata["options"] = {"method": options.method}
         metadata["decimation"] = {"passes": log.passes}
@@ -90,7 +90,7 @@ def _locked(mesh: Mesh, locked, lock_border: bool):
     """(n,) bool or None: ``locked`` with the border vertices added if ``lock_border``."""
     if not lock_border:
         return locked
-    from .topology import census
+    from .simplify.topology import census
     mask = np.zeros(mesh.vertex_count, dtype=bool)
     if locked is not None:
         mask |= np.asarray(locked, dtype=bool)
@@ -110,9 +110,9 @@ def kernels_cold(method: str = "qem") -> bool:
     """
     try:
         if method == "cluster":
-            from .octree import _octree_kernel as kernel
+            from .simplify.octree import _octree_kernel as kernel
         else:
-            from .decimate import _decimate_kernel as kernel
+            from .simplify.collapse import _decimate_kernel as kernel
         cache = kernel._cache
         if not hasattr(cache, "_cache_file"):
             return False        # cache=False: compiled every run, nothing to announce

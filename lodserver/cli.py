@@ -155,7 +155,7 @@ def _cmd_build(args) -> int:
 
 def _cmd_extract(args) -> int:
     from .io import save_mesh
-    from .progressive import ProgressiveMesh
+    from .progressive.mesh import ProgressiveMesh
 
     pm = ProgressiveMesh.load(_input_file(args.asset))
     criterion = {name: getattr(args, name) for name in ("vertices", "faces", "ratio", "error")
@@ -181,7 +181,7 @@ def _cmd_simplify(args) -> int:
         raise MeshError("the target must be a ratio in (0, 1] or at least one face")
     start = time.perf_counter()
     if args.method == "cluster":
-        from .cluster import cluster
+        from .simplify.cluster import cluster
         lod = cluster(mesh, target_faces=target)
     else:
         from .build import build
@@ -276,7 +276,7 @@ def _export_folder(args, ratios, options) -> int:
 
 
 def _cmd_info(args) -> int:
-    from .progressive import ProgressiveMesh
+    from .progressive.mesh import ProgressiveMesh
 
     pm = ProgressiveMesh.load(_input_file(args.asset))
     print(json.dumps(pm.summary(), indent=2))

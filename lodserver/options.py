@@ -21,7 +21,7 @@ from typing import Annotated, Literal
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 from pydantic_core import PydanticCustomError
 
-from .decimate import DEFAULT_ATTRIBUTE_WEIGHTS, DEFAULT_FLIP_COS
+from .simplify.collapse import DEFAULT_ATTRIBUTE_WEIGHTS, DEFAULT_FLIP_COS
 from .mesh import MeshError
 
 METHODS = ("qem", "cluster")

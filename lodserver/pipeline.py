@@ -23,11 +23,11 @@ from concurrent.futures import ThreadPoolExecutor, as_completed
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from .gltf import coverage_from_ratios, encode_lod_chain
+from .io.glb import coverage_from_ratios, encode_lod_chain
 from .io import SUPPORTED_INPUT, encode_mesh, write_atomic
 from .mesh import Mesh, MeshError
 from .options import BuildOptions
-from .progressive import ProgressiveMesh
+from .progressive.mesh import ProgressiveMesh
 
 DEFAULT_LODS = (1.0, 0.5, 0.2, 0.05)
 SOURCE_SUFFIXES = tuple(f".{kind}" for kind in SUPPORTED_INPUT) + (".pm",)
@@ -93,7 +93,7 @@ def lod_chain(pm: ProgressiveMesh, lods=DEFAULT_LODS, *, reach: str = "none"):
         mesh = pm.at(pm.level_for(ratio=ratio))
         budget = max(1, round(ratio * pm.face_count))
         if reach == "cluster" and mesh.face_count > REACH_SLACK * budget:
-            from .cluster import cluster
+            from .simplify.cluster import cluster
             if full is None:
                 full = pm.at(pm.vertex_count)
                 full = Mesh(full.positions, full.faces)

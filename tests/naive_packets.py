@@ -4,7 +4,7 @@ This is the encoder of ``lodserver/packets`` as it was before its hot loops were
 compiled with numba (commit c8f1e29, when the package was one module):
 per-vertex corner *sets*, dict lookups for neighbour ranks and the fan walk,
 and ``bytearray`` streams. It is slow
-(seconds for the Stanford bunny) and obviously right; ``tests/test_packets.py``
+(seconds for the Stanford bunny) and obviously right; ``tests/packets/test_packets.py``
 checks that the compiled encoder produces exactly these bytes. The corner
 sets (``Working``), the fan prediction and the wedge predictions are the
 reference decoder's own public functions, imported from
@@ -51,7 +51,7 @@ from lodserver.packets.reference import (
     scaled,
     split_guesses,
 )
-from lodserver.progressive import ProgressiveMesh
+from lodserver.progressive.mesh import ProgressiveMesh
 
 
 # ---- varints ----------------------------------------------------------------

@@ -9,8 +9,9 @@ from typing import Annotated
 from fastapi import Depends, HTTPException, Path, Request
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 
-from ..jobs import RETRY_AFTER, JobRunner, ParserBusy
-from ..store import ID_PATTERN, Store
+from ..service.jobs import JobRunner
+from ..service.parsing import RETRY_AFTER, ParserBusy
+from ..service.store import ID_PATTERN, Store
 from .caching import BodyCache
 from .settings import Settings, get_settings
 from .upload import Upload, receive_upload

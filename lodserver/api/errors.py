@@ -36,12 +36,13 @@ from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 from starlette.exceptions import HTTPException
 
-from ..appearance import AbsentError
-from ..codec import ArtefactError
-from ..jobs import LimitError, ParserBusy
+from ..service.materials import AbsentError
+from ..progressive.artefact import ArtefactError
+from ..io.limits import LimitError
+from ..service.parsing import ParserBusy
 from ..mesh import MeshError
 from ..packets import PacketError
-from ..store import NotReadyError, StorageFullError, UnknownMeshError, is_disk_full
+from ..service.store import NotReadyError, StorageFullError, UnknownMeshError, is_disk_full
 from .upload import UnsupportedUpload
 
 log = logging.getLogger(__name__)

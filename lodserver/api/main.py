@@ -14,8 +14,9 @@ from fastapi.concurrency import run_in_threadpool
 from fastapi.middleware.cors import CORSMiddleware
 from fastapi.routing import APIRoute
 
-from ..jobs import JobRunner, ParsePool
-from ..store import LocalStore
+from ..service.jobs import JobRunner
+from ..service.parsing import ParsePool
+from ..service.store import LocalStore
 from .caching import BodyCache
 from .errors import add_error_handlers
 from .routes import health, lods, materials, meshes, viewer

@@ -7,7 +7,7 @@ from datetime import datetime, timezone
 from pydantic import BaseModel, Field
 
 from ..options import BuildOptions
-from ..store import MeshRecord, Status
+from ..service.store import MeshRecord, Status
 
 
 class MeshCreate(BuildOptions):

@@ -14,8 +14,9 @@ from typing import Annotated
 from pydantic import Field, SecretStr, field_validator
 from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict
 
-from ..jobs import DEFAULT_MAX_TRIANGLES, PARSE_MEMORY_BYTES
-from ..store import LOADED_CACHE_SIZE
+from ..io.limits import DEFAULT_MAX_TRIANGLES
+from ..service.parsing import PARSE_MEMORY_BYTES
+from ..service.store import LOADED_CACHE_SIZE
 
 
 class Settings(BaseSettings):

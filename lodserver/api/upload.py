@@ -26,9 +26,9 @@ from python_multipart.exceptions import MultipartParseError
 from python_multipart.multipart import MultipartParser, parse_options_header
 
 from ..io import SUPPORTED_INPUT
-from ..jobs import LimitError
+from ..io.limits import LimitError
 from ..mesh import MeshError
-from ..store import Store, StorageFullError, is_disk_full
+from ..service.store import Store, StorageFullError, is_disk_full
 
 # Form fields beside the file: a handful of build options, each short.
 MAX_FIELDS = 16

@@ -23,7 +23,7 @@ import struct
 import numpy as np
 
 from ..mesh import Materials, Mesh, MeshError
-from .gltf import (_ARRAY_BUFFER, _ELEMENT_ARRAY_BUFFER, _FLOAT, _TRIANGLES, _UINT,
+from .gltf import (ARRAY_BUFFER, ELEMENT_ARRAY_BUFFER, FLOAT, TRIANGLES, UINT,
                    extension_names)
 
 
@@ -137,10 +137,10 @@ class _GlbWriter:
         return len(self.views) - 1
 
     def add_accessor(self, values: np.ndarray, kind: str, *, bounds: bool = False,
-                     target: int = _ARRAY_BUFFER) -> int:
+                     target: int = ARRAY_BUFFER) -> int:
         """An accessor over ``values`` (float32 or uint32), min/max when ``bounds``."""
-        component = _FLOAT if values.dtype == np.float32 else _UINT
-        values = np.ascontiguousarray(values, dtype="<f4" if component == _FLOAT else "<u4")
+        component = FLOAT if values.dtype == np.float32 else UINT
+        values = np.ascontiguousarray(values, dtype="<f4" if component == FLOAT else "<u4")
         accessor = {"bufferView": self.add_view(values.tobytes(), target),
                     "componentType": component, "count": len(values), "type": kind}
         if bounds:
@@ -159,10 +159,10 @@ class _GlbWriter:
                 kind = f"VEC{values.shape[1]}"
                 record["attributes"][name] = self.add_accessor(values, kind)
             record["indices"] = self.add_accessor(indices.ravel(), "SCALAR",
-                                                  target=_ELEMENT_ARRAY_BUFFER)
+                                                  target=ELEMENT_ARRAY_BUFFER)
             if material >= 0:
                 record["material"] = material
-            record["mode"] = _TRIANGLES
+            record["mode"] = TRIANGLES
             primitives.append(record)
         self.meshes.append({"primitives": primitives})
         return len(self.meshes) - 1

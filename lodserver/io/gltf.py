@@ -64,13 +64,13 @@ _TYPE_WIDTHS = {"SCALAR": 1, "VEC2": 2, "VEC3": 3, "VEC4": 4, "MAT2": 4, "MAT3":
 _NORMALIZED_SCALE = {5120: 127.0, 5121: 255.0, 5122: 32767.0, 5123: 65535.0}
 
 
-_FLOAT, _UINT = 5126, 5125
+FLOAT, UINT = 5126, 5125
 
 
-_ARRAY_BUFFER, _ELEMENT_ARRAY_BUFFER = 34962, 34963
+ARRAY_BUFFER, ELEMENT_ARRAY_BUFFER = 34962, 34963
 
 
-_TRIANGLES, _TRIANGLE_STRIP, _TRIANGLE_FAN = 4, 5, 6
+TRIANGLES, _TRIANGLE_STRIP, _TRIANGLE_FAN = 4, 5, 6
 
 
 # Geometry compressed by these has no plain accessor data to fall back on.
@@ -204,8 +204,8 @@ def _record(document: dict, key: str, index, what: str) -> dict:
 
 def _declared_triangles(document: dict, primitive: dict, label: str) -> tuple[int, int]:
     """(triangles, vertices) a primitive declares by its accessor counts, 0 for points/lines."""
-    mode = primitive.get("mode", _TRIANGLES)
-    if mode not in (_TRIANGLES, _TRIANGLE_STRIP, _TRIANGLE_FAN):
+    mode = primitive.get("mode", TRIANGLES)
+    if mode not in (TRIANGLES, _TRIANGLE_STRIP, _TRIANGLE_FAN):
         return 0, 0
     attributes = primitive.get("attributes")
     if not isinstance(attributes, dict) or "POSITION" not in attributes:
@@ -216,7 +216,7 @@ def _declared_triangles(document: dict, primitive: dict, label: str) -> tuple[in
     if "indices" in primitive:
         indices = _record(document, "accessors", primitive["indices"], f"{label} indices")
         corners = _natural(indices.get("count"), f"{label} index count")
-    triangles = corners // 3 if mode == _TRIANGLES else max(corners - 2, 0)
+    triangles = corners // 3 if mode == TRIANGLES else max(corners - 2, 0)
     return triangles, vertices
 
 
@@ -459,7 +459,7 @@ def _mesh_instances(document: dict) -> list[tuple[int, np.ndarray]]:
 
 def _primitive_triangles(mode: int, indices: np.ndarray) -> np.ndarray:
     """(t, 3) int64 triangles of an index sequence drawn in ``mode`` (spec §3.7.2.1)."""
-    if mode == _TRIANGLES:
+    if mode == TRIANGLES:
         if len(indices) % 3:
             raise MeshError(f"a triangle primitive has {len(indices)} indices, not a multiple of 3")
         return indices.reshape(-1, 3)
@@ -483,8 +483,8 @@ def _flatten_scene(document: dict, views: list, files: _ReferencedFiles) -> dict
     placed = []  # (primitive, linear (3, 3), triangles, world positions)
     for mesh_index, world in _mesh_instances(document):
         for number, primitive in enumerate(document["meshes"][mesh_index]["primitives"]):
-            mode = primitive.get("mode", _TRIANGLES)
-            if mode not in (_TRIANGLES, _TRIANGLE_STRIP, _TRIANGLE_FAN):
+            mode = primitive.get("mode", TRIANGLES)
+            if mode not in (TRIANGLES, _TRIANGLE_STRIP, _TRIANGLE_FAN):
                 continue  # points and lines have no surface
             attributes = primitive["attributes"]
             position_index = attributes["POSITION"]

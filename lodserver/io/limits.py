@@ -17,7 +17,7 @@ from dataclasses import dataclass
 
 from ..mesh import MeshError
 
-# The server's default triangle limit (jobs.py uses the same constant).
+# The server's default triangle limit (the server's settings use the same constant).
 DEFAULT_MAX_TRIANGLES = 2_000_000
 
 

@@ -74,7 +74,7 @@ def save_mesh(mesh: Mesh, path, *, file_type: str | None = None) -> None:
 def encode_mesh(mesh: Mesh, file_type: str) -> bytes:
     """The bytes of ``mesh`` as a file of ``file_type`` (one of :data:`SUPPORTED_OUTPUT`).
 
-    GLB is packed by :func:`lodserver.gltf.encode_glb`, straight from the
+    GLB is packed by :func:`lodserver.io.glb.encode_glb`, straight from the
     arrays: attributes and materials when the mesh has them, else one float32
     POSITION and one uint32 index accessor. OBJ gets ``vt``/``vn`` lines per
     wedge when the mesh has TEXCOORD_0 or NORMAL. PLY, OFF and STL (and OBJ

@@ -78,9 +78,6 @@ from .records import (
 )
 from .reference import Packet, apply_packet, decode_packet
 
-# The record cache under its former name, which tests/test_api.py reads.
-_records = record_cache
-
 __all__ = [
     "ATTRIBUTE_IDS", "CHUNK_RECORDS", "COUNT", "DEFAULT_ATTRIBUTE_BITS", "EDGE_BITS", "FAN",
     "LINEAR", "MAGIC", "MASK", "MAX_BITS", "MIN_BITS", "OCTAHEDRAL", "OTHER", "PACKET_VERSION",

@@ -63,7 +63,7 @@ from .kernel_types import (
 )
 
 if TYPE_CHECKING:
-    from ..progressive import ProgressiveMesh
+    from ..progressive.mesh import ProgressiveMesh
 
 
 def encode_packet(pm: ProgressiveMesh, start: int, stop: int, *,

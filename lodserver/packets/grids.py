@@ -3,7 +3,7 @@
 A client holds one level of a progressive mesh in its *quantized form*
 (:func:`quantized_level`, served by the LOD endpoint as ``format=json``):
 integer grid positions, faces in the slots of the prefix layout
-(``progressive.py``) and, with attributes, integer wedge values and the wedge of
+(``progressive/mesh.py``) and, with attributes, integer wedge values and the wedge of
 every corner (docs/packets.md, "Exactness").
 
 - Positions live on a uniform grid over the bounding box of every position any
@@ -25,7 +25,7 @@ from ..mesh import ATTRIBUTE_WIDTHS
 from .format import LINEAR, MAX_BITS, MIN_BITS, OCTAHEDRAL
 
 if TYPE_CHECKING:
-    from ..progressive import ProgressiveMesh
+    from ..progressive.mesh import ProgressiveMesh
 
 # Grid steps per mean edge at full detail, as a power of two: see default_bits.
 EDGE_BITS = 6

@@ -26,7 +26,7 @@ State = namedtuple("State", "positions faces blocks slot end")
 # face_count = faces at ``start``.
 Span = namedtuple("Span", "start stop base face_count")
 
-# The progressive mesh's vertex hierarchy and face records (progressive.py):
+# The progressive mesh's vertex hierarchy and face records (progressive/mesh.py):
 # parent (n,), face_counts (n-n0+1,), birth_faces (m, 3), moved_offsets (n-n0+1,),
 # moved_corners (c,), all int64; face_material (m,) int64, or empty without materials.
 Hierarchy = namedtuple("Hierarchy",

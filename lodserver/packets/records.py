@@ -31,7 +31,7 @@ from .format import pack_header, put_varint, stream_names
 from .grids import attribute_grids_of, check_bits, default_bits, grid_of
 
 if TYPE_CHECKING:
-    from ..progressive import ProgressiveMesh
+    from ..progressive.mesh import ProgressiveMesh
 
 # Records per pre-deflated chunk of a stream. Smaller chunks cost more deflate block
 # headers and lost matches (~0.5% of a full packet at 8192); larger ones leave more

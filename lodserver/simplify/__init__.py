@@ -1,5 +1,5 @@
 """The simplification stage, in the pieces the edge-collapse kernel
-(``lodserver.decimate``) is made of:
+(``collapse``) is made of, and the other simplifiers:
 
 - ``rules``: vertex kinds, which kind may collapse onto which
   (``CAN_COLLAPSE``), and the named reasons a candidate is refused;

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 from numba import njit
 
-from ..quadrics import quadric_error
+from .quadrics import quadric_error
 from .log import COLLAPSES, KILLED, MERGED, MOVED
 from .state import NO_REFCOUNT
 from .wedges import merge_wedges, vertex_fixed

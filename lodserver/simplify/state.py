@@ -12,7 +12,7 @@ from collections import namedtuple
 import numpy as np
 from numba import njit
 
-from ..topology import link_corners
+from .topology import link_corners
 
 # The steps run once per popped candidate (check, perform, re-rank) read the
 # kernel's state out of namedtuples, and in compiled code every read of a

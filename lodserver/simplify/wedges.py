@@ -19,7 +19,7 @@ from collections import namedtuple
 import numpy as np
 from numba import njit
 
-from ..quadrics import add_fixed, add_reduced, best_attributes, seam_edges, wedge_quadrics
+from .quadrics import add_fixed, add_reduced, best_attributes, seam_edges, wedge_quadrics
 
 # Default weight of each attribute's squared error against squared distance in
 # the unit box (positions are scaled so the longest box side is 1): with 0.3, a

@@ -13,11 +13,18 @@ from typing import Annotated, Literal
 
 from fastapi import APIRouter, Query, Request, Response
 
-from ...export import FORMATS, LevelError, check_level, checked_bits, encode_level, resolve_level
-from ...gltf import encode_lod_chain
+from ...service.levels import (
+    FORMATS,
+    LevelError,
+    check_level,
+    checked_bits,
+    encode_level,
+    resolve_level,
+)
+from ...io.glb import encode_lod_chain
 from ...packets import MAX_BITS, MIN_BITS, packet_between, prepare_records
 from ...pipeline import DEFAULT_LODS, lod_chain, parse_lods
-from ...progressive import ProgressiveMesh
+from ...progressive.mesh import ProgressiveMesh
 from ..bodies import LIGHT_FACES, BodiesDep
 from ..caching import etag_for, immutable, is_fresh
 from ..deps import MeshId, StoreDep

@@ -7,7 +7,7 @@ from typing import Annotated
 import orjson
 from fastapi import APIRouter, Path, Request, Response
 
-from ...appearance import AbsentError, image_of, materials_document
+from ...service.materials import AbsentError, image_of, materials_document
 from ..caching import etag_for, immutable, is_fresh
 from ..deps import MeshId, StoreDep
 from ..models import Message

@@ -1,0 +1,677 @@
+"""The progressive mesh: a base mesh plus an ordered list of vertex splits.
+
+Layout (Hoppe 1996, renumbered so that every level is a prefix):
+
+- Vertices are numbered so the base mesh holds ids ``0 .. n0-1`` and the split
+  that raises the vertex count from ``v`` to ``v + 1`` introduces vertex ``v``.
+  A level is named by its vertex count ``v`` in ``[n0, n]``; it uses
+  ``positions[:v]``.
+- Faces are numbered so the base faces come first and each split appends the
+  faces it creates; level ``v`` uses the first ``face_counts[v - n0]`` faces.
+- ``parent[t]`` is the vertex that split ``t`` splits (``vs``), always ``< t``;
+  collapsing ``t`` merges it back into ``parent[t]``. The parents form Hoppe's
+  vertex hierarchy: a face corner that reads ``x`` at full detail reads, at
+  level ``v``, the first ancestor of ``x`` below ``v``. So any level can be
+  computed directly (``at``), in time proportional to its size, and any level
+  can be reached incrementally from any other (``Cursor``), both exactly.
+
+Split record ``t`` (arrays indexed by ``t - n0``):
+
+===================  ==========  ===================================================
+field                dtype       meaning
+===================  ==========  ===================================================
+parent[t]            int64       ``vs``: the vertex split in two
+coarse_position      (3,) f64    ``vs``'s position before the split (after the collapse)
+fine_position        (3,) f64    ``vs``'s position after the split
+new_position         (3,) f64    position of the new vertex ``t``
+faces                int range   faces ``face_counts[t-n0] .. face_counts[t-n0+1]`` appear,
+                                 with corners ``birth_faces`` at that range
+moved corners        int64       ``3 * face + slot`` corners relabelled ``vs -> t``
+error                f64         RMS quadric error of the collapse undone (mesh units)
+===================  ==========  ===================================================
+
+Wedges (appearance attributes, when the input has them) follow the same
+scheme one level down: wedges are numbered so that level ``v`` uses wedges
+``0 .. wedge_counts[v-n0]-1``; split ``t`` introduces the wedges its collapse
+merged away, each a child of the wedge it merged into (``wedge_parent``). A
+corner's wedge at a level is the first ancestor of its full-detail wedge below
+that level's wedge count, and a wedge's attribute vector is the one left by
+its most recent applied merge (``wedge_coarse_value``), exactly as for
+positions. So attributes, too, are exact at every level, in both directions.
+Face materials ride on the faces (``face_material``, renumbered with them).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
+
+import numpy as np
+from numba import njit
+
+from ..mesh import Attributes, Materials, Mesh
+
+if TYPE_CHECKING:
+    # only for annotations: a progressive mesh reads a collapse log's arrays, and
+    # need not import the simplifier to do so
+    from ..simplify.collapse import CollapseLog
+
+WEDGE_ARRAYS = ("wedge_values", "corner_wedges", "wedge_parent", "wedge_coarse_value",
+                "wedge_counts")
+
+
+@njit(cache=True, nogil=True, inline="always")
+def ancestor_below(parent, x, level):
+    """The vertex a full-detail corner ``x`` reads at ``level``: its first
+    ancestor in the vertex hierarchy below ``level``."""
+    while x >= level:
+        x = parent[x]
+    return x
+
+
+@njit(cache=True, nogil=True)
+def _faces_at(full_faces, parent, face_count, level, out):
+    """Corners of the first ``face_count`` faces at level ``level``.
+
+    Each full-detail corner reads its first ancestor below ``level``. Parents
+    come before their children, so one pass finds the ancestor of every vertex
+    from ``level`` on and the corners are a gather: cheaper than walking up
+    from each corner.
+    """
+    n = parent.shape[0]
+    below = np.empty(max(n - level, 0), dtype=parent.dtype)
+    for x in range(level, n):
+        p = parent[x]
+        below[x - level] = p if p < level else below[p - level]
+    for f in range(face_count):
+        for k in range(3):
+            x = full_faces[f, k]
+            out[f, k] = x if x < level else below[x - level]
+
+
+@njit(cache=True, nogil=True)
+def _positions_at(full_positions, coarse_position, parent, base, level, out):
+    """Positions of vertices ``0 .. level-1`` at ``level`` (or, for wedges,
+    the attribute vectors of wedges ``0 .. level-1`` with ``level`` a wedge count).
+
+    A vertex's position is the one left by its most recent collapse that is
+    applied at this level: the smallest child ``t >= level``. Replaying the
+    collapses from the last down to ``level`` leaves exactly that one.
+    """
+    for x in range(level):
+        for j in range(out.shape[1]):
+            out[x, j] = full_positions[x, j]
+    for t in range(parent.shape[0] - 1, level - 1, -1):
+        s = parent[t]
+        if s < level:
+            for j in range(out.shape[1]):
+                out[s, j] = coarse_position[t - base, j]
+
+
+@njit(cache=True, nogil=True)
+def _apply_splits(positions, faces, level, target, base, parent, fine_position, new_position,
+                  face_counts, birth_faces, moved_offsets, moved_corners):
+    """Replay splits ``level .. target-1`` in place (vertex splits, forward)."""
+    for t in range(level, target):
+        j = t - base
+        s = parent[t]
+        positions[s, 0] = fine_position[j, 0]
+        positions[s, 1] = fine_position[j, 1]
+        positions[s, 2] = fine_position[j, 2]
+        positions[t, 0] = new_position[j, 0]
+        positions[t, 1] = new_position[j, 1]
+        positions[t, 2] = new_position[j, 2]
+        for k in range(moved_offsets[j], moved_offsets[j + 1]):
+            c = moved_corners[k]
+            faces[c // 3, c % 3] = t
+        for f in range(face_counts[j], face_counts[j + 1]):
+            faces[f, 0] = birth_faces[f, 0]
+            faces[f, 1] = birth_faces[f, 1]
+            faces[f, 2] = birth_faces[f, 2]
+
+
+@njit(cache=True, nogil=True)
+def _apply_wedge_splits(values, corners, level, target, base, wedge_base, wedge_counts,
+                        wedge_parent, fine_value, new_value, face_counts, birth_corners,
+                        moved_offsets, moved_corners, full_corners):
+    """The wedge side of ``_apply_splits``: new wedges appear, their parents
+    take their finer values, and moved corners climb to their finer wedges."""
+    for t in range(level, target):
+        j = t - base
+        top = wedge_counts[j + 1]
+        for x in range(wedge_counts[j], top):
+            i = x - wedge_base
+            w = wedge_parent[x]
+            for k in range(values.shape[1]):
+                values[w, k] = fine_value[i, k]
+                values[x, k] = new_value[i, k]
+        for k in range(moved_offsets[j], moved_offsets[j + 1]):
+            c = moved_corners[k]
+            corners[c // 3, c % 3] = ancestor_below(wedge_parent, full_corners[c // 3, c % 3], top)
+        for f in range(face_counts[j], face_counts[j + 1]):
+            for k in range(3):
+                corners[f, k] = birth_corners[f, k]
+
+
+@njit(cache=True, nogil=True)
+def _apply_wedge_collapses(values, corners, level, target, base, wedge_base, wedge_counts,
+                           wedge_parent, coarse_value, moved_offsets, moved_corners, full_corners):
+    """The wedge side of ``_apply_collapses``: merged wedges' parents take the
+    merged values, moved corners climb to their coarser wedges."""
+    for t in range(level - 1, target - 1, -1):
+        j = t - base
+        bottom = wedge_counts[j]
+        for x in range(wedge_counts[j + 1] - 1, bottom - 1, -1):
+            w = wedge_parent[x]
+            for k in range(values.shape[1]):
+                values[w, k] = coarse_value[x - wedge_base, k]
+        for k in range(moved_offsets[j], moved_offsets[j + 1]):
+            c = moved_corners[k]
+            corners[c // 3, c % 3] = ancestor_below(wedge_parent, full_corners[c // 3, c % 3],
+                                                     bottom)
+
+
+@njit(cache=True, nogil=True)
+def _apply_collapses(positions, faces, level, target, base, parent, coarse_position,
+                     moved_offsets, moved_corners):
+    """Undo splits ``level-1`` down to ``target`` in place (edge collapses, backward).
+    Removed vertices and faces keep their slots; they fall outside the prefix."""
+    for t in range(level - 1, target - 1, -1):
+        j = t - base
+        s = parent[t]
+        positions[s, 0] = coarse_position[j, 0]
+        positions[s, 1] = coarse_position[j, 1]
+        positions[s, 2] = coarse_position[j, 2]
+        for k in range(moved_offsets[j], moved_offsets[j + 1]):
+            c = moved_corners[k]
+            faces[c // 3, c % 3] = s
+
+
+@dataclass(frozen=True, eq=False)
+class ProgressiveMesh:
+    """Base mesh + vertex splits; see the module docstring for the layout.
+
+    Stored fields (everything else is derived on construction):
+
+    positions : (n, 3) float64      full-detail positions (the input, renumbered)
+    faces : (m, 3) int64            full-detail faces (the input, renumbered)
+    parent : (n,) int64             ``vs`` of the split introducing each vertex; -1 in the base
+    base_vertices : int             ``n0``
+    coarse_position : (n-n0, 3)     ``vs``'s position after collapsing ``t``
+    error : (n-n0,) float64         RMS quadric error of collapsing ``t``, mesh units
+    face_counts : (n-n0+1,) int64   faces at level ``v`` = ``face_counts[v - n0]``
+    moved_offsets : (n-n0+1,) int64, moved_corners : (c,) int64
+    metadata : dict                 JSON-able facts (source, options, load report)
+
+    With attributes (all None / empty without):
+
+    attribute_layout : tuple        ((name, width), ...) as ``mesh.Attributes.layout``
+    wedge_values : (w, d) float64   full-detail attribute vectors (renumbered)
+    corner_wedges : (m, 3) int64    full-detail wedge of every face corner
+    wedge_parent : (w,) int64       the wedge each merged into; -1 in the base
+    wedge_coarse_value : (w-w0, d)  the parent's vector after that merge
+    wedge_counts : (n-n0+1,) int64  wedges at level ``v`` = ``wedge_counts[v - n0]``
+    face_material : (m,) int32      per face (renumbered), or None
+    materials : Materials           glTF materials and images, or None
+    """
+
+    positions: np.ndarray
+    faces: np.ndarray
+    parent: np.ndarray
+    base_vertices: int
+    coarse_position: np.ndarray
+    error: np.ndarray
+    face_counts: np.ndarray
+    moved_offsets: np.ndarray
+    moved_corners: np.ndarray
+    metadata: dict = field(default_factory=dict)
+    attribute_layout: tuple = ()
+    wedge_values: np.ndarray | None = None
+    corner_wedges: np.ndarray | None = None
+    wedge_parent: np.ndarray | None = None
+    wedge_coarse_value: np.ndarray | None = None
+    wedge_counts: np.ndarray | None = None
+    face_material: np.ndarray | None = None
+    materials: Materials | None = None
+
+    @property
+    def has_attributes(self) -> bool:
+        return self.wedge_values is not None
+
+    def __post_init__(self):
+        n, n0 = len(self.positions), self.base_vertices
+        k = n - n0
+        if not (0 <= n0 <= n and len(self.parent) == n and len(self.coarse_position) == k
+                and len(self.error) == k and len(self.face_counts) == k + 1
+                and len(self.moved_offsets) == k + 1 and self.face_counts[-1] == len(self.faces)):
+            raise ValueError("inconsistent progressive mesh arrays: sizes disagree")
+        # The kernels index with these arrays unchecked, so a bad artefact must
+        # stop here rather than read out of bounds.
+        t = np.arange(n0, n)
+        if (np.any(self.parent[n0:] < 0) or np.any(self.parent[n0:] >= t)
+                or (len(self.faces) and (self.faces.min() < 0 or self.faces.max() >= n))
+                or np.any(np.diff(self.face_counts) < 0) or self.face_counts[0] < 0
+                or np.any(np.diff(self.moved_offsets) < 0) or self.moved_offsets[0] != 0
+                or self.moved_offsets[-1] != len(self.moved_corners)
+                or (len(self.moved_corners) and (self.moved_corners.min() < 0
+                                                 or self.moved_corners.max() >= 3 * len(self.faces)))):
+            raise ValueError("inconsistent progressive mesh arrays: indices out of range")
+        if self.has_attributes:
+            self._check_wedges()
+        if self.face_material is not None and self.face_material.shape != (len(self.faces),):
+            raise ValueError("inconsistent progressive mesh arrays: face_material size")
+        for name in ("positions", "faces", "parent", "coarse_position", "error", "face_counts",
+                     "moved_offsets", "moved_corners") + WEDGE_ARRAYS + ("face_material",):
+            if getattr(self, name) is not None:
+                getattr(self, name).setflags(write=False)
+        self._derive()
+
+    def _check_wedges(self):
+        w, k = len(self.wedge_values), self.split_count
+        counts, parent = self.wedge_counts, self.wedge_parent
+        width = sum(int(x) for _, x in self.attribute_layout)
+        if (self.wedge_values.ndim != 2 or self.wedge_values.shape[1] != width
+                or self.corner_wedges.shape != self.faces.shape or len(parent) != w
+                or len(counts) != k + 1 or counts[-1] != w
+                or self.wedge_coarse_value.shape != (w - counts[0], width)):
+            raise ValueError("inconsistent progressive mesh arrays: wedge sizes disagree")
+        x = np.arange(counts[0], w)
+        if (np.any(np.diff(counts) < 0) or counts[0] < 0 or np.any(parent[:counts[0]] != -1)
+                or np.any(parent[counts[0]:] < 0) or np.any(parent[counts[0]:] >= x)
+                or (self.corner_wedges.size and (self.corner_wedges.min() < 0
+                                                 or self.corner_wedges.max() >= w))):
+            raise ValueError("inconsistent progressive mesh arrays: wedge indices out of range")
+
+    # ---- derived arrays -------------------------------------------------
+    def _derive(self):
+        n, n0 = self.vertex_count, self.base_vertices
+        fine, new = _hierarchy(self.parent, n0, self.positions, self.coarse_position)
+
+        # birth_faces: each face's corners at the first level it appears in.
+        birth = np.empty_like(self.faces)
+        m0 = int(self.face_counts[0])
+        _faces_at(self.faces, self.parent, m0, n0, birth)
+        owner = np.repeat(np.arange(n0, n), np.diff(self.face_counts))
+        # faces of split t live at level t+1: climb while >= t+1
+        _faces_at_levels(self.faces, self.parent, m0, owner + 1, birth)
+
+        derived = dict(fine_position=fine, new_position=new, birth_faces=birth,
+                       level_error=_level_error(self.error))
+        if self.has_attributes:
+            w0 = int(self.wedge_counts[0])
+            derived["wedge_fine_value"], derived["wedge_new_value"] = _hierarchy(
+                self.wedge_parent, w0, self.wedge_values, self.wedge_coarse_value)
+            # corners of each face at the level it appears in, as for birth_faces
+            corners = np.empty_like(self.corner_wedges)
+            _faces_at(self.corner_wedges, self.wedge_parent, m0, w0, corners)
+            _faces_at_levels(self.corner_wedges, self.wedge_parent, m0,
+                             self.wedge_counts[owner + 1 - n0], corners)
+            derived["birth_corners"] = corners
+        for key, value in derived.items():
+            value.setflags(write=False)
+            object.__setattr__(self, key, value)
+
+    # ---- sizes ----------------------------------------------------------
+    @property
+    def vertex_count(self) -> int:
+        return len(self.positions)
+
+    @property
+    def face_count(self) -> int:
+        return len(self.faces)
+
+    @property
+    def split_count(self) -> int:
+        return self.vertex_count - self.base_vertices
+
+    @property
+    def levels(self) -> range:
+        """Valid levels (vertex counts), coarsest first."""
+        return range(self.base_vertices, self.vertex_count + 1)
+
+    def faces_at_level(self, level: int) -> int:
+        return int(self.face_counts[self.check_level(level) - self.base_vertices])
+
+    def error_at_level(self, level: int) -> float:
+        """Largest collapse error applied to reach ``level``; 0 at full detail."""
+        return float(self.level_error[self.check_level(level) - self.base_vertices])
+
+    def check_level(self, level) -> int:
+        """``level`` as an int if it is one of :attr:`levels`, else ValueError."""
+        level = int(level)
+        if not self.base_vertices <= level <= self.vertex_count:
+            raise ValueError(f"level {level} is outside [{self.base_vertices}, {self.vertex_count}]")
+        return level
+
+    # ---- choosing a level ------------------------------------------------
+    def level_for(self, *, vertices=None, faces=None, ratio=None, error=None) -> int:
+        """The level (vertex count) asked for by exactly one criterion.
+
+        vertices : at most this many vertices (clamped to the base mesh).
+        faces    : the finest level with at most this many faces.
+        ratio    : faces = round(ratio * full face count), 0 < ratio <= 1.
+        error    : the coarsest level whose error is at most this (mesh units).
+        """
+        given = [x is not None for x in (vertices, faces, ratio, error)]
+        if sum(given) != 1:
+            raise ValueError("give exactly one of vertices, faces, ratio or error")
+        n0, n = self.base_vertices, self.vertex_count
+        if vertices is not None:
+            if vertices < 1:
+                raise ValueError(f"vertices must be at least 1, got {vertices}")
+            return int(min(max(int(vertices), n0), n))
+        if ratio is not None:
+            if not 0 < ratio <= 1:
+                raise ValueError(f"ratio must be in (0, 1], got {ratio}")
+            faces = max(1, int(round(ratio * self.face_count)))
+        if faces is not None:
+            if faces < 1:
+                raise ValueError(f"faces must be at least 1, got {faces}")
+            i = int(np.searchsorted(self.face_counts, faces, side="right")) - 1
+            return n0 + max(i, 0)
+        if not error >= 0:
+            raise ValueError(f"error must be a non-negative number, got {error}")
+        # level_error is non-increasing in the level
+        i = int(np.searchsorted(-self.level_error, -error, side="left"))
+        return n0 + min(i, self.split_count)
+
+    # ---- extracting a level ---------------------------------------------
+    def at(self, level=None, **criterion) -> Mesh:
+        """The mesh at a level, computed directly (cost grows with its size).
+
+        ``pm.at(1000)`` or ``pm.at(vertices=1000)``, ``pm.at(faces=2000)``,
+        ``pm.at(ratio=0.1)``, ``pm.at(error=1e-3)``.
+        """
+        if level is None:
+            level = self.level_for(**criterion)
+        elif criterion:
+            raise ValueError("give a level or one criterion, not both")
+        positions, faces = self.arrays_at(level)
+        return self.mesh_of(positions, faces, *self.wedges_at(level))
+
+    def mesh_of(self, positions, faces, values=None, corners=None) -> Mesh:
+        """A :class:`Mesh` of one level's arrays (as ``arrays_at`` and ``wedges_at``
+        give them), with this mesh's attribute layout, face materials and materials."""
+        attributes = None
+        if self.has_attributes:
+            attributes = Attributes(self.attribute_layout, values, corners)
+        material = None
+        if self.face_material is not None:
+            material = self.face_material[:len(faces)]
+        return Mesh(positions, faces, attributes, material, self.materials)
+
+    def wedges_at(self, level: int):
+        """(values (w, d) float64, corners (f, 3) int64) at ``level``; (None, None)
+        without attributes."""
+        if not self.has_attributes:
+            return None, None
+        level = self.check_level(level)
+        count = int(self.wedge_counts[level - self.base_vertices])
+        values = np.empty((count, self.wedge_values.shape[1]), dtype=np.float64)
+        _positions_at(self.wedge_values, self.wedge_coarse_value, self.wedge_parent,
+                      int(self.wedge_counts[0]), count, values)
+        corners = np.empty((self.faces_at_level(level), 3), dtype=np.int64)
+        _faces_at(self.corner_wedges, self.wedge_parent, len(corners), count, corners)
+        return values, corners
+
+    def arrays_at(self, level: int):
+        """(positions (v, 3) float64, faces (f, 3) int64) at ``level``, freshly allocated."""
+        level = self.check_level(level)
+        positions = np.empty((level, 3), dtype=np.float64)
+        _positions_at(self.positions, self.coarse_position, self.parent, self.base_vertices,
+                      level, positions)
+        faces = np.empty((self.faces_at_level(level), 3), dtype=np.int64)
+        _faces_at(self.faces, self.parent, len(faces), level, faces)
+        return positions, faces
+
+    def write_level(self, level: int, positions: np.ndarray, faces: np.ndarray) -> None:
+        """Write the arrays of ``level`` into ``positions`` (level, 3) and ``faces``
+        (faces_at_level(level), 3), of any numeric dtype (cast on the way in)."""
+        level = self.check_level(level)
+        _positions_at(self.positions, self.coarse_position, self.parent, self.base_vertices,
+                      level, positions)
+        _faces_at(self.faces, self.parent, len(faces), level, faces)
+
+    def cursor(self, level=None) -> Cursor:
+        """A mutable view at ``level`` (default: the base) that moves by splits and collapses."""
+        return Cursor(self, self.base_vertices if level is None else level)
+
+    def summary(self) -> dict:
+        """Counts and the error curve at 25 face ratios from 1 to 0.001
+        (log-spaced, finest first, repeated levels once), JSON-able."""
+        n0, n = self.base_vertices, self.vertex_count
+        curve = []
+        for ratio in np.geomspace(1.0, 1e-3, 25):
+            level = self.level_for(ratio=float(ratio))
+            if curve and curve[-1]["vertices"] == level:
+                continue
+            curve.append({"ratio": round(float(ratio), 6), "vertices": level,
+                          "faces": self.faces_at_level(level), "error": self.error_at_level(level)})
+        return {"vertices": n, "faces": self.face_count, "base_vertices": n0,
+                "base_faces": int(self.face_counts[0]), "splits": n - n0,
+                "max_error": float(self.level_error[0]) if n > n0 else 0.0,
+                "error_curve": curve, "metadata": self.metadata}
+
+    # ---- persistence ----------------------------------------------------
+    def save(self, path) -> None:
+        from .artefact import save_progressive
+        save_progressive(self, path)
+
+    @classmethod
+    def load(cls, path) -> ProgressiveMesh:
+        from .artefact import load_progressive
+        return load_progressive(path)
+
+
+@njit(cache=True, nogil=True)
+def _faces_at_levels(full_faces, parent, start, levels, out):
+    """Like ``_faces_at`` for faces ``start ..``, each at its own level."""
+    for i in range(levels.shape[0]):
+        f = start + i
+        for k in range(3):
+            out[f, k] = ancestor_below(parent, full_faces[f, k], levels[i])
+
+
+def _hierarchy(parent, n0, full, coarse):
+    """The values a split writes going forward, from the vertex (or wedge)
+    hierarchy: each vertex's children, ascending, as CSR lists.
+
+    Parameters
+    ----------
+    parent : (n,) int64, -1 for the first ``n0``
+    full : (n, d) float64, values at full detail
+    coarse : (n - n0, d) float64, the parent's value after collapsing ``t``
+
+    Returns
+    -------
+    fine : (n - n0, d)
+        The parent's value just after split ``t``: the value left by its next
+        collapse above ``t`` (its next child), else its full-detail value.
+    new : (n - n0, d)
+        ``t``'s own value at level ``t + 1``: left by its first child.
+    """
+    n = len(parent)
+    t = np.arange(n0, n)
+    par = parent[n0:]
+    order = np.argsort(par, kind="stable")     # t is ascending already
+    children = t[order]
+    child_offsets = np.zeros(n + 1, dtype=np.int64)
+    np.cumsum(np.bincount(par, minlength=n), out=child_offsets[1:])
+
+    sorted_par = par[order]
+    next_sibling = np.full(len(t), -1, dtype=np.int64)
+    same = sorted_par[1:] == sorted_par[:-1]
+    next_sibling[order[:-1][same]] = children[1:][same]
+    fine = full[par].copy()
+    has = next_sibling >= 0
+    fine[has] = coarse[next_sibling[has] - n0]
+
+    first_child = np.full(n, -1, dtype=np.int64)
+    nonempty = child_offsets[1:] > child_offsets[:-1]
+    first_child[nonempty] = children[child_offsets[:-1][nonempty]]
+    new = full[n0:].copy()
+    fc = first_child[n0:]
+    new[fc >= 0] = coarse[fc[fc >= 0] - n0]
+    return fine, new
+
+
+def _level_error(error):
+    """Error at each level v (index v - n0): the worst collapse applied to get
+    there, i.e. the max over splits t >= v; 0 at full detail. Non-increasing."""
+    out = np.zeros(len(error) + 1, dtype=np.float64)
+    if len(error):
+        out[:-1] = np.maximum.accumulate(error[::-1])[::-1]
+    return out
+
+
+class Cursor:
+    """A level of a progressive mesh held in mutable arrays, moved one split
+    or collapse at a time. Removed vertices keep their slots, so going back
+    and forth is exact."""
+
+    def __init__(self, pm: ProgressiveMesh, level: int):
+        self.pm = pm
+        level = pm.check_level(level)
+        self.positions = np.empty_like(pm.positions)
+        self.faces = np.empty_like(pm.faces)
+        p, f = pm.arrays_at(level)
+        self.positions[:level] = p
+        self.faces[:len(f)] = f
+        if pm.has_attributes:
+            self.values = np.empty_like(pm.wedge_values)
+            self.corners = np.empty_like(pm.corner_wedges)
+            v, c = pm.wedges_at(level)
+            self.values[:len(v)] = v
+            self.corners[:len(c)] = c
+        self.level = level
+
+    def seek(self, level: int) -> Cursor:
+        """Move to ``level`` by replaying splits (up) or collapses (down)."""
+        pm = self.pm
+        level = pm.check_level(level)
+        if level > self.level:
+            _apply_splits(self.positions, self.faces, self.level, level, pm.base_vertices,
+                          pm.parent, pm.fine_position, pm.new_position, pm.face_counts,
+                          pm.birth_faces, pm.moved_offsets, pm.moved_corners)
+            if pm.has_attributes:
+                _apply_wedge_splits(self.values, self.corners, self.level, level,
+                                    pm.base_vertices, int(pm.wedge_counts[0]), pm.wedge_counts,
+                                    pm.wedge_parent, pm.wedge_fine_value, pm.wedge_new_value,
+                                    pm.face_counts, pm.birth_corners, pm.moved_offsets,
+                                    pm.moved_corners, pm.corner_wedges)
+        elif level < self.level:
+            _apply_collapses(self.positions, self.faces, self.level, level, pm.base_vertices,
+                             pm.parent, pm.coarse_position, pm.moved_offsets, pm.moved_corners)
+            if pm.has_attributes:
+                _apply_wedge_collapses(self.values, self.corners, self.level, level,
+                                       pm.base_vertices, int(pm.wedge_counts[0]), pm.wedge_counts,
+                                       pm.wedge_parent, pm.wedge_coarse_value, pm.moved_offsets,
+                                       pm.moved_corners, pm.corner_wedges)
+        self.level = level
+        return self
+
+    def arrays(self):
+        """Copies of (positions (v, 3), faces (f, 3)) at the current level."""
+        return (self.positions[:self.level].copy(),
+                self.faces[:self.pm.faces_at_level(self.level)].copy())
+
+    def wedges(self):
+        """Copies of (values (w, d), corners (f, 3)) at the current level; (None, None)
+        without attributes."""
+        pm = self.pm
+        if not pm.has_attributes:
+            return None, None
+        count = int(pm.wedge_counts[self.level - pm.base_vertices])
+        return (self.values[:count].copy(), self.corners[:pm.faces_at_level(self.level)].copy())
+
+    def mesh(self) -> Mesh:
+        return self.pm.mesh_of(*self.arrays(), *self.wedges())
+
+
+def _reverse_blocks(values, offsets):
+    """Concatenate the blocks ``values[offsets[i]:offsets[i+1]]`` last block
+    first, each block keeping its inner order (collapse order -> split order)."""
+    counts = np.diff(offsets)
+    block = np.repeat(np.arange(len(counts)), counts)
+    # element j of block i lands at (total - end of block i) + (j - start of block i)
+    destination = (offsets[-1] - offsets[1:])[block] + (np.arange(len(values)) - offsets[:-1][block])
+    out = np.empty_like(values)
+    out[destination] = values
+    return out
+
+
+def from_collapse_log(mesh: Mesh, log: CollapseLog, metadata=None) -> ProgressiveMesh:
+    """Renumber ``mesh`` and its collapse log into the prefix layout.
+
+    The vertex removed by collapse ``i`` (of ``k``) becomes vertex ``n - 1 - i``;
+    vertices never removed keep their input order as ``0 .. n0-1``. Faces never
+    removed come first, in input order, then each split's faces.
+    """
+    n, m, k = mesh.vertex_count, mesh.face_count, len(log)
+    n0 = n - k
+    new_id = np.full(n, -1, dtype=np.int64)
+    new_id[log.removed] = n - 1 - np.arange(k)
+    kept = new_id < 0
+    new_id[kept] = np.arange(n0)
+    order = np.empty(n, dtype=np.int64)
+    order[new_id] = np.arange(n)
+
+    parent = np.full(n, -1, dtype=np.int64)
+    parent[n - 1 - np.arange(k)] = new_id[log.survivor]
+    # records are indexed by t - n0, i.e. collapse order reversed
+    coarse_position = log.position[::-1].copy()
+    error = log.error[::-1].copy()
+
+    killed_counts = np.diff(log.killed_offsets)[::-1]          # per split t
+    face_alive = np.ones(m, dtype=bool)
+    face_alive[log.killed_faces] = False
+    base_faces = np.nonzero(face_alive)[0]
+    split_faces = _reverse_blocks(log.killed_faces, log.killed_offsets)
+    face_order = np.concatenate([base_faces, split_faces]).astype(np.int64)
+    new_face = np.empty(m, dtype=np.int64)
+    new_face[face_order] = np.arange(m)
+    face_counts = np.concatenate([[len(base_faces)], len(base_faces) + np.cumsum(killed_counts)])
+
+    moved_counts = np.diff(log.moved_offsets)
+    moved_offsets = np.concatenate([[0], np.cumsum(moved_counts[::-1])]).astype(np.int64)
+    moved = _reverse_blocks(log.moved_corners, log.moved_offsets)
+    moved_corners = 3 * new_face[moved // 3] + moved % 3
+
+    appearance = {}
+    if mesh.attributes is not None:
+        appearance = _renumber_wedges(mesh.attributes, log, face_order)
+    if mesh.face_material is not None:
+        appearance["face_material"] = mesh.face_material[face_order]
+    return ProgressiveMesh(
+        positions=np.ascontiguousarray(mesh.positions[order]),
+        faces=np.ascontiguousarray(new_id[mesh.faces[face_order]]),
+        parent=parent, base_vertices=n0, coarse_position=coarse_position, error=error,
+        face_counts=face_counts.astype(np.int64), moved_offsets=moved_offsets,
+        moved_corners=moved_corners.astype(np.int64), metadata=dict(metadata or {}),
+        materials=mesh.materials, **appearance)
+
+
+def _renumber_wedges(attributes: Attributes, log: CollapseLog, face_order) -> dict:
+    """The wedge arrays of the prefix layout, as ``from_collapse_log`` does for
+    vertices: wedges never merged away keep their order as ``0 .. w0-1``, then
+    each split's wedges follow in split order."""
+    w = attributes.wedge_count
+    removed = _reverse_blocks(log.merge_removed, log.merge_offsets)
+    survivor = _reverse_blocks(log.merge_survivor, log.merge_offsets)
+    value = _reverse_blocks(log.merge_value, log.merge_offsets)
+    w0 = w - len(removed)
+    new_id = np.full(w, -1, dtype=np.int64)
+    new_id[removed] = w0 + np.arange(len(removed))
+    kept = new_id < 0
+    new_id[kept] = np.arange(w0)
+    order = np.empty(w, dtype=np.int64)
+    order[new_id] = np.arange(w)
+    parent = np.full(w, -1, dtype=np.int64)
+    parent[w0:] = new_id[survivor]
+    per_split = np.diff(log.merge_offsets)[::-1]
+    counts = np.concatenate([[w0], w0 + np.cumsum(per_split)]).astype(np.int64)
+    return dict(attribute_layout=attributes.layout,
+                wedge_values=np.ascontiguousarray(attributes.values[order]),
+                corner_wedges=np.ascontiguousarray(new_id[attributes.corners[face_order]]),
+                wedge_parent=parent, wedge_coarse_value=np.ascontiguousarray(value),
+                wedge_counts=counts)

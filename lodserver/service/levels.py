@@ -1,0 +1,154 @@
+"""One level of a progressive mesh as the bytes of a response.
+
+``glb``, ``obj`` and ``ply`` carry the level's exact positions (as precise as
+the format allows, see ``io``); ``glb`` also its wedge attributes, materials and
+images, ``obj`` its UVs and normals (one ``vt``/``vn`` per wedge), ``ply``
+positions only. ``json`` carries its *quantized form*, the
+state a packet client starts from and ends in (``packets/grids.py``)::
+
+    {"level": v, "vertex_count": v, "face_count": f, "error": e,
+     "grid": {"origin": [x, y, z], "step": s, "bits": b},
+     "positions": [[qx, qy, qz], ...],   # grid coordinates, position = origin + q * step
+     "faces": [[a, b, c], ...]}          # in prefix-layout slots
+
+and, for a mesh with attributes and materials (docs/packets.md)::
+
+     "layout": [["NORMAL", 3], ["TEXCOORD_0", 2]],
+     "attribute_grid": {"NORMAL": {"encoding": "octahedral", ...}, "TEXCOORD_0": {...}},
+     "wedge_capacity": w,                # wedges at full detail (the most of any level)
+     "wedges": [[...], ...],             # grid coordinates per wedge, attribute after attribute
+     "corners": [[a, b, c], ...],        # the wedge of every face corner
+     "face_material": [m, ...],          # per face, -1 for none
+     "material_faces": [n0, ..., n_none],  # faces per material at full detail, last: none
+     "materials": "/meshes/{id}/materials"
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import orjson
+
+from ..io.glb import level_glb
+from ..io import encode_mesh
+from ..mesh import MeshError
+from ..packets import check_bits, grid_of, quantized_level
+from ..progressive.mesh import ProgressiveMesh
+
+FORMATS = {"glb": "model/gltf-binary", "obj": "model/obj", "ply": "application/octet-stream",
+           "json": "application/json"}
+
+
+class LevelError(MeshError):
+    """A level request is malformed or outside the mesh's levels."""
+
+
+def resolve_level(pm: ProgressiveMesh, *, vertices=None, faces=None, ratio=None,
+                  error=None) -> int:
+    """The level (vertex count) asked for by exactly one criterion (``level_for``)."""
+    try:
+        return pm.level_for(vertices=vertices, faces=faces, ratio=ratio, error=error)
+    except (ValueError, TypeError) as exc:
+        raise LevelError(str(exc)) from exc
+
+
+def check_level(pm: ProgressiveMesh, level: int, *, name: str = "level") -> int:
+    """``level`` if it is one of ``pm``'s levels, else :class:`LevelError`."""
+    if not pm.base_vertices <= level <= pm.vertex_count:
+        raise LevelError(f"{name} must be a level in [{pm.base_vertices}, {pm.vertex_count}] "
+                         f"(a vertex count), got {level}")
+    return int(level)
+
+
+def checked_bits(bits: int | None) -> int | None:
+    """``bits`` unchanged if None or in range, else :class:`LevelError`."""
+    if bits is None:
+        return None
+    try:
+        return check_bits(bits)
+    except ValueError as exc:
+        raise LevelError(str(exc)) from exc
+
+
+def encode_level(pm: ProgressiveMesh, level: int, *, file_type: str,
+                 bits: int | None = None, materials_href: str | None = None,
+                 copy: bool = True) -> bytes | memoryview:
+    """The bytes of ``level`` in ``file_type`` (one of :data:`FORMATS`).
+
+    ``copy=False`` allows a read-only memoryview in place of bytes where that
+    saves a copy (the GLB of a geometry-only level, written in place).
+
+    ``bits`` sets the grid of the ``json`` form (default ``packets.default_bits``)
+    and must match the packets the client applies to it. ``materials_href`` is
+    where the ``json`` form says the mesh's materials are (when it has some).
+    """
+    level = check_level(pm, level)
+    if file_type not in FORMATS:
+        raise LevelError(f"format must be one of {', '.join(FORMATS)}, got {file_type!r}")
+    if file_type == "json":
+        grid = grid_of(pm, bits=checked_bits(bits))
+        state = quantized_level(pm, level, grid)
+        document = {"level": level, "vertex_count": level, "face_count": len(state.faces),
+                    "error": pm.error_at_level(level), "grid": grid.as_dict(),
+                    "positions": np.ascontiguousarray(state.positions),
+                    "faces": np.ascontiguousarray(state.faces)}
+        if state.attribute_grids:
+            document.update(layout=[list(x) for x in pm.attribute_layout],
+                            attribute_grid={g.name: g.as_dict() for g in state.attribute_grids},
+                            wedge_capacity=int(pm.wedge_counts[-1]),
+                            wedges=np.ascontiguousarray(state.wedges),
+                            corners=np.ascontiguousarray(state.corners))
+        if state.face_material is not None:
+            count = pm.materials.count if pm.materials is not None else 0
+            document.update(face_material=np.ascontiguousarray(state.face_material),
+                            material_faces=material_face_counts(pm.face_material, count))
+        if pm.materials is not None and materials_href:
+            document["materials"] = materials_href
+        # orjson writes numpy arrays directly: the same bytes as json.dumps of
+        # their lists, 7x faster on a million-face level.
+        return json_in_slices(document, copy=copy)
+    if file_type == "glb" and not pm.has_attributes and pm.face_material is None \
+            and pm.materials is None:
+        # the server's hot path: the level is written straight into the file
+        return level_glb(level, pm.faces_at_level(level),
+                         lambda positions, faces: pm.write_level(level, positions, faces),
+                         copy=copy)
+    return encode_mesh(pm.at(level), file_type)
+
+
+def material_face_counts(face_material: np.ndarray, count: int) -> list[int]:
+    """Faces per material (``count`` of them), then faces without one (-1): the sizes
+    of a viewer's per-material index ranges at full detail."""
+    counts = np.bincount(np.asarray(face_material) + 1, minlength=count + 1)
+    return [int(x) for x in counts[1:]] + [int(counts[0])]
+
+
+# Rows of an array serialized at a time. orjson holds the GIL while it writes:
+# about 300 ms for the 34 MB json form of a 1.1M-face level, during which no
+# other request (nor /healthz) is served; a slice of 16k rows takes a few ms.
+JSON_SLICE_ROWS = 16_384
+
+
+def json_in_slices(document: dict, *, copy: bool = True) -> bytes | memoryview:
+    """``orjson.dumps(document, option=OPT_SERIALIZE_NUMPY)``, byte for byte, with the
+    arrays of more than JSON_SLICE_ROWS rows written a slice at a time (other
+    threads run between slices) into one growing buffer (so the body is held
+    once, not as pieces and their join). ``copy=False``: a read-only memoryview
+    of that buffer instead of a copy of it as bytes."""
+    big = [key for key, value in document.items()
+           if isinstance(value, np.ndarray) and len(value) > JSON_SLICE_ROWS]
+    if not big:
+        return orjson.dumps(document, option=orjson.OPT_SERIALIZE_NUMPY)
+    marks = {key: f"lodserver-slices:{key}" for key in big}
+    rest = orjson.dumps({**document, **marks}, option=orjson.OPT_SERIALIZE_NUMPY)
+    out = bytearray()
+    for key in big:
+        before, rest = rest.split(orjson.dumps(marks[key]), 1)
+        out += before
+        array = document[key]
+        for start in range(0, len(array), JSON_SLICE_ROWS):
+            out += b"," if start else b"["
+            out += orjson.dumps(array[start:start + JSON_SLICE_ROWS],
+                                option=orjson.OPT_SERIALIZE_NUMPY)[1:-1]
+        out += b"]"
+    out += rest
+    return bytes(out) if copy else memoryview(out).toreadonly()

@@ -1,0 +1,257 @@
+"""Parsing uploads in worker processes, a few at a time, each under a memory limit.
+
+Parsing a file (``io.load_mesh`` and the limits) is Python holding the GIL
+and, for a hostile file, possibly a lot of memory, so a :class:`ParsePool`
+runs it in separate processes: a few at a time (``workers``, with ``queue``
+more waiting and the rest refused with :class:`ParserBusy`), each under an
+address-space limit (``RLIMIT_AS``), so that a file cannot take the server's
+memory and the server's event loop keeps its GIL. The parsed mesh comes back
+pickled. A worker that runs out of memory, or dies, refuses that one file
+(:class:`LimitError`) and the pool is started again.
+"""
+
+from __future__ import annotations
+
+import multiprocessing
+import os
+import threading
+import time
+import traceback
+from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures.process import BrokenProcessPool
+from contextlib import contextmanager
+from pathlib import Path
+
+from ..io import LoadReport, load_mesh
+from ..io.limits import LimitError, LoadLimits
+from ..mesh import Mesh, MeshError
+
+# Address space of one parse worker by default: its imports (numpy, numba,
+# trimesh) take about 0.5 GB of it before any file is read.
+PARSE_MEMORY_BYTES = 4 * 2**30
+# Seconds a client refused by a full parse queue is told to wait (Retry-After).
+RETRY_AFTER = 5
+
+
+class ParserBusy(Exception):
+    """Every parse worker is busy and the queue is full; try again after ``retry_after`` s."""
+
+    def __init__(self, message: str, retry_after: int = RETRY_AFTER):
+        super().__init__(message)
+        self.retry_after = retry_after
+
+    def __reduce__(self):
+        return type(self), (str(self), self.retry_after)
+
+
+class ParserClosed(ParserBusy):
+    """The parse pool was shut down (the server is stopping)."""
+
+
+def check_mesh_file(path, *, file_type: str, max_triangles: int, root=None,
+                    limits: LoadLimits | None = None) -> tuple[Mesh, LoadReport]:
+    """Load a mesh file and check it against the triangle limit.
+
+    Parameters
+    ----------
+    path : path of the file; file_type : one of ``io.SUPPORTED_INPUT``.
+    max_triangles : int
+        Most triangles accepted after cleaning.
+    root : path, optional
+        The folder every file the mesh names must resolve inside (an upload's
+        own folder, holding only it); None: relative to the file, unchecked.
+    limits : LoadLimits, optional
+        What the file may declare (checked before allocating for it).
+
+    Returns
+    -------
+    (Mesh, LoadReport), as ``io.load_mesh``.
+
+    Raises
+    ------
+    MeshError
+        The file is not a usable mesh (the message says why).
+    LimitError
+        It has more than ``max_triangles`` triangles.
+    """
+    mesh, report = load_mesh(path, file_type=file_type, root=root, limits=limits)
+    if mesh.face_count > max_triangles:
+        raise LimitError(f"the mesh has {mesh.face_count} triangles; this server builds at most "
+                         f"{max_triangles}")
+    return mesh, report
+
+
+def _start_worker(memory_bytes: int, parent: int) -> None:
+    """Parse worker initialiser: cap the worker's address space, so an allocation
+    past ``memory_bytes`` raises MemoryError instead of swapping the machine, and
+    exit when the server (pid ``parent``) is gone: killed with -9, it cannot stop
+    its workers, and one blocked writing its result to the dead server would
+    wait forever."""
+    import resource
+
+    def watch_parent():
+        # the server's pid, not getppid() now: it may have died during our imports
+        while os.getppid() == parent:
+            time.sleep(1.0)
+        os._exit(1)     # reparented: the server died; its parse is of no use to anyone
+
+    threading.Thread(target=watch_parent, name="watch-parent", daemon=True).start()
+    _, hard = resource.getrlimit(resource.RLIMIT_AS)
+    if hard != resource.RLIM_INFINITY:
+        memory_bytes = min(memory_bytes, hard)
+    resource.setrlimit(resource.RLIMIT_AS, (memory_bytes, hard))
+
+
+def _parse_in_worker(path: str, file_type: str, root: str | None, max_triangles: int,
+                     limits: LoadLimits | None) -> tuple[Mesh, LoadReport]:
+    """``check_mesh_file`` in a parse worker, with every failure made a picklable
+    MeshError naming ``path`` (the caller replaces it with the upload's name)."""
+    try:
+        return check_mesh_file(path, file_type=file_type, max_triangles=max_triangles,
+                               root=root, limits=limits)
+    except MeshError:
+        raise
+    except MemoryError:
+        raise LimitError(f"cannot load {path}: reading it needs more memory than this server "
+                         "allows one file") from None
+    except Exception as exc:
+        # a reader tripped over the file: the file's fault as far as the client
+        # is concerned, a bug to look at for us (the server log gets the trace)
+        traceback.print_exc()
+        raise MeshError(f"cannot load {path}: the file is malformed (its reader failed with "
+                        f"{type(exc).__name__})") from None
+
+
+class _WorkerDied(LimitError):
+    """A parse worker died (killed at its memory limit, or crashed) on a file."""
+
+
+# OpenBLAS, when its threads cannot get memory under RLIMIT_AS, crashes the
+# process instead of failing the call; a parse worker needs no BLAS threads.
+_WORKER_ENVIRONMENT = {"OPENBLAS_NUM_THREADS": "1", "OMP_NUM_THREADS": "1",
+                       "MKL_NUM_THREADS": "1"}
+_environment_lock = threading.Lock()
+
+
+@contextmanager
+def _worker_environment():
+    """Spawned workers inherit ``os.environ``, read before their first import (the
+    parent's main module is imported first): set the variables just for the spawn."""
+    with _environment_lock:
+        added = [key for key in _WORKER_ENVIRONMENT if key not in os.environ]
+        os.environ.update({key: _WORKER_ENVIRONMENT[key] for key in added})
+        try:
+            yield
+        finally:
+            for key in added:
+                os.environ.pop(key, None)
+
+
+class ParsePool:
+    """Parse worker processes, bounded in number, queue and memory (module docstring).
+
+    Parameters
+    ----------
+    workers : int
+        Parses running at once, one process each.
+    queue : int
+        Parses admitted to wait for a worker; past ``workers + queue`` an
+        upload is refused with :class:`ParserBusy`. Builds resumed after a
+        restart are never refused, they wait.
+    memory_bytes : int
+        Address-space limit of each worker, in bytes.
+
+    The processes start on the first parse (a server that never parses never
+    pays for them) with the spawn method: a worker forked from a threaded
+    server could inherit a lock held by another thread.
+    """
+
+    def __init__(self, *, workers: int = 1, queue: int = 4,
+                 memory_bytes: int = PARSE_MEMORY_BYTES):
+        self.workers, self.queue, self.memory_bytes = max(1, workers), max(0, queue), memory_bytes
+        self._lock = threading.Lock()
+        self._slots = threading.Semaphore(self.workers)
+        self._admitted = 0
+        self._executor: ProcessPoolExecutor | None = None
+        self._closed = False
+
+    @property
+    def admitted(self) -> int:
+        """Parses running or waiting for a worker."""
+        return self._admitted
+
+    @property
+    def full(self) -> bool:
+        """Whether an upload arriving now would be refused."""
+        return self._admitted >= self.workers + self.queue
+
+    def parse(self, path, *, file_type: str, root, max_triangles: int,
+              limits: LoadLimits | None, admit: bool = True) -> tuple[Mesh, LoadReport]:
+        """``check_mesh_file`` in a worker; see :func:`_parse_in_worker`.
+
+        Raises ParserBusy (``admit`` and the queue is full), ParserClosed,
+        LimitError (too large, or the worker ran out of memory or died) and
+        MeshError (not a usable mesh).
+        """
+        try:
+            return self.call(_parse_in_worker, str(path), file_type,
+                             None if root is None else str(root), max_triangles, limits,
+                             admit=admit)
+        except _WorkerDied:
+            raise LimitError(f"cannot load {Path(path).name}: reading it needed more memory "
+                             "than this server allows one file, or crashed the reader") from None
+
+    def call(self, function, *args, admit: bool = True):
+        """Run the picklable ``function(*args)`` in a worker, waiting for a free one."""
+        with self._lock:
+            if self._closed:
+                raise ParserClosed("the server is shutting down; try again shortly")
+            if admit and self.full:
+                raise ParserBusy(f"the server is already parsing {self._admitted} uploads; "
+                                 f"try again in {RETRY_AFTER} seconds")
+            self._admitted += 1
+        try:
+            with self._slots:
+                executor = self._started()
+                try:
+                    with _worker_environment():     # a worker may be spawned here
+                        future = executor.submit(function, *args)
+                    return future.result()
+                except BrokenProcessPool:
+                    with self._lock:
+                        closed = self._closed
+                        if self._executor is executor:
+                            self._executor = None   # the next parse starts a fresh pool
+                    executor.shutdown(wait=False, cancel_futures=True)
+                    if closed:
+                        raise ParserClosed("the server is shutting down; try again "
+                                           "shortly") from None
+                    raise _WorkerDied("the parse worker ran out of memory or crashed") from None
+        finally:
+            with self._lock:
+                self._admitted -= 1
+
+    def _started(self) -> ProcessPoolExecutor:
+        with self._lock:
+            if self._closed:
+                raise ParserClosed("the server is shutting down; try again shortly")
+            if self._executor is None:
+                self._executor = ProcessPoolExecutor(
+                    max_workers=self.workers, mp_context=multiprocessing.get_context("spawn"),
+                    initializer=_start_worker, initargs=(self.memory_bytes, os.getpid()))
+            return self._executor
+
+    def shutdown(self) -> None:
+        """Stop the workers now; parses in progress end with ParserClosed."""
+        with self._lock:
+            self._closed = True
+            executor, self._executor = self._executor, None
+        if executor is None:
+            return
+        # a parse may take a minute; a stopping server does not wait for it
+        for process in list(getattr(executor, "_processes", {}).values()):
+            try:
+                process.terminate()
+            except (OSError, AttributeError):
+                pass
+        executor.shutdown(wait=True, cancel_futures=True)

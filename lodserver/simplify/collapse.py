@@ -1,0 +1,601 @@
+"""Greedy quadric-error edge collapse, recording every collapse.
+
+Implements Garland & Heckbert, "Surface Simplification Using Quadric Error
+Metrics" (SIGGRAPH 1997) with the topology rules of Hoppe, "Progressive
+Meshes" (SIGGRAPH 1996) and Dey et al., "Topology preserving edge contraction"
+(1999): a collapse is taken only when it keeps the mesh a manifold and flips
+no triangle, so that every collapse, reversed, is a vertex split. Appearance
+attributes follow Hoppe 1999 (``simplify.wedges``), volume preservation
+Lindstrom & Turk 1998.
+
+Pipeline, in the order of this file:
+
+1. classify vertices (interior, border, locked; ``simplify.rules``);
+2. build vertex quadrics (``quadrics.vertex_quadrics``) and wedge quadrics;
+3. in compiled steps, in passes (``_decimate_kernel``):
+   - *rank* every edge (G&H section 4: the summed quadric, minimised) into
+     the queue (``simplify.queue``), and the close pairs when asked for;
+   - *pop* the cheapest fresh candidate, re-place it on its volume plane;
+   - *check* it against the rules, each refusal a named reason
+     (``simplify.legality``, ``simplify.rules.REJECT_*``), counted;
+   - *perform* it on the corner lists and *log* it (``simplify.perform``,
+     ``simplify.log``);
+   - *re-rank* the edges around the survivor;
+   until no legal collapse is left: a collapse refused now may become legal
+   once its neighbourhood has moved, so each pass re-ranks all edges;
+4. return the collapse log as parallel arrays, one row per collapse.
+
+Positions are rescaled to the unit box inside the kernel so its tolerances
+are scale-free; logged positions are kept in mesh units alongside.
+``check_collapse`` runs the kernel's own rank and check steps on one edge.
+"""
+
+from __future__ import annotations
+
+import threading
+from collections import namedtuple
+
+import numpy as np
+from numba import njit
+
+from ..mesh import Mesh, MeshError
+from .quadrics import (
+    constrain_to_plane,
+    optimal_position_xyz,
+    quadric_error,
+    to_unit_box,
+    unit_box,
+    vertex_quadrics,
+)
+from .legality import check_legality
+from .log import COLLAPSES, MOVED, CollapseLog, filled, new_log, with_room_for_moves
+from .pairs import MAX_PAIRS_PER_VERTEX, close_pairs
+from .perform import perform_collapse
+from .queue import (
+    CAPACITY,
+    EMPTY,
+    NEEDS_ROOM,
+    RESERVOIR,
+    clear_queue,
+    has_room,
+    new_queue,
+    next_key,
+    pair_key,
+    pop_fresh,
+    push,
+    push_reservoir,
+    queue_append,
+    reservoir_append,
+    with_room,
+)
+from .rules import (
+    BORDER,
+    DEFAULT_FLIP_COS,
+    INTERIOR,
+    LEGAL,
+    LOCKED,
+    REASON_COUNT,
+    REASON_NAMES,
+    REJECT_DEFERRED_BY_VOLUME,
+    REJECT_LOCKED,
+    REJECT_REASONS,
+    REJECT_SEAM,
+    REJECT_STALE,
+    can_collapse,
+    keeps_position,
+    rejected_counts,
+)
+from .state import NO_REFCOUNT, Options, Vertices, new_state
+from .wedges import (
+    DEFAULT_ATTRIBUTE_WEIGHTS,
+    add_wedge_terms,
+    attribute_scales,
+    fill_fixed,
+    texture_seams,
+    wedge_inputs,
+)
+from .topology import Census, census
+
+__all__ = ["decimate", "check_collapse", "classify_vertices", "CollapseLog", "DEFAULT_FLIP_COS",
+           "DEFAULT_ATTRIBUTE_WEIGHTS", "REJECT_REASONS", "INTERIOR", "BORDER", "LOCKED",
+           "MAX_PAIRS_PER_VERTEX", "attribute_scales"]
+
+# How often (in collapses) the kernel reports progress and checks for cancellation.
+_PROGRESS_STRIDE = 1024
+
+# With volume preservation, a collapse popped from the queue is re-placed on
+# its volume plane, which can only raise its cost; if the cost rose past this
+# factor times the next key in the queue, it goes back into the queue (lazy
+# re-ranking keeps the order cheapest-first to within the factor).
+VOLUME_SLACK = 1.1
+
+# A collapse where both endpoints keep a wedge the other has no partner for
+# (two seams meeting) must drag one of them; its cost is multiplied by this, so
+# such collapses wait until the alternatives cost as much (refusing them
+# outright smears less texture at fine levels but ruins coarse ones).
+SEAM_PENALTY = 4.0
+
+
+# --------------------------------------------------------------------------
+# 1. Vertex classification
+# --------------------------------------------------------------------------
+
+def classify_vertices(found: Census, n, locked=None):
+    """Kind of every vertex: INTERIOR, BORDER or LOCKED (``simplify.rules``).
+
+    Parameters
+    ----------
+    found : Census
+        The mesh's connectivity facts (``topology.census``).
+    n : int
+        Vertex count.
+    locked : (n,) bool, optional
+        Vertices the caller wants kept exactly (e.g. tile borders).
+
+    Returns
+    -------
+    kind : (n,) int8
+    """
+    kind = np.zeros(n, dtype=np.int8)
+    kind[found.on_boundary] = BORDER
+    # Non-manifold edges and bow-tie vertices (two or more fans) cannot be
+    # collapsed and split back as a Hoppe vertex split: lock them.
+    kind[found.on_nonmanifold_edge | (found.fans > 1)] = LOCKED
+    if locked is not None:
+        locked = np.asarray(locked, dtype=bool)
+        if locked.shape != (n,):
+            raise ValueError(f"locked must be a boolean mask of shape ({n},), got {locked.shape}")
+        kind[locked] = LOCKED
+    return kind
+
+
+# --------------------------------------------------------------------------
+# 2. Rank: cost and placement of one candidate
+#    (the kernel's state is in simplify.state, the check step in
+#    simplify.legality, the perform step in simplify.perform)
+# --------------------------------------------------------------------------
+
+@njit(cache=True, nogil=True)
+def rank_collapse(a, b, pos, quadrics, kind, q, p, pairs, topo, wedges):
+    """Cost of collapsing (a, b): G&H's summed quadric ``Q_a + Q_b`` (plus
+    Hoppe's wedge terms), at its minimiser, or at the survivor when that is
+    locked. ``pos``, ``quadrics``, ``kind`` are the ``Vertices`` columns;
+    writes the summed quadric into ``q`` (11,), the placement into ``p``
+    (3,) and the wedge pairs into ``pairs`` (2, 2).
+
+    The hottest step (about ten calls a collapse) takes its arrays one by
+    one: reading them out of the namedtuples here, on every call, made it
+    twice as slow. ``topo`` and ``wedges`` are only read for a mesh with
+    attributes.
+
+    Returns (cost, survivor, wedge pair count, seams meet, reason): cost is
+    inf, with the reason, when the collapse is never legal.
+    """
+    # The survivor is the endpoint the other may vanish into (CAN_COLLAPSE):
+    # a border vertex outlives an interior one, a locked one anything; a when
+    # both ways are open.
+    if can_collapse(kind[b], kind[a]):
+        s = a
+    elif can_collapse(kind[a], kind[b]):
+        s = b
+    else:
+        return np.inf, a, 0, False, REJECT_LOCKED
+    for j in range(11):
+        q[j] = quadrics[a, j] + quadrics[b, j]
+    n_pairs = 0
+    seams_meet = False
+    if wedges.quadric.shape[0] > 0:
+        legal, n_pairs, seams_meet = add_wedge_terms(a, b, q, topo, wedges, pairs)
+        if not legal:
+            return np.inf, a, 0, False, REJECT_SEAM
+    if keeps_position(kind[s]):
+        p[0] = pos[s, 0]; p[1] = pos[s, 1]; p[2] = pos[s, 2]
+        cost = quadric_error(q, p[0], p[1], p[2])
+    else:
+        cost = optimal_position_xyz(q, pos[a, 0], pos[a, 1], pos[a, 2], pos[b, 0], pos[b, 1],
+                                    pos[b, 2], p)
+    if seams_meet:
+        cost *= SEAM_PENALTY
+    return max(cost, 0.0), s, n_pairs, seams_meet, LEGAL
+
+
+@njit(inline="always", **NO_REFCOUNT)
+def _volume_plane(a, b, pos, topo, out):
+    """The plane ``N . p = h`` on which collapsing (a, b) to ``p`` keeps the
+    enclosed volume (signed tetrahedra against ``a``'s position, so a's own
+    faces add nothing before the move). Writes (Nx, Ny, Nz, h) into ``out``."""
+    faces, vhead, cnext, face_alive = topo.faces, topo.vhead, topo.cnext, topo.face_alive
+    ox = pos[a, 0]; oy = pos[a, 1]; oz = pos[a, 2]
+    nx = 0.0; ny = 0.0; nz = 0.0; h = 0.0
+    for v, other in ((a, b), (b, a)):
+        c = vhead[v]
+        while c >= 0:
+            f = c // 3
+            if face_alive[f]:
+                slot = c - 3 * f
+                x = faces[f, (slot + 1) % 3]
+                y = faces[f, (slot + 2) % 3]
+                if x != other and y != other:
+                    xx = pos[x, 0] - ox; xy = pos[x, 1] - oy; xz = pos[x, 2] - oz
+                    yx = pos[y, 0] - ox; yy = pos[y, 1] - oy; yz = pos[y, 2] - oz
+                    cx = xy * yz - xz * yy
+                    cy = xz * yx - xx * yz
+                    cz = xx * yy - xy * yx
+                    nx += cx; ny += cy; nz += cz
+                    if v == b:
+                        h += (pos[b, 0] - ox) * cx + (pos[b, 1] - oy) * cy + (pos[b, 2] - oz) * cz
+            c = cnext[c]
+    out[0] = nx; out[1] = ny; out[2] = nz
+    out[3] = h + nx * ox + ny * oy + nz * oz
+
+
+@njit(**NO_REFCOUNT)
+def place_on_volume_plane(a, b, seams_meet, verts, topo, scratch):
+    """Move the placement ``scratch.p`` of the ranked (a, b) onto its volume
+    plane (Lindstrom & Turk 1998; Hoppe 1999 section 4) along the quadric's
+    metric. Returns the new cost, or -1.0 when there is no such plane (``p``
+    is then left alone)."""
+    plane = scratch.plane
+    p = scratch.p
+    _volume_plane(a, b, verts.pos, topo, plane)
+    if not constrain_to_plane(scratch.q, plane[0], plane[1], plane[2], plane[3], p):
+        return -1.0
+    cost = max(quadric_error(scratch.q, p[0], p[1], p[2]), 0.0)
+    if seams_meet:
+        cost *= SEAM_PENALTY
+    return cost
+
+
+# --------------------------------------------------------------------------
+# 3. The passes: rank all, then pop / check / perform / re-rank
+# --------------------------------------------------------------------------
+
+@njit(cache=True, nogil=True)
+def _rank_all(verts, topo, wedges, scratch, queue, stamp, pair_radius):
+    """Rank every live edge once, and every close pair, into the reservoir.
+    Returns (queue, stamp): the queue's arrays may have grown."""
+    faces, vhead, cnext, face_alive = topo.faces, topo.vhead, topo.cnext, topo.face_alive
+    vertex_alive, face_count = topo.vertex_alive, topo.face_count
+    pos, quadrics, kind, version = verts.pos, verts.quadrics, verts.kind, verts.version
+    q, p, wedge_pairs, mark = scratch.q, scratch.p, scratch.pairs, scratch.mark
+    rk, rab, rvs, size = queue.key, queue.pair, queue.version, queue.size
+    for a in range(pos.shape[0]):
+        if not vertex_alive[a]:
+            continue
+        stamp += 1
+        if size[CAPACITY] + 2 * face_count[a] > rk.shape[0]:
+            queue = with_room(queue, np.int64(0), 2 * face_count[a])
+            rk, rab, rvs = queue.key, queue.pair, queue.version
+        c = vhead[a]
+        while c >= 0:
+            f = c // 3
+            if face_alive[f]:
+                slot = c - 3 * f
+                for t in range(1, 3):
+                    b = np.int64(faces[f, (slot + t) % 3])    # one signature for rank_collapse
+                    if b > a and mark[b] != stamp:
+                        mark[b] = stamp
+                        cost = rank_collapse(a, b, pos, quadrics, kind, q, p, wedge_pairs, topo,
+                                             wedges)[0]
+                        if cost < np.inf:
+                            reservoir_append(rk, rab, rvs, size, cost, pair_key(a, b),
+                                             version[a] + version[b], version, vertex_alive)
+            c = cnext[c]
+    if pair_radius > 0.0:
+        pairs, stamp = close_pairs(pos, topo, pair_radius, mark, stamp)
+        queue = with_room(queue, np.int64(0), np.int64(pairs.shape[0]))
+        for i in range(pairs.shape[0]):
+            a = pairs[i, 0]
+            b = pairs[i, 1]
+            cost = rank_collapse(a, b, pos, quadrics, kind, q, p, wedge_pairs, topo, wedges)[0]
+            if cost < np.inf:
+                push_reservoir(queue, cost, pair_key(a, b), version[a] + version[b], version,
+                               vertex_alive)
+    return queue, stamp
+
+
+@njit(**NO_REFCOUNT)
+def _rerank_around(s, verts, topo, wedges, scratch, queue, stamp):
+    """Queue every edge at s anew: its quadric and position changed (the
+    queue must have room for two entries per face of s)."""
+    faces, cnext, vertex_alive = topo.faces, topo.cnext, topo.vertex_alive
+    pos, quadrics, kind, version = verts.pos, verts.quadrics, verts.kind, verts.version
+    q, p, pairs, mark = scratch.q, scratch.p, scratch.pairs, scratch.mark
+    hk, hab, hvs = queue.heap_key, queue.heap_pair, queue.heap_version
+    rk, rab, rvs, size, tau = queue.key, queue.pair, queue.version, queue.size, queue.tau
+    c = topo.vhead[s]
+    while c >= 0:
+        f = c // 3
+        slot = c - 3 * f
+        for t in range(1, 3):
+            w = np.int64(faces[f, (slot + t) % 3])
+            if mark[w] != stamp:
+                mark[w] = stamp
+                cost = rank_collapse(s, w, pos, quadrics, kind, q, p, pairs, topo, wedges)[0]
+                if cost < np.inf:
+                    e_ab = pair_key(s, w) if s < w else pair_key(w, s)
+                    queue_append(hk, hab, hvs, rk, rab, rvs, size, tau, cost, e_ab,
+                                 version[s] + version[w], version, vertex_alive)
+        c = cnext[c]
+
+
+@njit(cache=True, nogil=True)
+def _decimate_kernel(verts, faces, wedges, options, progress):
+    """Collapse edges (and close pairs, if ``options.pair_radius`` > 0)
+    cheapest first until none is legal or a limit is hit.
+
+    ``verts`` (``Vertices``) and ``wedges`` (``simplify.wedges.Wedges``) are
+    updated in place; ``faces`` (m, 3) int64 is not. ``progress[0]``
+    receives the collapse count as it goes; a non-zero ``progress[1]`` asks
+    the kernel to stop early.
+
+    Returns (the filled log columns, see ``simplify.log.filled``;
+    rejections (REASON_COUNT,) by reason; passes).
+    """
+    n = verts.pos.shape[0]
+    topo, scratch = new_state(faces, n)
+    fill_fixed(topo, wedges)
+    has_wedges = wedges.quadric.shape[0] > 0
+    log = new_log(n, faces.shape[0], 2 * n if has_wedges else 0, wedges.value.shape[1])
+    queue = new_queue(3 * faces.shape[0] // 2 + 16)
+    rejected = np.zeros(REASON_COUNT, np.int64)
+    # fields read once: every read of a namedtuple field inside the loop
+    # would take and drop a reference
+    pos, quadrics, kind, version = verts.pos, verts.quadrics, verts.kind, verts.version
+    vertex_alive, face_count = topo.vertex_alive, topo.face_count
+    q, p, pairs = scratch.q, scratch.p, scratch.pairs
+    count = log.count           # the same array even when log's columns grow
+    min_vertices, max_collapses = options.min_vertices, options.max_collapses
+    volume, pair_radius = options.volume, options.pair_radius
+    alive_count = 0
+    for v in range(n):
+        if vertex_alive[v]:
+            alive_count += 1
+    stamp = np.int64(0)     # not a literal 0: every step it reaches would compile twice
+    passes = 0
+    while True:
+        passes += 1
+        collapses_before = count[COLLAPSES]
+        clear_queue(queue)
+        queue, stamp = _rank_all(verts, topo, wedges, scratch, queue, stamp, pair_radius)
+        stop = False
+        while True:
+            if (alive_count <= min_vertices or count[COLLAPSES] >= max_collapses
+                    or progress[1] != 0):
+                stop = True
+                break
+            a, b, entry_version = pop_fresh(queue, version, vertex_alive, rejected, REJECT_STALE)
+            if a == EMPTY:
+                break
+            if a == NEEDS_ROOM:     # the heap takes the whole reservoir at a refill
+                queue = with_room(queue, queue.size[RESERVOIR], np.int64(0))
+                continue
+            cost, s, n_pairs, seams_meet, reason = rank_collapse(a, b, pos, quadrics, kind, q, p,
+                                                                 pairs, topo, wedges)
+            if reason != LEGAL:
+                rejected[reason] += 1
+                continue
+            if volume and kind[a] == INTERIOR and kind[b] == INTERIOR:
+                cost = place_on_volume_plane(a, b, seams_meet, verts, topo, scratch)
+                if cost >= 0.0 and cost > VOLUME_SLACK * next_key(queue):
+                    # dearer than what waits next: back into the queue at its true cost
+                    rejected[REJECT_DEFERRED_BY_VOLUME] += 1
+                    if not has_room(queue, 1):
+                        queue = with_room(queue, np.int64(1), np.int64(1))
+                    push(queue, cost, pair_key(a, b), entry_version, version, vertex_alive)
+                    continue
+            r = b if s == a else a
+            if s != a:      # wedge pairs as (survivor's, removed's)
+                for g in range(n_pairs):
+                    pairs[g, 0], pairs[g, 1] = pairs[g, 1], pairs[g, 0]
+            stamp += 1
+            reason, o0, o1 = check_legality(s, r, p, options, verts, topo, scratch, stamp)
+            if reason != LEGAL:
+                rejected[reason] += 1
+                continue
+            # Room is made here, between steps: a step that returned grown
+            # arrays would pay for it on every call (simplify.queue).
+            if count[MOVED] + face_count[r] > log.moved.shape[0]:
+                log = with_room_for_moves(log, face_count[r])
+            perform_collapse(s, r, n_pairs, o0, o1, verts, topo, wedges, scratch, log)
+            alive_count -= 1
+            if count[COLLAPSES] % _PROGRESS_STRIDE == 0:
+                progress[0] = count[COLLAPSES]
+            if not has_room(queue, 2 * face_count[s]):
+                queue = with_room(queue, 2 * face_count[s], 2 * face_count[s])
+            stamp += 1
+            _rerank_around(s, verts, topo, wedges, scratch, queue, stamp)
+        if stop or count[COLLAPSES] == collapses_before:
+            break
+    progress[0] = log.count[COLLAPSES]
+    return filled(log), rejected, passes
+
+
+@njit(cache=True, nogil=True)
+def _check_kernel(a, b, verts, faces, wedges, options):
+    """Rank and check the one collapse (a, b) of the input mesh with the
+    kernel's own steps. Returns (reason, survivor, cost, placement (3,))."""
+    topo, scratch = new_state(faces, verts.pos.shape[0])
+    fill_fixed(topo, wedges)
+    cost, s, n_pairs, seams_meet, reason = rank_collapse(
+        a, b, verts.pos, verts.quadrics, verts.kind, scratch.q, scratch.p, scratch.pairs, topo,
+        wedges)
+    if reason != LEGAL:
+        return reason, s, cost, scratch.p.copy()
+    if options.volume and verts.kind[a] == INTERIOR and verts.kind[b] == INTERIOR:
+        placed = place_on_volume_plane(a, b, seams_meet, verts, topo, scratch)
+        if placed >= 0.0:
+            cost = placed
+    r = b if s == a else a
+    reason = check_legality(s, r, scratch.p, options, verts, topo, scratch, np.int64(1))[0]
+    return reason, s, cost, scratch.p.copy()
+
+
+# --------------------------------------------------------------------------
+# 4. Public entry points
+# --------------------------------------------------------------------------
+
+def _prepare(mesh: Mesh, *, boundary_weight, locked, flip_cos, pair_threshold,
+             attribute_weights, preserve_volume, seam_weight, min_vertices=0, limit=None):
+    """The kernel's inputs for ``mesh``: (Vertices, faces, Wedges, Options,
+    attribute scales, unit-box scale)."""
+    positions = np.asarray(mesh.positions, dtype=np.float64)
+    faces = np.ascontiguousarray(mesh.faces, dtype=np.int64)
+    n = len(positions)
+    if 3 * len(faces) >= 2**31:
+        # the kernel stores vertex and corner ids as int32
+        raise MeshError(f"{len(faces)} faces is more than the 715 million decimation supports")
+    found = census(faces, n)
+    kind = classify_vertices(found, n, locked)
+
+    # Work in the unit box: tolerances become scale-free and quadric
+    # coefficients stay in a range where float64 cancellation is harmless.
+    lo, scale = unit_box(positions)
+    unit = to_unit_box(positions, lo, scale)
+    attributes = mesh.attributes
+    seams = texture_seams(mesh) if attributes is not None else None
+    quadrics = vertex_quadrics(unit, faces, boundary_weight=boundary_weight,
+                               boundary=(found.boundary_edges, found.boundary_faces),
+                               seams=seams, seam_weight=seam_weight)
+    wedges, scales = wedge_inputs(attributes, unit, faces, attribute_weights, n)
+
+    if not pair_threshold >= 0:
+        raise ValueError(f"pair_threshold must be a non-negative distance, got {pair_threshold}")
+    # cells of the pair search are this wide in the unit box; keep their count sane
+    radius = max(float(pair_threshold) / scale, 1e-6) if pair_threshold > 0 else 0.0
+    verts = Vertices(unit, positions.copy(), quadrics, kind, np.zeros(n, np.int64), lo,
+                     float(scale))
+    options = Options(int(min_vertices), n if limit is None else int(limit), float(flip_cos),
+                      radius, bool(preserve_volume))
+    return verts, faces, wedges, options, scales, scale
+
+
+def decimate(mesh: Mesh, *, boundary_weight: float = 1.0, locked=None, min_vertices: int = 0,
+             max_collapses: int | None = None, flip_cos: float = DEFAULT_FLIP_COS,
+             pair_threshold: float = 0.0, attribute_weights: dict | None = None,
+             preserve_volume: bool = True, seam_weight: float = 1.0, progress=None,
+             cancel: threading.Event | None = None) -> CollapseLog:
+    """Collapse edges of ``mesh`` cheapest first and log every collapse.
+
+    Parameters
+    ----------
+    mesh : Mesh
+        Welded, clean input (see ``io.clean_mesh``).
+    boundary_weight : float
+        Weight of the border constraint planes; 0 lets borders shrink.
+    locked : (n,) bool, optional
+        Vertices that must neither move nor vanish.
+    min_vertices : int
+        Stop when this few vertices remain (0: run until no legal collapse is left).
+    max_collapses : int, optional
+        Stop after this many collapses.
+    flip_cos : float
+        A collapse that turns a surviving face's normal by more than
+        ``arccos(flip_cos)`` is refused.
+    pair_threshold : float
+        Also contract vertex pairs that share no edge but lie at most this far
+        apart (mesh units), joining separate parts and sheets (G&H's close
+        pairs). 0 (default) contracts edges only. A pair is contracted only if
+        the two vertices share no neighbour and are still that close; the
+        joined vertex then has two fans, and the link condition keeps every
+        later collapse from making a non-manifold edge.
+    attribute_weights : dict, optional
+        Weight of each attribute's squared error (by glTF name, e.g.
+        ``{"NORMAL": 0.25, "TEXCOORD_0": 1}``) against squared distance in the
+        unit box; missing names take :data:`DEFAULT_ATTRIBUTE_WEIGHTS`. Only
+        used when the mesh has attributes.
+    preserve_volume : bool
+        Place every interior collapse on the plane that keeps the enclosed
+        volume (default), so thin parts do not shrink away.
+    seam_weight : float
+        Weight of the constraint planes along attribute seams (as
+        ``boundary_weight`` for borders).
+    progress : callable(done: int, expected: int), optional
+        Called from this thread about ten times a second while the kernel runs.
+    cancel : threading.Event, optional
+        When set, the kernel stops at the next progress check.
+
+    Returns
+    -------
+    CollapseLog
+        ``rejected`` counts the refused candidates by ``REJECT_REASONS``.
+    """
+    verts, faces, wedges, options, scales, scale = _prepare(
+        mesh, boundary_weight=boundary_weight, locked=locked, flip_cos=flip_cos,
+        pair_threshold=pair_threshold, attribute_weights=attribute_weights,
+        preserve_volume=preserve_volume, seam_weight=seam_weight, min_vertices=min_vertices,
+        limit=max_collapses)
+    n = len(verts.pos)
+    state = np.zeros(2, dtype=np.int64)
+    result = {}
+
+    def run():
+        result["log"] = _decimate_kernel(verts, faces, wedges, options, state)
+
+    if progress is None and cancel is None:
+        run()
+    else:
+        # The kernel releases the GIL (nogil=True); this thread polls its counter.
+        worker = threading.Thread(target=run, daemon=True)
+        worker.start()
+        while worker.is_alive():
+            worker.join(0.1)
+            if cancel is not None and cancel.is_set():
+                state[1] = 1
+            if progress is not None:
+                progress(int(state[0]), n)
+        if progress is not None:
+            progress(int(state[0]), n)
+    if "log" not in result:
+        raise RuntimeError("the decimation kernel failed")
+    columns, rejected, passes = result["log"]
+    (s, r, p, cost, area, killed_off, killed, moved_off, moved,
+     merge_off, merge_s, merge_r, merge_v) = columns
+
+    error = np.sqrt(cost / np.maximum(area, np.finfo(float).tiny)) * scale
+    merges = {}
+    if mesh.attributes is not None:
+        # back from sqrt(weight)-scaled to input units
+        merges = dict(merge_offsets=merge_off.copy(), merge_survivor=merge_s.copy(),
+                      merge_removed=merge_r.copy(), merge_value=merge_v / scales)
+    return CollapseLog(
+        survivor=s.copy(), removed=r.copy(), position=p.copy(), error=error,
+        killed_offsets=killed_off.copy(), killed_faces=killed.copy(),
+        moved_offsets=moved_off.copy(), moved_corners=moved.copy(),
+        rejected=rejected_counts(rejected), passes=int(passes), **merges)
+
+
+Verdict = namedtuple("Verdict", "reason survivor position cost")
+Verdict.__doc__ = """What the kernel's rules say about one collapse.
+
+reason : str or None
+    None if the collapse is legal, else the name of the first rule that
+    refuses it (``simplify.rules.REASON_NAMES``).
+survivor : int
+    The vertex that would stay.
+position : (3,) float64
+    Where it would go, mesh units.
+cost : float
+    The quadric cost the queue would rank it by (unit-box frame; inf when
+    never legal).
+"""
+
+
+def check_collapse(mesh: Mesh, a: int, b: int, *, boundary_weight: float = 1.0, locked=None,
+                   flip_cos: float = DEFAULT_FLIP_COS, pair_threshold: float = 0.0,
+                   attribute_weights: dict | None = None, preserve_volume: bool = True,
+                   seam_weight: float = 1.0) -> Verdict:
+    """Would ``decimate`` collapse the edge (or close pair) (a, b) of ``mesh``
+    as its first move? Runs the kernel's own rank and check steps on it, with
+    ``decimate``'s options; the queue (and so volume deferral) plays no part.
+    """
+    verts, faces, wedges, options, _, scale = _prepare(
+        mesh, boundary_weight=boundary_weight, locked=locked, flip_cos=flip_cos,
+        pair_threshold=pair_threshold, attribute_weights=attribute_weights,
+        preserve_volume=preserve_volume, seam_weight=seam_weight)
+    n = len(verts.pos)
+    if not (0 <= a < n and 0 <= b < n and a != b):
+        raise ValueError(f"a and b must be two different vertices below {n}, got {a} and {b}")
+    reason, s, cost, p = _check_kernel(int(a), int(b), verts, faces, wedges, options)
+    return Verdict(None if reason == LEGAL else REASON_NAMES[reason], int(s),
+                   verts.origin + scale * p, float(cost))

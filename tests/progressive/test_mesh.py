@@ -1,0 +1,208 @@
+"""Exactness of the progressive mesh, as properties over real and generated meshes."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from lodserver import build
+from lodserver.progressive.mesh import ancestor_below
+
+from ..meshes import SHARED, canonical_faces, mesh, progressive
+
+GENERATED = ["spot", "icosphere", "torus", "grid", "two_boxes"]
+SHARED_NAMES = ["fertility.off", "camelhead.off", "stanford-bunny.obj", "mountain.obj",
+                "non_manif_hole.ply", "joined_tetrahedra.obj", "conrod.stl", "soup.stl",
+                "office_chair.obj", "brain.ply", "Duck.glb", "2CylinderEngine.glb"]
+
+
+def _params():
+    shared = [pytest.param(name, marks=pytest.mark.skipif(
+        not SHARED.is_dir(), reason=f"shared meshes not found at {SHARED}")) for name in SHARED_NAMES]
+    return GENERATED + shared
+
+
+ALL = _params()
+HYPOTHESIS = settings(max_examples=25, deadline=None,
+                      suppress_health_check=[HealthCheck.function_scoped_fixture])
+
+
+def _edge_face_counts(faces):
+    e = np.sort(np.stack([faces, np.roll(faces, -1, axis=1)], axis=2).reshape(-1, 2), axis=1)
+    return np.unique(e, axis=0, return_counts=True)[1]
+
+
+@pytest.mark.parametrize("name", ALL)
+def test_full_level_is_the_input(name):
+    original, pm = mesh(name), progressive(name)
+    full = pm.at(pm.vertex_count)
+    assert full.vertex_count == original.vertex_count
+    assert full.face_count == original.face_count
+    # same vertices (as a multiset of positions) and same faces up to order
+    assert np.array_equal(np.sort(full.positions, axis=0), np.sort(original.positions, axis=0))
+    assert np.array_equal(canonical_faces(full.positions, full.faces),
+                          canonical_faces(original.positions, original.faces))
+
+
+@pytest.mark.parametrize("name", ALL)
+def test_replaying_every_split_gives_the_input(name):
+    original, pm = mesh(name), progressive(name)
+    cursor = pm.cursor(pm.base_vertices).seek(pm.vertex_count)
+    positions, faces = cursor.arrays()
+    assert np.array_equal(positions, pm.positions)
+    assert np.array_equal(canonical_faces(positions, faces),
+                          canonical_faces(original.positions, original.faces))
+
+
+@pytest.mark.parametrize("name", ALL)
+@HYPOTHESIS
+@given(data=st.data())
+def test_forward_then_backward_is_identity(name, data):
+    pm = progressive(name)
+    a = data.draw(st.integers(pm.base_vertices, pm.vertex_count), label="from")
+    b = data.draw(st.integers(pm.base_vertices, pm.vertex_count), label="to")
+    cursor = pm.cursor(a)
+    before = cursor.arrays()
+    cursor.seek(b).seek(a)
+    after = cursor.arrays()
+    assert np.array_equal(before[0], after[0]) and np.array_equal(before[1], after[1])
+
+
+@pytest.mark.parametrize("name", ALL)
+@HYPOTHESIS
+@given(data=st.data())
+def test_level_is_the_same_from_any_direction(name, data):
+    pm = progressive(name)
+    level = data.draw(st.integers(pm.base_vertices, pm.vertex_count), label="level")
+    start = data.draw(st.integers(pm.base_vertices, pm.vertex_count), label="start")
+    direct = pm.arrays_at(level)
+    from_base = pm.cursor(pm.base_vertices).seek(level).arrays()
+    from_full = pm.cursor(pm.vertex_count).seek(level).arrays()
+    from_start = pm.cursor(start).seek(level).arrays()
+    for positions, faces in (from_base, from_full, from_start):
+        assert np.array_equal(positions, direct[0])
+        assert np.array_equal(faces, direct[1])
+
+
+def _sample_levels(pm, count=12):
+    """Up to ``count`` levels below full detail, the base included (none if there are no splits)."""
+    if pm.split_count == 0:
+        return []
+    return sorted({int(x) for x in np.linspace(pm.base_vertices, pm.vertex_count - 1, count)})
+
+
+@pytest.mark.parametrize("name", ALL)
+def test_levels_stay_manifold_and_clean(name):
+    original, pm = mesh(name), progressive(name)
+    input_manifold = _edge_face_counts(original.faces).max() <= 2
+    for level in _sample_levels(pm):
+        lod = pm.at(level)
+        f = lod.faces
+        # no face repeats a vertex, and every vertex is used
+        assert np.all((f[:, 0] != f[:, 1]) & (f[:, 1] != f[:, 2]) & (f[:, 0] != f[:, 2]))
+        assert len(np.unique(f)) == lod.vertex_count
+        # no duplicate faces appear
+        assert len(np.unique(np.sort(f, axis=1), axis=0)) == len(f)
+        if input_manifold:
+            assert _edge_face_counts(f).max() <= 2, f"non-manifold edge at level {level}"
+
+
+@pytest.mark.parametrize("name", ALL)
+def test_no_face_flips_relative_to_the_level_above(name):
+    pm = progressive(name)
+    for level in _sample_levels(pm, 20):
+        coarse, fine = pm.arrays_at(level), pm.arrays_at(level + 1)
+        count = len(coarse[1])
+
+        def normals(positions, faces):
+            tri = positions[faces[:count]]
+            return np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+
+        a, b = normals(*coarse), normals(*fine)
+        la, lb = np.linalg.norm(a, axis=1), np.linalg.norm(b, axis=1)
+        ok = (la > 0) & (lb > 0)
+        cos = np.einsum("ij,ij->i", a[ok], b[ok]) / (la[ok] * lb[ok])
+        assert cos.min() > 0, f"a face flips between levels {level} and {level + 1}"
+
+
+@pytest.mark.parametrize("name", GENERATED)
+def test_counts_and_error_curve_are_monotone(name):
+    pm = progressive(name)
+    assert np.all(np.diff(pm.face_counts) >= 0)
+    assert np.all(np.diff(pm.level_error) <= 0)
+    assert pm.error_at_level(pm.vertex_count) == 0
+    assert pm.base_vertices < 0.05 * pm.vertex_count + 8
+
+
+def test_level_selection():
+    pm = progressive("spot")
+    assert pm.level_for(vertices=10**9) == pm.vertex_count
+    assert pm.level_for(vertices=1) == pm.base_vertices
+    level = pm.level_for(faces=1000)
+    assert pm.faces_at_level(level) <= 1000 < pm.faces_at_level(level + 1)
+    assert pm.at(ratio=0.1).face_count == pm.at(faces=round(0.1 * pm.face_count)).face_count
+    e = pm.error_at_level(pm.level_for(ratio=0.2))
+    level = pm.level_for(error=e)
+    assert pm.error_at_level(level) <= e
+    assert level == pm.base_vertices or pm.error_at_level(level - 1) > e
+    for bad in ({"vertices": 0}, {"ratio": 0}, {"ratio": 1.5}, {"error": -1}, {"faces": 0}, {}):
+        with pytest.raises(ValueError):
+            pm.level_for(**bad)
+    with pytest.raises(ValueError):
+        pm.at(pm.vertex_count + 1)
+    # check_level is public: the packet encoder checks its levels with it
+    assert pm.check_level(np.int64(pm.base_vertices)) == pm.base_vertices
+    for bad in (pm.base_vertices - 1, pm.vertex_count + 1):
+        with pytest.raises(ValueError, match="outside"):
+            pm.check_level(bad)
+
+
+def test_ancestor_below_is_the_level_a_corner_reads():
+    """The public kernel the packet encoder shares: a full-detail corner at a level
+    reads its first ancestor below that level, as the level's faces say."""
+    pm = progressive("torus")
+    level = (pm.base_vertices + pm.vertex_count) // 2
+    faces = pm.arrays_at(level)[1]
+    expected = np.array([[ancestor_below(pm.parent, int(x), level) for x in row]
+                         for row in pm.faces[:len(faces)]])
+    assert np.array_equal(faces, expected)
+
+
+def test_locked_vertices_never_move_or_vanish():
+    original = mesh("grid")
+    from lodserver.simplify.topology import census
+    locked = np.zeros(original.vertex_count, bool)
+    locked[census(original.faces, original.vertex_count).on_boundary] = True
+    pm = build(original, locked=locked)
+    # locked input vertices, by position (the progressive mesh renumbers them)
+    keys = {tuple(p) for p in original.positions[locked]}
+    base = pm.at(pm.base_vertices)
+    assert keys <= {tuple(p) for p in base.positions}
+    for level in _sample_levels(pm):
+        assert keys <= {tuple(p) for p in pm.at(level).positions}
+
+
+def test_bad_lock_mask_is_refused():
+    with pytest.raises(ValueError, match="locked"):
+        build(mesh("spot"), locked=np.zeros(3, bool))
+
+
+def test_simplification_stays_close_to_the_surface():
+    from lodserver.metrics import surface_distance
+    original, pm = mesh("spot"), progressive("spot")
+    for ratio, bound in ((0.5, 2e-3), (0.1, 6e-3)):
+        d = surface_distance(original, pm.at(ratio=ratio), samples=20_000)
+        assert d["rms"] < bound, (ratio, d)
+
+
+def test_two_parts_are_decimated_separately():
+    pm = progressive("two_boxes")
+    base = pm.at(pm.base_vertices)
+    # each box ends as a tetrahedron at worst; nothing joins them
+    assert base.face_count >= 8
+    # no face spans the gap between the boxes (x < 1.5 and x > 1.5)
+    side = base.positions[base.faces][:, :, 0] > 1.5
+    assert np.all(side.all(axis=1) | ~side.any(axis=1))
+    assert side.any() and not side.all()

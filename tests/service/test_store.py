@@ -1,0 +1,162 @@
+"""The embedded store: catalogue rows, atomic artefacts, ids, and recovery after a restart."""
+
+import numpy as np
+import pytest
+
+from lodserver.service.store import (
+    ID_PATTERN,
+    LocalStore,
+    NotReadyError,
+    Status,
+    UnknownMeshError,
+    check_id,
+)
+
+from ..meshes import progressive
+
+
+def _source(tmp_path, name="cube.obj"):
+    path = tmp_path / name
+    path.write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n")
+    return path
+
+
+@pytest.fixture
+def store(tmp_path):
+    store = LocalStore(tmp_path / "data")
+    yield store
+    store.close()
+
+
+def test_create_get_list_delete(store, tmp_path):
+    record = store.create(name="cube", source=_source(tmp_path), file_type="OBJ",
+                          options={"boundary_weight": 1.0})
+    assert ID_PATTERN.match(record.id) and record.status is Status.QUEUED
+    assert record.file_type == "obj" and record.options == {"boundary_weight": 1.0}
+    assert store.source_path(mesh_id=record.id).is_file()
+    assert not (tmp_path / "cube.obj").exists()  # moved into the store
+    assert store.get(mesh_id=record.id) == record
+    second = store.create(name="two", source=_source(tmp_path), file_type="obj", options={})
+    assert [r.id for r in store.list()] == [second.id, record.id]
+    assert [r.id for r in store.list(limit=1, offset=1)] == [record.id]
+    store.delete(mesh_id=record.id)
+    with pytest.raises(UnknownMeshError):
+        store.get(mesh_id=record.id)
+    assert not list(store.sources.glob(f"{record.id}*"))
+
+
+@pytest.mark.parametrize("bad", ["../../etc/passwd", "a" * 21, "a" * 23, "abc/def" + "a" * 15,
+                                 "", "a" * 21 + ".", "a" * 21 + "\n"])
+def test_malformed_ids_never_reach_the_filesystem(store, bad):
+    with pytest.raises(UnknownMeshError):
+        check_id(bad)
+    with pytest.raises(UnknownMeshError):
+        store.get(mesh_id=bad)
+    with pytest.raises(UnknownMeshError):
+        store.delete(mesh_id=bad)
+
+
+def test_ready_artefact_is_served_after_reopening(tmp_path):
+    pm = progressive("grid")
+    store = LocalStore(tmp_path / "data")
+    record = store.create(name="grid", source=_source(tmp_path), file_type="obj", options={})
+    with pytest.raises(NotReadyError, match="not built yet"):
+        store.load(mesh_id=record.id)
+    store.mark_building(mesh_id=record.id)
+    store.set_progress(mesh_id=record.id, progress=0.5)
+    assert store.get(mesh_id=record.id).progress == 0.5
+    ready = store.put_artefact(mesh_id=record.id, pm=pm)
+    assert ready.status is Status.READY and ready.progress == 1.0 and len(ready.digest) == 64
+    assert ready.summary["vertices"] == pm.vertex_count and ready.summary["error_curve"]
+    assert not store.source_path(mesh_id=record.id).exists()  # the source goes once built
+    assert not list(store.artefacts.glob(".*.tmp"))
+    store.close()
+
+    reopened = LocalStore(tmp_path / "data")
+    assert reopened.recover() == []
+    loaded = reopened.load(mesh_id=record.id)
+    assert np.array_equal(loaded.arrays_at(loaded.base_vertices + 5)[1],
+                          pm.arrays_at(pm.base_vertices + 5)[1])
+    reopened.close()
+
+
+def test_interrupted_builds_are_requeued_or_failed(tmp_path):
+    store = LocalStore(tmp_path / "data")
+    building = store.create(name="a", source=_source(tmp_path), file_type="obj", options={})
+    queued = store.create(name="b", source=_source(tmp_path), file_type="obj", options={})
+    lost = store.create(name="c", source=_source(tmp_path), file_type="obj", options={})
+    for record in (building, lost):
+        store.mark_building(mesh_id=record.id)
+    store.source_path(mesh_id=lost.id).unlink()
+    # a crash in the middle of an atomic write leaves a temporary file
+    (store.artefacts / f".{building.id}.pm.xyz.tmp").write_bytes(b"half")
+    store.close()
+
+    reopened = LocalStore(tmp_path / "data")
+    assert not list(reopened.artefacts.glob(".*.tmp"))
+    assert sorted(reopened.recover()) == sorted([building.id, queued.id])
+    assert reopened.get(mesh_id=building.id).status is Status.QUEUED
+    failed = reopened.get(mesh_id=lost.id)
+    assert failed.status is Status.FAILED and "upload it again" in failed.failure
+    with pytest.raises(NotReadyError, match="failed to build"):
+        reopened.load(mesh_id=lost.id)
+    reopened.close()
+
+
+def test_artefact_of_a_mesh_deleted_while_building_is_dropped(store, tmp_path):
+    record = store.create(name="a", source=_source(tmp_path), file_type="obj", options={})
+    store.delete(mesh_id=record.id)
+    with pytest.raises(UnknownMeshError):
+        store.put_artefact(mesh_id=record.id, pm=progressive("grid"))
+    assert not list(store.artefacts.iterdir())
+
+
+def test_racing_loads_of_one_mesh_share_one_object(tmp_path, monkeypatch):
+    """Requests racing for a mesh just built (and its job preparing its packets)
+    get the same object: what is cached on it is not built twice."""
+    import threading
+
+    from lodserver.service import store as store_module
+
+    store = LocalStore(tmp_path / "data")
+    record = store.create(name="grid", source=_source(tmp_path), file_type="obj", options={})
+    store.put_artefact(mesh_id=record.id, pm=progressive("grid"))
+    reads = []
+    slow_read = store_module.load_progressive
+
+    def counted(path):
+        reads.append(path)
+        return slow_read(path)
+
+    monkeypatch.setattr(store_module, "load_progressive", counted)
+    start, found = threading.Barrier(6), []
+
+    def load():
+        start.wait()
+        found.append(store.load(mesh_id=record.id))
+
+    threads = [threading.Thread(target=load) for _ in range(6)]
+    for thread in threads:
+        thread.start()
+    for thread in threads:
+        thread.join()
+    assert len(found) == 6 and all(pm is found[0] for pm in found)
+    assert len(reads) == 1
+    store.close()
+
+
+def test_loaded_meshes_are_bounded(tmp_path):
+    with pytest.raises(ValueError, match="at least 1"):
+        LocalStore(tmp_path / "x", loaded_meshes=0)
+    store = LocalStore(tmp_path / "data", loaded_meshes=1)
+    ids = []
+    for name in ("a", "b"):
+        record = store.create(name=name, source=_source(tmp_path, f"{name}.obj"), file_type="obj",
+                              options={})
+        store.put_artefact(mesh_id=record.id, pm=progressive("grid"))
+        ids.append(record.id)
+    first = store.load(mesh_id=ids[0])
+    assert store.load(mesh_id=ids[0]) is first
+    store.load(mesh_id=ids[1])                  # drops the first from memory
+    assert store.load(mesh_id=ids[0]) is not first
+    store.close()
