@@ -33,9 +33,7 @@ import argparse
 import json
 import os
 import shutil
-import socket
 import statistics
-import subprocess
 import sys
 import tempfile
 import threading
@@ -46,6 +44,9 @@ import httpx
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+from tests.server import server_process  # noqa: E402
+
 OUT = ROOT / "bench" / "out"
 BUNNY = ROOT.parent / "shared" / "meshes" / "stanford-bunny.obj"
 BOUNDARY = "abuse-upload-boundary"
@@ -53,43 +54,11 @@ DEADLINE_S = 900
 IDLE_S = 5
 
 
-def free_port() -> int:
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        return sock.getsockname()[1]
-
-
-def start_server(repo: Path, data: Path, log: Path, env: dict) -> tuple[subprocess.Popen, str]:
-    """``lodserver serve`` from ``repo`` (its own package first on sys.path)."""
-    port = free_port()
-    environment = {**os.environ, "LODSERVER_TOKEN": "", "LODSERVER_WARM_KERNELS": "false",
-                   "PYTHONPATH": str(repo), **env}
-    with open(log, "wb") as out:
-        process = subprocess.Popen([sys.executable, "-m", "lodserver.cli", "serve", "--data",
-                                    str(data), "--host", "127.0.0.1", "--port", str(port),
-                                    "--log-level", "warning"], cwd=repo, env=environment,
-                                   stdout=out, stderr=subprocess.STDOUT)
-    base = f"http://127.0.0.1:{port}"
-    deadline = time.monotonic() + 120
-    while True:
-        try:
-            if httpx.get(f"{base}/healthz", timeout=1).status_code == 200:
-                return process, base
-        except httpx.TransportError:
-            pass
-        if process.poll() is not None or time.monotonic() > deadline:
-            process.kill()
-            raise RuntimeError(f"the server did not start; see {log}")
-        time.sleep(0.2)
-
-
-def stop_server(process: subprocess.Popen) -> None:
-    process.terminate()
-    try:
-        process.wait(timeout=30)
-    except subprocess.TimeoutExpired:
-        process.kill()
-        process.wait()
+def start_server(repo: Path, data: Path, log: Path, env: dict):
+    """``lodserver serve`` from ``repo`` (its own package first on sys.path), as a
+    context manager yielding (base URL, process)."""
+    return server_process(data, log=log, timeout=120, cwd=repo,
+                          env={"PYTHONPATH": str(repo), **env})
 
 
 def grid_stl(path: Path, megabytes: float) -> int:
@@ -284,18 +253,13 @@ def main() -> int:
         if not args.skip_big:
             stl = work / "grid.stl"
             result["big_triangles"] = grid_stl(stl, args.big_mb)
-            process, base = start_server(args.repo, work / "data-big", work / "big.log", env)
-            try:
+            with start_server(args.repo, work / "data-big", work / "big.log", env) as (base, _):
                 result["big"] = big_upload(base, stl)
-            finally:
-                stop_server(process)
             stl.unlink()
         if not args.skip_many:
-            process, base = start_server(args.repo, work / "data-many", work / "many.log", env)
-            try:
+            with start_server(args.repo, work / "data-many", work / "many.log",
+                              env) as (base, process):
                 result["many"] = many_uploads(base, process.pid, args.concurrent, BUNNY)
-            finally:
-                stop_server(process)
     finally:
         shutil.rmtree(work, ignore_errors=True)
     OUT.mkdir(parents=True, exist_ok=True)

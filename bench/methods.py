@@ -39,39 +39,36 @@ PYMESHLAB_SETTINGS = {
 FAST_SIMPLIFICATION_AGG = 7.0
 
 
-def meshoptimizer_simplify(positions, faces, target):
-    """``meshopt_simplify`` (edge collapse that keeps original vertices)."""
-    import meshoptimizer
-
+def _meshoptimizer(simplify, positions, faces, target, **options):
+    """One of meshoptimizer's simplifiers, ``simplify``, down to ``target`` triangles."""
     # The wrapper wants a flat uint32 index buffer and float32 positions.
     indices = np.ascontiguousarray(faces, dtype=np.uint32).ravel()
     destination = np.empty_like(indices)
-    count = meshoptimizer.simplify(
+    count = simplify(
         destination,
         indices,
         np.ascontiguousarray(positions, dtype=np.float32),
         target_index_count=3 * target,
         target_error=MESHOPT_TARGET_ERROR,
-        options=MESHOPT_OPTIONS,
+        **options,
     )
     # Output indices refer to the input vertices, which it never moves.
     return positions, destination[:count].reshape(-1, 3).astype(np.int64)
+
+
+def meshoptimizer_simplify(positions, faces, target):
+    """``meshopt_simplify`` (edge collapse that keeps original vertices)."""
+    import meshoptimizer
+
+    return _meshoptimizer(meshoptimizer.simplify, positions, faces, target,
+                          options=MESHOPT_OPTIONS)
 
 
 def meshoptimizer_sloppy(positions, faces, target):
     """``meshopt_simplifySloppy`` (vertex clustering, topology not kept)."""
     import meshoptimizer
 
-    indices = np.ascontiguousarray(faces, dtype=np.uint32).ravel()
-    destination = np.empty_like(indices)
-    count = meshoptimizer.simplify_sloppy(
-        destination,
-        indices,
-        np.ascontiguousarray(positions, dtype=np.float32),
-        target_index_count=3 * target,
-        target_error=MESHOPT_TARGET_ERROR,
-    )
-    return positions, destination[:count].reshape(-1, 3).astype(np.int64)
+    return _meshoptimizer(meshoptimizer.simplify_sloppy, positions, faces, target)
 
 
 def pymeshlab_simplify(positions, faces, target):

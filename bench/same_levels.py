@@ -73,10 +73,11 @@ def _digest(*arrays) -> str:
 
 
 def _build(mesh, options):
-    import numpy as np
-
     from lodserver import build
-    from lodserver.simplify.topology import census
+    try:
+        from lodserver.simplify.topology import census
+    except ImportError:                 # a tree from before the package went by stage
+        from lodserver.topology import census
     options = dict(options)
     if options.pop("lock_border", False):
         options["locked"] = census(mesh.faces, mesh.vertex_count).on_boundary.copy()

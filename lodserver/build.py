@@ -20,7 +20,7 @@ COLD_COMPILE_SECONDS = 40
 
 
 def build(source, options: BuildOptions | dict | None = None, *, locked=None, progress=None,
-          cancel=None, **overrides) -> ProgressiveMesh:
+          cancel=None, untrusted: bool = False, **overrides) -> ProgressiveMesh:
     """Build the progressive mesh of ``source``.
 
     Parameters
@@ -38,6 +38,10 @@ def build(source, options: BuildOptions | dict | None = None, *, locked=None, pr
         Called about ten times a second while the kernel runs.
     cancel : threading.Event, optional
         When set, decimation stops at the next progress check.
+    untrusted : bool
+        ``source`` is a file from someone else: load it as the server loads an
+        upload (every file it names must lie in its folder, no symlinks or URLs,
+        the default ``LoadLimits``).
 
     Returns
     -------
@@ -58,7 +62,7 @@ def build(source, options: BuildOptions | dict | None = None, *, locked=None, pr
         from .io import load_mesh
         if Path(source).is_dir():
             raise MeshError(f"{source} is a folder; pass a mesh file")
-        mesh, report = load_mesh(source)
+        mesh, report = load_mesh(source, root=Path(source).parent if untrusted else None)
         metadata["source"] = Path(source).name
         metadata["load_report"] = report.as_dict()
     if not options.attributes or options.method == "cluster":

@@ -140,7 +140,7 @@ def _cmd_build(args) -> int:
     progress = _Progress()
     start = time.perf_counter()
     try:
-        pm = build(source, options, progress=progress)
+        pm = build(source, options, progress=progress, untrusted=args.untrusted)
     except ValueError as exc:       # argument checks deep in the kernel's wrapper
         raise MeshError(str(exc)) from exc
     finally:
@@ -175,7 +175,8 @@ def _cmd_simplify(args) -> int:
     from .io import load_mesh, save_mesh
 
     options = options_from(args)        # checked before the load: a bad flag fails at once
-    mesh, _ = load_mesh(_input_file(args.mesh))
+    source = _input_file(args.mesh)
+    mesh, _ = load_mesh(source, root=source.parent if args.untrusted else None)
     target = args.faces if args.faces is not None else max(1, round(args.ratio * mesh.face_count))
     if target < 1 or (args.ratio is not None and not 0 < args.ratio <= 1):
         raise MeshError("the target must be a ratio in (0, 1] or at least one face")
@@ -215,7 +216,7 @@ def _cmd_export(args) -> int:
     try:
         done = export_lods(args.source, _output_file(args.output), lods=ratios,
                            separate=args.separate, reach=args.reach, options=options,
-                           progress=progress)
+                           untrusted=args.untrusted, progress=progress)
     finally:
         progress.close()
     print(f"{', '.join(map(str, done.outputs))}: {_levels(done)}", file=sys.stderr)
@@ -263,7 +264,7 @@ def _export_folder(args, ratios, options) -> int:
     try:
         report = export_folder(args.source, args.output, lods=ratios, separate=args.separate,
                                reach=args.reach, jobs=args.jobs, force=args.force,
-                               options=options, progress=progress)
+                               options=options, untrusted=args.untrusted, progress=progress)
     finally:
         bar.close()
     print(f"{args.output}: {report.total} assets in {time.perf_counter() - start:.2f} s: "
@@ -299,6 +300,16 @@ def _cmd_serve(args) -> int:
 
 MESH_HELP = "OBJ, PLY, STL, OFF, glTF or GLB file"
 OUTPUT_HELP = "PLY, OBJ, GLB, OFF or STL file to write (its folder is created)"
+UNTRUSTED_HELP = ("the file comes from someone else: every file it names (glTF buffers and "
+                  "images, mtllib, texture maps) must lie inside its folder, with no absolute "
+                  "path, '..', symbolic link or URL, and the server's size limits apply")
+
+
+def _input_flags(p: argparse.ArgumentParser, exclude=()) -> None:
+    """The flags of a command that reads and builds a mesh file: --untrusted and
+    the build options."""
+    p.add_argument("--untrusted", action="store_true", help=UNTRUSTED_HELP)
+    add_option_flags(p, exclude=set(exclude))
 
 
 def _command(sub, name: str, help_text: str, example: str) -> argparse.ArgumentParser:
@@ -320,7 +331,7 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("mesh", help=MESH_HELP)
     p.add_argument("-o", "--output", required=True,
                    help="the .pm artefact to write (its folder is created)")
-    add_option_flags(p)
+    _input_flags(p)
     p.set_defaults(run=_cmd_build)
 
     p = _command(sub, "extract", "write one level of a .pm artefact as a mesh file",
@@ -344,7 +355,7 @@ def _parser() -> argparse.ArgumentParser:
                    help="qem: edge collapse (best quality; the build options apply); cluster: "
                         "vertex clustering (fastest; may merge parts and change topology)")
     p.add_argument("-o", "--output", required=True, help=OUTPUT_HELP)
-    add_option_flags(p, exclude={"method"})
+    _input_flags(p, exclude={"method"})
     p.set_defaults(run=_cmd_simplify)
 
     p = _command(sub, "export", "write levels of detail as one GLB (MSFT_lod) or one GLB "
@@ -372,7 +383,7 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--force", action="store_true",
                    help="folder source: rebuild every mesh, even those whose file and options "
                         "match the last run (lodserver-export.json in OUTPUT)")
-    add_option_flags(p)
+    _input_flags(p)
     p.set_defaults(run=_cmd_export)
 
     p = _command(sub, "info", "print counts and the error curve of a .pm artefact as JSON",

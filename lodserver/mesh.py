@@ -199,3 +199,22 @@ class Mesh:
         if self.materials is not None:
             extra += f", materials={self.materials.count}"
         return f"Mesh(vertices={self.vertex_count}, faces={self.face_count}{extra})"
+
+
+def unit_box(positions):
+    """The frame in which kernels work: ``(lo (3,) float64, extent float)``,
+    the smallest corner of the bounding box of ``positions`` (n, 3) and its
+    longest side (1.0 for a single point), so that ``(positions - lo) / extent``
+    lies in the unit cube. Tolerances are then scale-free and quadric
+    coefficients stay where float64 cancellation is harmless.
+
+    Plain numpy, called from Python (an njit twin would have to reproduce
+    numpy's choice between -0.0 and 0.0 to keep outputs bit for bit)."""
+    positions = np.asarray(positions, dtype=np.float64)
+    lo = positions.min(axis=0)
+    return lo, float((positions.max(axis=0) - lo).max()) or 1.0
+
+
+def to_unit_box(positions, lo, extent):
+    """``(positions - lo) / extent`` as a C-contiguous (n, 3) float64 array."""
+    return np.ascontiguousarray((np.asarray(positions, dtype=np.float64) - lo) / extent)

@@ -107,6 +107,7 @@ def lod_chain(pm: ProgressiveMesh, lods=DEFAULT_LODS, *, reach: str = "none"):
 
 def export_lods(source, output, *, lods=DEFAULT_LODS, separate: bool = False,
                 reach: str = "none", options: BuildOptions | None = None,
+                untrusted: bool = False,
                 progress=None) -> Exported:
     """Write the levels of detail of ``source`` to ``output`` (a ``.glb`` path).
 
@@ -127,6 +128,8 @@ def export_lods(source, output, *, lods=DEFAULT_LODS, separate: bool = False,
     options : BuildOptions, optional
         How a mesh file is built (``options.BuildOptions``; None: the defaults).
         A ``.pm`` source was built already and ignores them.
+    untrusted : bool
+        Load a mesh file as the server loads an upload (``build.build``).
     progress : callable, optional
         ``progress(done, expected)`` during a build, as for ``build``.
 
@@ -149,7 +152,7 @@ def export_lods(source, output, *, lods=DEFAULT_LODS, separate: bool = False,
     else:
         from .build import build
         try:
-            pm = build(source, options, progress=progress)
+            pm = build(source, options, progress=progress, untrusted=untrusted)
         except ValueError as exc:       # argument checks deep in the build
             raise MeshError(str(exc)) from exc
     meshes, coverage, clustered = lod_chain(pm, lods, reach=reach)
@@ -202,7 +205,8 @@ def find_sources(folder) -> list[Path]:
 
 def export_folder(source, output, *, lods=DEFAULT_LODS, separate: bool = False,
                   reach: str = "none", jobs: int = 1, force: bool = False,
-                  options: BuildOptions | None = None, progress=None) -> FolderReport:
+                  options: BuildOptions | None = None, untrusted: bool = False,
+                  progress=None) -> FolderReport:
     """Export every mesh file under ``source`` into ``output`` (see the module docstring).
 
     Parameters
@@ -285,7 +289,8 @@ def export_folder(source, output, *, lods=DEFAULT_LODS, separate: bool = False,
 
     def one(relative):
         return export_lods(source / relative, output / relative.with_suffix(".glb"),
-                           lods=ratios, separate=separate, reach=reach, options=options)
+                           lods=ratios, separate=separate, reach=reach, options=options,
+                           untrusted=untrusted)
 
     try:
         with ThreadPoolExecutor(max_workers=jobs) as pool:

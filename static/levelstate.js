@@ -32,6 +32,14 @@ import {
 import { splitMethods } from './splits.js';
 import { wedgeMethods } from './wedges.js';
 
+// Puts x at list[count], growing the list first when it is full; the list
+// (the grown one if it grew).
+function append(list, count, x) {
+  if (count === list.length) list = grow(list, count);
+  list[count] = x;
+  return list;
+}
+
 export class LodState {
   // The quantized level of a /lod?format=json document, with room to grow to
   // vertexCapacity vertices and faceCapacity faces (the mesh's full detail).
@@ -175,19 +183,13 @@ export class LodState {
   touchVertex(v) {
     if (this.vertexTouched[v]) return;
     this.vertexTouched[v] = 1;
-    if (this.touchedVertexCount === this.touchedVertices.length) {
-      this.touchedVertices = grow(this.touchedVertices, this.touchedVertexCount);
-    }
-    this.touchedVertices[this.touchedVertexCount++] = v;
+    this.touchedVertices = append(this.touchedVertices, this.touchedVertexCount++, v);
   }
 
   touchWedge(w) {
     if (this.wedgeTouched[w]) return;
     this.wedgeTouched[w] = 1;
-    if (this.touchedWedgeCount === this.touchedWedges.length) {
-      this.touchedWedges = grow(this.touchedWedges, this.touchedWedgeCount);
-    }
-    this.touchedWedges[this.touchedWedgeCount++] = w;
+    this.touchedWedges = append(this.touchedWedges, this.touchedWedgeCount++, w);
   }
 
   clean() {

@@ -107,11 +107,9 @@ function extrapolate(j, value, v, limit) {
   return Math.floor(x);
 }
 
-// held(s) (the scratch's corners) ascending, in this.heldSorted.
-function sortedHeld() {
-  const n = this.aroundCount;
-  if (n > this.heldSorted.length) this.heldSorted = new Int32Array(2 * n);
-  const out = this.heldSorted, from = this.aroundCorners;
+// from[0 .. n) ascending, into out (an insertion sort: a vertex's corners, a
+// handful); out.
+function sortInto(from, n, out) {
   for (let i = 0; i < n; i++) {
     const c = from[i];
     let j = i - 1;
@@ -124,20 +122,17 @@ function sortedHeld() {
   return out;
 }
 
+// held(s) (the scratch's corners) ascending, in this.heldSorted.
+function sortedHeld() {
+  const n = this.aroundCount;
+  if (n > this.heldSorted.length) this.heldSorted = new Int32Array(2 * n);
+  return sortInto(this.aroundCorners, n, this.heldSorted);
+}
+
 // this.moved[0 .. moves) ascending, in this.cornerList.
 function sortedMoved(moves) {
   if (moves > this.cornerList.length) this.cornerList = new Int32Array(2 * moves);
-  const out = this.cornerList, moved = this.moved;
-  for (let i = 0; i < moves; i++) {
-    const c = moved[i];
-    let j = i - 1;
-    while (j >= 0 && out[j] > c) {
-      out[j + 1] = out[j];
-      j--;
-    }
-    out[j + 1] = c;
-  }
-  return out;
+  return sortInto(this.moved, moves, this.cornerList);
 }
 
 // The smallest wedge below `below` of the corners cornerIds[0 .. n), or `none`

@@ -19,29 +19,11 @@ and each changed corner's wedge as a code (docs/packets.md).
 
 from __future__ import annotations
 
-from lodserver.packets.format import (
-    COUNT,
-    FAN,
-    FAN_LISTED,
-    FAN_PREDICTED,
-    IS_NEW,
-    IS_OTHER,
-    IS_VS,
-    MASK,
-    OTHER,
-    PATTERN,
-    POSITION,
-    VERTEX,
-    WEDGE_CORNER,
-    WEDGE_COUNT,
-    WEDGE_PARENT,
-    PacketError,
-    deflate_body,
-    pack_header,
-    put_varint,
-    stream_names,
-)
-from lodserver.packets.grids import attribute_grids_of, grid_of, quantize_wedges
+from lodserver.packets import (COUNT, FAN, MASK, OTHER, PATTERN, POSITION, VERTEX, WEDGE_CORNER,
+                               WEDGE_COUNT, WEDGE_PARENT, PacketError, attribute_grids_of,
+                               deflate_body, grid_of, pack_header, quantize_wedges,
+                               stream_names)
+from lodserver.packets.format import FAN_LISTED, FAN_PREDICTED, IS_NEW, IS_OTHER, IS_VS, put_varint
 from lodserver.packets.reference import (
     Working,
     collapse_ratio,

@@ -21,11 +21,13 @@ def _free_port() -> int:
 
 @contextmanager
 def server_process(data_dir, *, log: Path | None = None, warm_kernels: bool = False,
-                   timeout: float = 60, env: dict | None = None):
+                   timeout: float = 60, env: dict | None = None, cwd: Path | None = None):
     """Run ``lodserver serve`` on a free loopback port, storing in ``data_dir``;
     yield (base URL, process) once ``/healthz`` answers, stop it on exit.
 
     ``env`` adds environment variables (``LODSERVER_*`` settings, ``TMPDIR``).
+    ``cwd`` is the server's working directory, which ``python -m`` puts first
+    on ``sys.path``: a checkout there serves its own package.
 
     Its output goes to ``log`` (a file path) or is kept for the error message.
     ``warm_kernels`` compiles the kernels at start-up, as a deployed server
@@ -39,11 +41,12 @@ def server_process(data_dir, *, log: Path | None = None, warm_kernels: bool = Fa
     env = {**os.environ, "LODSERVER_TOKEN": "",
            "LODSERVER_WARM_KERNELS": "true" if warm_kernels else "false", **(env or {})}
     if log is None:
-        process = subprocess.Popen(command, env=env, stdout=subprocess.PIPE,
+        process = subprocess.Popen(command, cwd=cwd, env=env, stdout=subprocess.PIPE,
                                    stderr=subprocess.STDOUT)
     else:
         with open(log, "wb") as out:
-            process = subprocess.Popen(command, env=env, stdout=out, stderr=subprocess.STDOUT)
+            process = subprocess.Popen(command, cwd=cwd, env=env, stdout=out,
+                                       stderr=subprocess.STDOUT)
     base = f"http://127.0.0.1:{port}"
     try:
         deadline = time.monotonic() + timeout

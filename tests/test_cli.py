@@ -193,3 +193,29 @@ def test_a_cold_numba_cache_is_detected(tmp_path):
     assert result.stdout.split() == ["True", "True"], result.stderr
     build(DATA / "spot.obj", min_vertices=2900)
     assert kernels_cold() is False
+
+
+def test_untrusted_refuses_a_reference_outside_the_files_folder(tmp_path, capsys):
+    """--untrusted loads as the server loads an upload: a .gltf naming a file
+    outside its folder is refused with a sentence naming the reference."""
+    import json
+
+    secret = tmp_path / "secret.bin"
+    secret.write_bytes(bytes(36))
+    folder = tmp_path / "assets"
+    folder.mkdir()
+    document = {"asset": {"version": "2.0"}, "buffers": [{"uri": "../secret.bin", "byteLength": 36}],
+                "bufferViews": [{"buffer": 0, "byteLength": 36}],
+                "accessors": [{"bufferView": 0, "componentType": 5126, "count": 3, "type": "VEC3",
+                               "min": [0, 0, 0], "max": [0, 0, 0]}],
+                "meshes": [{"primitives": [{"attributes": {"POSITION": 0}}]}],
+                "nodes": [{"mesh": 0}], "scenes": [{"nodes": [0]}]}
+    source = folder / "tri.gltf"
+    source.write_text(json.dumps(document))
+    for command in (["build", str(source), "-o", str(tmp_path / "x.pm")],
+                    ["simplify", str(source), "--ratio", "0.5", "-o", str(tmp_path / "x.obj")],
+                    ["export", str(source), "-o", str(tmp_path / "x.glb")]):
+        assert main([*command, "--untrusted"]) == 1
+        message = capsys.readouterr().err
+        assert "'../secret.bin'" in message and str(tmp_path) not in message
+    assert not (tmp_path / "x.pm").exists() and not (tmp_path / "x.glb").exists()

@@ -14,6 +14,7 @@ from fastapi.concurrency import run_in_threadpool
 from fastapi.middleware.cors import CORSMiddleware
 from fastapi.routing import APIRoute
 
+from ..packets import shutdown_background
 from ..service.jobs import JobRunner
 from ..service.parsing import ParsePool
 from ..service.store import LocalStore
@@ -38,6 +39,9 @@ async def lifespan(app: FastAPI):
         yield
     finally:
         await run_in_threadpool(jobs.shutdown)
+        # packet records still queued for background encoding are dropped (a
+        # later request schedules them again); the one being encoded finishes
+        await run_in_threadpool(shutdown_background)
         store.close()
 
 

@@ -179,10 +179,41 @@ def _item_index(starts: np.ndarray, lengths: np.ndarray, step: int) -> np.ndarra
     return np.repeat(starts - before * step, lengths) + np.arange(int(lengths.sum())) * step
 
 
+def _row_starts(count: int, layout, at: int, read_list):
+    """Where every value of ``count`` rows mixing scalar and list properties starts.
+
+    ``layout`` is (property, item size, list header or None) a property, in row
+    order; ``read_list(header, at)`` checks the length of the list at ``at`` and
+    gives it and where its items start. Sizes and places count bytes (binary) or
+    tokens (ASCII). Returns the starts and the list lengths a property, as typed
+    arrays (8 bytes a value: a list would cost an int object each), and where
+    the rows end."""
+    starts = {prop: array("q") for prop, _, _ in layout}
+    lengths = {prop: array("q") for prop, _, header in layout if header is not None}
+    for _ in range(count):
+        for prop, size, header in layout:
+            if header is None:
+                starts[prop].append(at)
+                at += size
+                continue
+            n, at = read_list(header, at)
+            starts[prop].append(at)
+            lengths[prop].append(n)
+            at += n * size
+    return starts, lengths, at
+
+
 def _ply_binary_elements(body: bytes, elements, endian: str) -> dict[str, dict]:
     """Binary PLY elements as ``{element: {property: (count,) array or _PlyLists}}``."""
     data, offset = {}, 0
     raw = np.frombuffer(body, dtype=np.uint8)
+
+    def read_list(length, at):
+        (n,) = length.unpack_from(body, at)  # struct.error past the end
+        if n < 0:
+            raise ValueError(f"a PLY list of length {n}")
+        return n, at + length.size
+
     for name, count, properties in elements:
         if all(list_type is None for _, _, list_type in properties):
             dtype = np.dtype([(prop, endian + kind) for prop, kind, _ in properties])
@@ -200,21 +231,9 @@ def _ply_binary_elements(body: bytes, elements, endian: str) -> dict[str, dict]:
                     raise ValueError(f"PLY list length type {list_type} is not an integer")
                 length = struct.Struct(endian + np.dtype(list_type).char)
             layout.append((prop, np.dtype(endian + kind), length))
-        # typed arrays, 8 bytes a value: a list would cost an int object each
-        starts = {prop: array("q") for prop, _, _ in layout}
-        lengths = {prop: array("q") for prop, _, length in layout if length is not None}
-        for _ in range(count):
-            for prop, kind, length in layout:
-                if length is None:
-                    starts[prop].append(offset)
-                    offset += kind.itemsize
-                    continue
-                (n,) = length.unpack_from(body, offset)  # struct.error past the end
-                if n < 0:
-                    raise ValueError(f"a PLY list of length {n}")
-                starts[prop].append(offset + length.size)
-                lengths[prop].append(n)
-                offset += length.size + n * kind.itemsize
+        starts, lengths, offset = _row_starts(
+            count, [(prop, kind.itemsize, length) for prop, kind, length in layout], offset,
+            read_list)
         if offset > len(body):
             raise ValueError(f"the {name} rows need {offset} bytes, the body has {len(body)}")
         columns = {}
@@ -237,6 +256,13 @@ def _ply_ascii_elements(body: bytes, elements) -> dict[str, dict]:
         warnings.simplefilter("ignore", DeprecationWarning)
         tokens = np.fromstring(body, dtype=np.float64, sep=" ")
     data, at = {}, 0
+
+    def read_list(_, at):
+        n = tokens[at]  # IndexError past the end
+        if n < 0 or n != int(n):
+            raise ValueError(f"a PLY list of length {n}")
+        return int(n), at + 1
+
     for name, count, properties in elements:
         if all(list_type is None for _, _, list_type in properties):
             width = len(properties)
@@ -247,20 +273,8 @@ def _ply_ascii_elements(body: bytes, elements) -> dict[str, dict]:
             at += count * width
             data[name] = {prop: table[:, i] for i, (prop, _, _) in enumerate(properties)}
             continue
-        starts = {prop: array("q") for prop, _, _ in properties}
-        lengths = {prop: array("q") for prop, _, list_type in properties if list_type is not None}
-        for _ in range(count):
-            for prop, _, list_type in properties:
-                if list_type is None:
-                    starts[prop].append(at)
-                    at += 1
-                    continue
-                n = tokens[at]  # IndexError past the end
-                if n < 0 or n != int(n):
-                    raise ValueError(f"a PLY list of length {n}")
-                starts[prop].append(at + 1)
-                lengths[prop].append(int(n))
-                at += 1 + int(n)
+        starts, lengths, at = _row_starts(
+            count, [(prop, 1, list_type) for prop, _, list_type in properties], at, read_list)
         if at > len(tokens):
             raise ValueError(f"the {name} rows need more numbers than the body has")
         columns = {}

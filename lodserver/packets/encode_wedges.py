@@ -19,30 +19,31 @@ from .corners import HELD, distinct_prefix, put, search, sort_prefix, zz
 from .format import GRADIENT_DAMPING, MAX_SPLIT_RATIO
 
 
-@njit(cache=True, nogil=True)
-def _split_ratio(coarse, fine, new):
-    """``reference.split_ratio``, the same float operations in the same order."""
+@njit(cache=True, nogil=True, inline="always")
+def _projected(u0, u1, w0, w1, empty, top):
+    """``((w0 - w1) . (u0 - u1)) / |u0 - u1|^2`` clamped to [0, top], ``empty``
+    when ``u0 == u1``: both ratios below, term by term as the reference computes
+    them (the same float operations in the same order, so the same bits)."""
     a = 0.0
     b = 0.0
     for k in range(3):
-        a += float(coarse[k] - fine[k]) * float(coarse[k] - fine[k])
+        a += float(u0[k] - u1[k]) * float(u0[k] - u1[k])
     for k in range(3):
-        b += float(new[k] - coarse[k]) * float(coarse[k] - fine[k])
-    ratio = b / a if a > 0 else 1.0
-    return min(max(ratio, 0.0), MAX_SPLIT_RATIO)
+        b += float(w0[k] - w1[k]) * float(u0[k] - u1[k])
+    ratio = b / a if a > 0 else empty
+    return min(max(ratio, 0.0), top)
+
+
+@njit(cache=True, nogil=True)
+def _split_ratio(coarse, fine, new):
+    """``reference.split_ratio``: where ``new`` lies along fine -> coarse, past coarse."""
+    return _projected(coarse, fine, new, coarse, 1.0, MAX_SPLIT_RATIO)
 
 
 @njit(cache=True, nogil=True)
 def _collapse_ratio(fine, new, coarse):
-    """``reference.collapse_ratio``, the same float operations in the same order."""
-    a = 0.0
-    b = 0.0
-    for k in range(3):
-        a += float(new[k] - fine[k]) * float(new[k] - fine[k])
-    for k in range(3):
-        b += float(coarse[k] - fine[k]) * float(new[k] - fine[k])
-    ratio = b / a if a > 0 else 0.5
-    return min(max(ratio, 0.0), 1.0)
+    """``reference.collapse_ratio``: where ``coarse`` lies along fine -> new."""
+    return _projected(new, fine, coarse, fine, 0.5, 1.0)
 
 
 @njit(cache=True, nogil=True, inline="always")

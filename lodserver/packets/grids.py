@@ -21,7 +21,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from ..mesh import ATTRIBUTE_WIDTHS
+from ..mesh import ATTRIBUTE_WIDTHS, unit_box
 from .format import LINEAR, MAX_BITS, MIN_BITS, OCTAHEDRAL
 
 if TYPE_CHECKING:
@@ -181,9 +181,8 @@ def _box_of(pm: ProgressiveMesh) -> tuple[tuple[float, float, float], float]:
     with _boxes_lock:
         box = _boxes.get(pm)
     if box is None:
-        points = np.concatenate([pm.positions, pm.coarse_position])
-        lo = points.min(axis=0)
-        box = tuple(float(x) for x in lo), float((points.max(axis=0) - lo).max())
+        lo, extent = unit_box(np.concatenate([pm.positions, pm.coarse_position]))
+        box = tuple(float(x) for x in lo), extent
         with _boxes_lock:
             _boxes[pm] = box
     return box

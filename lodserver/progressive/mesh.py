@@ -108,6 +108,22 @@ def _positions_at(full_positions, coarse_position, parent, base, level, out):
                 out[s, j] = coarse_position[t - base, j]
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _copy_row3(out, i, source, j):
+    """``out[i] = source[j]`` for rows of three (a position or a face), unrolled."""
+    out[i, 0] = source[j, 0]
+    out[i, 1] = source[j, 1]
+    out[i, 2] = source[j, 2]
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _relabel(faces, moved_corners, first, last, label):
+    """Corners ``moved_corners[first:last]`` (each ``3 * face + slot``) now read ``label``."""
+    for k in range(first, last):
+        c = moved_corners[k]
+        faces[c // 3, c % 3] = label
+
+
 @njit(cache=True, nogil=True)
 def _apply_splits(positions, faces, level, target, base, parent, fine_position, new_position,
                   face_counts, birth_faces, moved_offsets, moved_corners):
@@ -115,19 +131,11 @@ def _apply_splits(positions, faces, level, target, base, parent, fine_position, 
     for t in range(level, target):
         j = t - base
         s = parent[t]
-        positions[s, 0] = fine_position[j, 0]
-        positions[s, 1] = fine_position[j, 1]
-        positions[s, 2] = fine_position[j, 2]
-        positions[t, 0] = new_position[j, 0]
-        positions[t, 1] = new_position[j, 1]
-        positions[t, 2] = new_position[j, 2]
-        for k in range(moved_offsets[j], moved_offsets[j + 1]):
-            c = moved_corners[k]
-            faces[c // 3, c % 3] = t
+        _copy_row3(positions, s, fine_position, j)
+        _copy_row3(positions, t, new_position, j)
+        _relabel(faces, moved_corners, moved_offsets[j], moved_offsets[j + 1], t)
         for f in range(face_counts[j], face_counts[j + 1]):
-            faces[f, 0] = birth_faces[f, 0]
-            faces[f, 1] = birth_faces[f, 1]
-            faces[f, 2] = birth_faces[f, 2]
+            _copy_row3(faces, f, birth_faces, f)
 
 
 @njit(cache=True, nogil=True)
@@ -179,12 +187,8 @@ def _apply_collapses(positions, faces, level, target, base, parent, coarse_posit
     for t in range(level - 1, target - 1, -1):
         j = t - base
         s = parent[t]
-        positions[s, 0] = coarse_position[j, 0]
-        positions[s, 1] = coarse_position[j, 1]
-        positions[s, 2] = coarse_position[j, 2]
-        for k in range(moved_offsets[j], moved_offsets[j + 1]):
-            c = moved_corners[k]
-            faces[c // 3, c % 3] = s
+        _copy_row3(positions, s, coarse_position, j)
+        _relabel(faces, moved_corners, moved_offsets[j], moved_offsets[j + 1], s)
 
 
 @dataclass(frozen=True, eq=False)
@@ -312,13 +316,9 @@ class ProgressiveMesh:
             object.__setattr__(self, key, value)
 
     # ---- sizes ----------------------------------------------------------
-    @property
-    def vertex_count(self) -> int:
-        return len(self.positions)
-
-    @property
-    def face_count(self) -> int:
-        return len(self.faces)
+    # full detail's, read as a Mesh's are: the lengths of positions and faces
+    vertex_count = Mesh.vertex_count
+    face_count = Mesh.face_count
 
     @property
     def split_count(self) -> int:

@@ -25,9 +25,9 @@ import numpy as np
 
 from ..build import build
 from ..io import LoadReport
-from ..io.limits import DEFAULT_MAX_TRIANGLES, LimitError, LoadLimits
+from ..io.limits import DEFAULT_MAX_TRIANGLES, LoadLimits
 from ..mesh import Mesh, MeshError
-from .parsing import ParsePool, ParserBusy, ParserClosed, check_mesh_file
+from .parsing import ParsePool, ParserClosed, check_mesh_file
 from .store import MeshRecord, Store, StorageFullError, StoreError, UnknownMeshError, is_disk_full
 
 __all__ = ["JobRunner", "warm_up"]

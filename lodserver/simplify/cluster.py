@@ -20,7 +20,8 @@ import numpy as np
 from numba import njit, prange
 
 from ..mesh import Mesh, MeshError
-from .quadrics import cell_representatives, to_unit_box, unit_box, vertex_quadrics
+from ..mesh import to_unit_box, unit_box
+from .quadrics import cell_representatives, vertex_quadrics
 
 # Resolution search bounds: cells along the longest axis.
 _MIN_CELLS = 1

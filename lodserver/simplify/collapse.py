@@ -38,13 +38,11 @@ from collections import namedtuple
 import numpy as np
 from numba import njit
 
-from ..mesh import Mesh, MeshError
+from ..mesh import Mesh, MeshError, to_unit_box, unit_box
 from .quadrics import (
     constrain_to_plane,
     optimal_position_xyz,
     quadric_error,
-    to_unit_box,
-    unit_box,
     vertex_quadrics,
 )
 from .legality import check_legality

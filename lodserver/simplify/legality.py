@@ -15,6 +15,7 @@ from .rules import (DEGENERATE_AREA, LEGAL, REJECT_DEGENERATE, REJECT_FLIP, REJE
                     REJECT_LINK, REJECT_NON_MANIFOLD_EDGE, REJECT_NOT_AN_EDGE,
                     REJECT_PAIR_SHARES_NEIGHBOURS, REJECT_PAIR_TOO_FAR, REJECT_PINCH,
                     REJECT_TETRAHEDRON, on_border)
+from .quadrics import cross, edge_vectors
 from .state import NO_REFCOUNT
 
 
@@ -26,22 +27,10 @@ def _face_turn(v, x, y, p, pos, flip_cos):
 
     G&H 1997 section 3.3 refuses fold-overs (normal turned past 90 degrees);
     the stricter angle also keeps the slivers that precede a fold."""
-    ex = pos[x, 0] - pos[y, 0]
-    ey = pos[x, 1] - pos[y, 1]
-    ez = pos[x, 2] - pos[y, 2]
     # normals (v - y) x (x - y) before and after: the edge (x, y) stays put
-    ux = pos[v, 0] - pos[y, 0]
-    uy = pos[v, 1] - pos[y, 1]
-    uz = pos[v, 2] - pos[y, 2]
-    ax = uy * ez - uz * ey
-    ay = uz * ex - ux * ez
-    az = ux * ey - uy * ex
-    ux = p[0] - pos[y, 0]
-    uy = p[1] - pos[y, 1]
-    uz = p[2] - pos[y, 2]
-    bx = uy * ez - uz * ey
-    by = uz * ex - ux * ez
-    bz = ux * ey - uy * ex
+    ex, ey, ez, ux, uy, uz = edge_vectors(pos, y, x, v)
+    ax, ay, az = cross(ux, uy, uz, ex, ey, ez)
+    bx, by, bz = cross(p[0] - pos[y, 0], p[1] - pos[y, 1], p[2] - pos[y, 2], ex, ey, ez)
     lb = bx * bx + by * by + bz * bz
     if lb <= DEGENERATE_AREA:
         return REJECT_DEGENERATE

@@ -35,7 +35,8 @@ import numpy as np
 from numba import njit
 
 from ..mesh import Mesh
-from .quadrics import optimal_position_xyz, quadric_error, to_unit_box, unit_box, vertex_quadrics
+from ..mesh import to_unit_box, unit_box
+from .quadrics import optimal_position_xyz, quadric_error, vertex_quadrics
 from .log import CollapseLog, log_arrays
 from .queue import grow
 from .topology import link_corners

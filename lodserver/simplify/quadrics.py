@@ -65,25 +65,6 @@ REGULARIZATION = 1e-6
 DET_RELATIVE_EPS = 1e-7
 
 
-def unit_box(positions):
-    """The frame in which the kernels work: ``(lo (3,) float64, extent float)``,
-    the smallest corner of the bounding box of ``positions`` (n, 3) and its
-    longest side (1.0 for a single point), so that ``(positions - lo) / extent``
-    lies in the unit cube. Tolerances are then scale-free and quadric
-    coefficients stay where float64 cancellation is harmless.
-
-    Plain numpy, called from Python (an njit twin would have to reproduce
-    numpy's choice between -0.0 and 0.0 to keep outputs bit for bit)."""
-    positions = np.asarray(positions, dtype=np.float64)
-    lo = positions.min(axis=0)
-    return lo, float((positions.max(axis=0) - lo).max()) or 1.0
-
-
-def to_unit_box(positions, lo, extent):
-    """``(positions - lo) / extent`` as a C-contiguous (n, 3) float64 array."""
-    return np.ascontiguousarray((np.asarray(positions, dtype=np.float64) - lo) / extent)
-
-
 def plane_quadrics(normals, offsets, weights, areas):
     """Quadrics of weighted planes ``n . p + d = 0``.
 
@@ -247,18 +228,29 @@ def wedge_quadrics(positions, faces, corners, values):
     return out
 
 
+@njit(cache=True, nogil=True, inline="always")
+def edge_vectors(positions, i, j, k):
+    """The edges ``p_j - p_i`` and ``p_k - p_i`` of triangle (i, j, k) of
+    ``positions`` (n, 3), as six floats (x, y, z of each)."""
+    return (positions[j, 0] - positions[i, 0], positions[j, 1] - positions[i, 1],
+            positions[j, 2] - positions[i, 2], positions[k, 0] - positions[i, 0],
+            positions[k, 1] - positions[i, 1], positions[k, 2] - positions[i, 2])
+
+
+@njit(cache=True, nogil=True, inline="always")
+def cross(ux, uy, uz, vx, vy, vz):
+    """``u x v`` as three floats; of a triangle's two edges from one corner, its
+    normal with twice its area as length."""
+    return uy * vz - uz * vy, uz * vx - ux * vz, ux * vy - uy * vx
+
+
 @njit(cache=True, nogil=True)
 def _accumulate_wedge_quadrics(positions, faces, corners, values, out):
     d = values.shape[1]
     g = np.empty((d, 4))
     for f in range(faces.shape[0]):
         i, j, k = faces[f, 0], faces[f, 1], faces[f, 2]
-        e1x = positions[j, 0] - positions[i, 0]
-        e1y = positions[j, 1] - positions[i, 1]
-        e1z = positions[j, 2] - positions[i, 2]
-        e2x = positions[k, 0] - positions[i, 0]
-        e2y = positions[k, 1] - positions[i, 1]
-        e2z = positions[k, 2] - positions[i, 2]
+        e1x, e1y, e1z, e2x, e2y, e2z = edge_vectors(positions, i, j, k)
         g11 = e1x * e1x + e1y * e1y + e1z * e1z
         g12 = e1x * e2x + e1y * e2y + e1z * e2z
         g22 = e2x * e2x + e2y * e2y + e2z * e2z
@@ -362,15 +354,8 @@ def _accumulate_face_quadrics(positions, faces, out):
     of ``out`` (n, 11); one pass, no (m, 11) temporary. Zero-area faces add nothing."""
     for f in range(faces.shape[0]):
         i, j, k = faces[f, 0], faces[f, 1], faces[f, 2]
-        ux = positions[j, 0] - positions[i, 0]
-        uy = positions[j, 1] - positions[i, 1]
-        uz = positions[j, 2] - positions[i, 2]
-        vx = positions[k, 0] - positions[i, 0]
-        vy = positions[k, 1] - positions[i, 1]
-        vz = positions[k, 2] - positions[i, 2]
-        nx = uy * vz - uz * vy
-        ny = uz * vx - ux * vz
-        nz = ux * vy - uy * vx
+        ux, uy, uz, vx, vy, vz = edge_vectors(positions, i, j, k)
+        nx, ny, nz = cross(ux, uy, uz, vx, vy, vz)
         double_area = np.sqrt(nx * nx + ny * ny + nz * nz)
         if double_area == 0.0:
             continue

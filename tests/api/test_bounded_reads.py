@@ -17,7 +17,7 @@ from lodserver.api.main import create_app
 from lodserver.api.routes import lods, materials
 from lodserver.api.settings import Settings
 
-from ..conftest import need
+from ..conftest import headless_chromium
 from ..meshes import DATA, textured_spot_glb
 from ..server import serve as serve_process
 from ..server import upload_and_wait
@@ -354,35 +354,22 @@ def test_the_policy_follows_the_import_map_of_the_served_page(serve, tmp_path):
 def test_the_viewer_runs_under_its_policy_in_chromium(tmp_path):
     """A real server's viewer page loads a textured mesh to full detail with the
     server's own CSP, and Chromium's console reports no violation of it."""
-    from ..viewer.test_viewer import CHROMIUM_ARGS
-
-    executable = shutil.which("chromium") or shutil.which("chromium-browser")
-    if executable is None:
-        need("no chromium binary on PATH (Debian: apt-get install chromium)")
-    try:
-        from playwright import sync_api
-    except ImportError:
-        need("the playwright package is not installed")
     path = tmp_path / "spot.glb"
     path.write_bytes(textured_spot_glb())
-    with serve_process(tmp_path / "data") as client, sync_api.sync_playwright() as playwright:
+    with serve_process(tmp_path / "data") as client, headless_chromium() as browser:
         mesh = upload_and_wait(client, path)
-        browser = playwright.chromium.launch(executable_path=executable, args=CHROMIUM_ARGS)
-        try:
-            page = browser.new_page()
-            console, errors, loaded = [], [], []
-            page.on("console", lambda message: console.append(f"{message.type}: {message.text}"))
-            page.on("pageerror", lambda error: errors.append(str(error)))
-            page.on("requestfinished", lambda request: loaded.append(request.url))
-            response = page.goto(f"{client.base_url}/viewer/?mesh={mesh['id']}")
-            assert "script-src 'self' 'sha256-" in response.all_headers()["content-security-policy"]
-            page.wait_for_function("() => window.lodViewer?.status().level != null")
-            status = page.evaluate("lodViewer.settled()")
-            assert status["level"] == mesh["vertices"] and status["error"] is None, status
-            page.wait_for_function("() => performance.getEntriesByType('resource')"
-                                   ".some((entry) => entry.name.endsWith('/images/0'))")
-        finally:
-            browser.close()
+        page = browser.new_page()
+        console, errors, loaded = [], [], []
+        page.on("console", lambda message: console.append(f"{message.type}: {message.text}"))
+        page.on("pageerror", lambda error: errors.append(str(error)))
+        page.on("requestfinished", lambda request: loaded.append(request.url))
+        response = page.goto(f"{client.base_url}/viewer/?mesh={mesh['id']}")
+        assert "script-src 'self' 'sha256-" in response.all_headers()["content-security-policy"]
+        page.wait_for_function("() => window.lodViewer?.status().level != null")
+        status = page.evaluate("lodViewer.settled()")
+        assert status["level"] == mesh["vertices"] and status["error"] is None, status
+        page.wait_for_function("() => performance.getEntriesByType('resource')"
+                               ".some((entry) => entry.name.endsWith('/images/0'))")
     assert any(url.endswith(f"/meshes/{mesh['id']}/images/0") for url in loaded)
     assert any("/vendor/three/" in url for url in loaded)     # the import map resolved
     violations = [line for line in console if "Content Security Policy" in line

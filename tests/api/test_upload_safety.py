@@ -22,6 +22,7 @@ from lodserver.api.main import create_app
 from lodserver.api.settings import Settings
 from lodserver.io.limits import LimitError
 
+from ..conftest import record_calls
 from ..meshes import DATA
 
 SPOT = (DATA / "spot.obj").read_bytes()
@@ -317,14 +318,7 @@ def test_a_corrupt_artefact_is_quarantined_once_and_answered_409(tmp_path, monke
     data = bytearray(artefact.read_bytes())
     data[len(data) // 2] ^= 0xFF
     artefact.write_bytes(bytes(data))
-    reads = []
-    load = store_module.load_progressive
-
-    def counted(path):
-        reads.append(path)
-        return load(path)
-
-    monkeypatch.setattr(store_module, "load_progressive", counted)
+    reads = record_calls(monkeypatch, store_module, "load_progressive")
     with _client(tmp_path) as client:          # a restart: nothing loaded in memory
         for path in ("lod?ratio=0.5", "splits?from=4&to=10", "lod?vertices=100&format=glb",
                      "materials", "chain"):

@@ -25,7 +25,7 @@ from lodserver.io.gltf import face_normals
 from lodserver.io import clean_mesh, encode_mesh, load_mesh, save_mesh
 from lodserver.mesh import Materials, Mesh, MeshError
 
-from ..conftest import need
+from ..conftest import glb_chunks, need
 from ..meshes import DATA
 
 REPO = Path(__file__).resolve().parents[2]
@@ -585,17 +585,7 @@ def test_served_levels_are_the_fast_path_glb_but_for_json_padding():
     for level in (pm.base_vertices, pm.level_for(ratio=0.5), pm.vertex_count):
         served = bytes(encode_level(pm, level, file_type="glb", copy=False))
         direct = geometry_glb(*pm.arrays_at(level))
-        chunks = []
-        for data in (served, direct):
-            magic, version, total = struct.unpack_from("<4sII", data)
-            assert (magic, version, total) == (b"glTF", 2, len(data))
-            length, kind = struct.unpack_from("<I4s", data, 12)
-            assert kind == b"JSON" and length % 4 == 0
-            document = json.loads(data[20:20 + length])
-            size, kind = struct.unpack_from("<I4s", data, 20 + length)
-            assert kind == b"BIN\x00" and 28 + length + size == len(data)
-            chunks.append((document, data[28 + length:]))
-        assert chunks[0] == chunks[1]
+        assert glb_chunks(served) == glb_chunks(direct)
 
 
 # --- lodserver export ------------------------------------------------------------------------

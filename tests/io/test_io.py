@@ -19,6 +19,8 @@ from lodserver.io import (
 from lodserver.io.save import _EXPORT_OPTIONS
 from lodserver.mesh import Materials, Mesh, MeshError
 
+from ..conftest import glb_chunks
+
 SPOT = Path(__file__).resolve().parents[1] / "data" / "spot.obj"
 
 # Measured with load_mesh; they agree with ../shared/meshes/SOURCES.md.
@@ -456,22 +458,14 @@ def test_save_replaces_an_existing_file(tmp_path):
 
 def test_glb_is_a_well_formed_gltf_binary():
     """Header, 4-byte aligned chunks, accessor counts and POSITION bounds (positions-only path)."""
-    import json
-    import struct
-
     from lodserver.io import encode_mesh
 
     loaded, _ = load_mesh(SPOT)
     mesh = Mesh(loaded.positions, loaded.faces)  # without its UVs
     data = encode_mesh(mesh, "glb")
-    magic, version, total = struct.unpack_from("<4sII", data)
-    assert (magic, version, total) == (b"glTF", 2, len(data))
-    json_length, json_type = struct.unpack_from("<I4s", data, 12)
-    assert json_type == b"JSON" and json_length % 4 == 0
-    document = json.loads(data[20:20 + json_length])
-    bin_length, bin_type = struct.unpack_from("<I4s", data, 20 + json_length)
-    assert bin_type == b"BIN\x00" and bin_length % 4 == 0
-    assert 28 + json_length + bin_length == len(data)
+    document, binary = glb_chunks(data)
+    bin_length = len(binary)
+    assert bin_length % 4 == 0
     positions, indices = document["accessors"]
     assert positions["count"] == mesh.vertex_count and indices["count"] == 3 * mesh.face_count
     as_float32 = mesh.positions.astype(np.float32)

@@ -34,6 +34,20 @@ def _edge_face_counts(faces):
     return np.unique(e, axis=0, return_counts=True)[1]
 
 
+def _every_mesh_drawing_levels(test):
+    """``test(name, data)`` over every mesh, as a Hypothesis test (HYPOTHESIS) whose
+    ``data`` draws its levels (``_drawn_levels``)."""
+    return pytest.mark.parametrize("name", ALL)(HYPOTHESIS(given(data=st.data())(test)))
+
+
+def _drawn_levels(name, data, *labels):
+    """``name``'s progressive mesh and a level (base to full detail) drawn from
+    ``data`` for each label, in order."""
+    pm = progressive(name)
+    return pm, [data.draw(st.integers(pm.base_vertices, pm.vertex_count), label=label)
+                for label in labels]
+
+
 @pytest.mark.parametrize("name", ALL)
 def test_full_level_is_the_input(name):
     original, pm = mesh(name), progressive(name)
@@ -56,13 +70,9 @@ def test_replaying_every_split_gives_the_input(name):
                           canonical_faces(original.positions, original.faces))
 
 
-@pytest.mark.parametrize("name", ALL)
-@HYPOTHESIS
-@given(data=st.data())
+@_every_mesh_drawing_levels
 def test_forward_then_backward_is_identity(name, data):
-    pm = progressive(name)
-    a = data.draw(st.integers(pm.base_vertices, pm.vertex_count), label="from")
-    b = data.draw(st.integers(pm.base_vertices, pm.vertex_count), label="to")
+    pm, (a, b) = _drawn_levels(name, data, "from", "to")
     cursor = pm.cursor(a)
     before = cursor.arrays()
     cursor.seek(b).seek(a)
@@ -70,13 +80,9 @@ def test_forward_then_backward_is_identity(name, data):
     assert np.array_equal(before[0], after[0]) and np.array_equal(before[1], after[1])
 
 
-@pytest.mark.parametrize("name", ALL)
-@HYPOTHESIS
-@given(data=st.data())
+@_every_mesh_drawing_levels
 def test_level_is_the_same_from_any_direction(name, data):
-    pm = progressive(name)
-    level = data.draw(st.integers(pm.base_vertices, pm.vertex_count), label="level")
-    start = data.draw(st.integers(pm.base_vertices, pm.vertex_count), label="start")
+    pm, (level, start) = _drawn_levels(name, data, "level", "start")
     direct = pm.arrays_at(level)
     from_base = pm.cursor(pm.base_vertices).seek(level).arrays()
     from_full = pm.cursor(pm.vertex_count).seek(level).arrays()

@@ -3,12 +3,10 @@
 import threading
 import time
 
-import pytest
-
 from lodserver.service import jobs as jobs_module
 from lodserver.service.jobs import JobRunner
 from lodserver.mesh import MeshError
-from lodserver.service.store import LocalStore, Status
+from lodserver.service.store import Status
 
 from ..meshes import DATA, progressive
 
@@ -26,13 +24,6 @@ def _wait(store, mesh_id, statuses=("ready", "failed"), timeout=60):
         assert time.monotonic() < deadline
         time.sleep(0.05)
     return record
-
-
-@pytest.fixture
-def store(tmp_path):
-    store = LocalStore(tmp_path / "data")
-    yield store
-    store.close()
 
 
 def test_a_failed_build_marks_only_its_mesh(store, tmp_path, monkeypatch):

@@ -12,6 +12,7 @@ from lodserver.service.store import (
     check_id,
 )
 
+from ..conftest import record_calls
 from ..meshes import progressive
 
 
@@ -19,13 +20,6 @@ def _source(tmp_path, name="cube.obj"):
     path = tmp_path / name
     path.write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n")
     return path
-
-
-@pytest.fixture
-def store(tmp_path):
-    store = LocalStore(tmp_path / "data")
-    yield store
-    store.close()
 
 
 def test_create_get_list_delete(store, tmp_path):
@@ -121,14 +115,7 @@ def test_racing_loads_of_one_mesh_share_one_object(tmp_path, monkeypatch):
     store = LocalStore(tmp_path / "data")
     record = store.create(name="grid", source=_source(tmp_path), file_type="obj", options={})
     store.put_artefact(mesh_id=record.id, pm=progressive("grid"))
-    reads = []
-    slow_read = store_module.load_progressive
-
-    def counted(path):
-        reads.append(path)
-        return slow_read(path)
-
-    monkeypatch.setattr(store_module, "load_progressive", counted)
+    reads = record_calls(monkeypatch, store_module, "load_progressive")
     start, found = threading.Barrier(6), []
 
     def load():

@@ -14,7 +14,6 @@ install``), and skips without them.
 import base64
 import hashlib
 import re
-import shutil
 from pathlib import Path
 
 import numpy as np
@@ -24,13 +23,10 @@ from fastapi.testclient import TestClient
 from lodserver.api.main import create_app
 from lodserver.api.settings import Settings
 
-from ..conftest import need
+from ..conftest import headless_chromium
 from ..meshes import DATA, SHARED, textured_spot_glb
 from ..server import serve, upload_and_wait
 
-CHROMIUM_ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
-                 "--disable-background-networking", "--disable-component-update",
-                 "--disable-sync"]
 VIEWPORT = {"width": 960, "height": 640}
 BACKGROUND = (0x1D, 0x20, 0x26)     # settings.background in static/main.js
 # Slider positions (0 = base, 1000 = full detail), visited in order from full detail.
@@ -93,17 +89,8 @@ def test_viewer_without_its_files_says_where_it_looked(tmp_path, monkeypatch):
 @pytest.fixture(scope="module")
 def chromium():
     """A launched headless Chromium (Playwright over Debian's binary), or a skip."""
-    executable = shutil.which("chromium") or shutil.which("chromium-browser")
-    if executable is None:
-        need("no chromium binary on PATH (Debian: apt-get install chromium)")
-    try:
-        from playwright import sync_api
-    except ImportError:
-        need("the playwright package is not installed")
-    with sync_api.sync_playwright() as playwright:
-        browser = playwright.chromium.launch(executable_path=executable, args=CHROMIUM_ARGS)
+    with headless_chromium() as browser:
         yield browser
-        browser.close()
 
 
 @pytest.fixture(scope="module")

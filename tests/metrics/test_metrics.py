@@ -7,14 +7,10 @@ import pytest
 import trimesh
 
 from lodserver.mesh import Mesh
-from lodserver.metrics import (
-    _nearest_on_mesh,
-    point_to_mesh_distance,
-    sample_surface,
-    surface_distance,
-)
+from lodserver.metrics import point_to_mesh_distance, sample_surface, surface_distance
+from lodserver.metrics.nearest import nearest_on_mesh
 
-SPOT = Path(__file__).parent / "data" / "spot.obj"
+SPOT = Path(__file__).resolve().parents[1] / "data" / "spot.obj"
 
 
 @pytest.fixture(scope="module")
@@ -128,7 +124,7 @@ def _assert_matches_brute_force(points, positions, faces):
     scale = np.abs(positions).max()
     np.testing.assert_allclose(ours, expected, rtol=1e-12, atol=1e-14 * scale)
     # the reported face and point really are at that distance
-    d2, face, closest = _nearest_on_mesh(
+    d2, face, closest = nearest_on_mesh(
         np.asarray(points, float), Mesh(positions, faces)
     )
     np.testing.assert_allclose(
@@ -339,12 +335,9 @@ def test_tuples_junk_vertices_and_degenerate_faces(spot):
 # ---------------------------------------------------------------------------
 
 from lodserver.mesh import Attributes  # noqa: E402
-from lodserver.metrics import (  # noqa: E402
-    _closest_barycentrics,
-    _sample,
-    _sample_barycentric,
-    attribute_deviation,
-)
+from lodserver.metrics import attribute_deviation  # noqa: E402
+from lodserver.metrics.attributes import closest_barycentrics  # noqa: E402
+from lodserver.metrics.surface import sample_barycentric, sample_mesh  # noqa: E402
 
 PLANE_LAYOUT = (("NORMAL", 3), ("TEXCOORD_0", 2), ("COLOR_0", 4))
 
@@ -480,8 +473,8 @@ def test_attribute_deviation_seam_is_seen_in_max_not_p99():
 
 
 def test_sample_barycentric_matches_sample_surface(spot):
-    points, face, bary = _sample_barycentric(spot, 5_000, 3)
-    assert np.array_equal(points, _sample(spot, 5_000, 3))
+    points, face, bary = sample_barycentric(spot, 5_000, 3)
+    assert np.array_equal(points, sample_mesh(spot, 5_000, 3))
     assert np.array_equal(points, sample_surface(spot.positions, spot.faces, 5_000, seed=3))
     rebuilt = np.einsum("kc,kcd->kd", bary, spot.positions[spot.faces[face]])
     assert np.allclose(rebuilt, points, atol=1e-12)
@@ -492,8 +485,8 @@ def test_closest_barycentrics_rebuild_the_closest_point():
     rng = np.random.default_rng(12)
     soup = Mesh(*random_soup(rng, 300))
     points = rng.normal(size=(3_000, 3))
-    _, face, closest = _nearest_on_mesh(points, soup)
-    bary = _closest_barycentrics(soup.positions, soup.faces, face, closest)
+    _, face, closest = nearest_on_mesh(points, soup)
+    bary = closest_barycentrics(soup.positions, soup.faces, face, closest)
     assert (bary >= 0).all() and np.allclose(bary.sum(axis=1), 1.0)
     rebuilt = np.einsum("kc,kcd->kd", bary, soup.positions[soup.faces[face]])
     scale = np.abs(soup.positions).max()
@@ -501,5 +494,5 @@ def test_closest_barycentrics_rebuild_the_closest_point():
     # a flat triangle: the point lies on its long edge, 30% of the way
     flat = np.array([[0.0, 0, 0], [1, 0, 0], [0.5, 0, 0]])
     q = np.array([[0.3, 0.0, 0.0]])
-    w = _closest_barycentrics(flat, np.array([[0, 1, 2]]), np.array([0]), q)
+    w = closest_barycentrics(flat, np.array([[0, 1, 2]]), np.array([0]), q)
     assert np.allclose(w @ flat, q)
