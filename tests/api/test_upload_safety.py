@@ -139,6 +139,25 @@ def test_malformed_forms_are_422_with_a_sentence(tmp_path, parts, message):
         assert _leftovers(tmp_path / "data") == []
 
 
+@pytest.mark.parametrize("headers, message", [
+    (f"Content-Disposition: form-data; name=\"file\"; filename=\"{'a' * 20_000}.obj\"",
+     "Maximum header size exceeded"),
+    ("Content-Disposition: form-data; name=\"file\"; filename=\"a.obj\"\r\n"
+     + "".join(f"X-{i}: 1\r\n" for i in range(20)), "Maximum header count exceeded"),
+])
+def test_oversized_part_headers_are_422(tmp_path, headers, message):
+    """A part's headers are held in memory while parsed: python-multipart bounds
+    their size and count, and a breach is a 422 like any malformed form."""
+    boundary = "b0und4ry"
+    body = (f"--{boundary}\r\n{headers}\r\n\r\n").encode() + SPOT + f"\r\n--{boundary}--\r\n".encode()
+    with _client(tmp_path) as client:
+        response = client.post("/meshes", content=body, headers={
+            "content-type": f"multipart/form-data; boundary={boundary}"})
+        assert response.status_code == 422, response.text
+        assert message in response.json()["message"]
+        assert _leftovers(tmp_path / "data") == []
+
+
 def test_a_truncated_body_is_422(tmp_path):
     boundary = "zz"
     body = (f"--{boundary}\r\nContent-Disposition: form-data; name=\"file\"; "
