@@ -19,7 +19,7 @@ from pathlib import Path
 
 from . import __version__
 from .mesh import MeshError
-from .options import BuildOptions, Flag, describe_error, field_default_text
+from .options import METHODS, BuildOptions, Flag, describe_error, field_default_text
 
 EXAMPLES = """\
 examples:
@@ -351,7 +351,7 @@ def _parser() -> argparse.ArgumentParser:
     group = p.add_mutually_exclusive_group(required=True)
     group.add_argument("--faces", type=int, help="at most this many faces")
     group.add_argument("--ratio", type=float, help="this fraction of the faces, in (0, 1]")
-    p.add_argument("--method", choices=("qem", "cluster"), default="qem",
+    p.add_argument("--method", choices=METHODS, default="qem",
                    help="qem: edge collapse (best quality; the build options apply); cluster: "
                         "vertex clustering (fastest; may merge parts and change topology)")
     p.add_argument("-o", "--output", required=True, help=OUTPUT_HELP)

@@ -29,6 +29,9 @@ METHODS = ("qem", "cluster")
 DISTANCE_PATTERN = r"^(\d+\.?\d*|\.\d+)([eE][-+]?\d+)?%?$"
 # Weights above this are a typo, not a wish: they drown every other term of the cost.
 MAX_WEIGHT = 1e6
+# The weight field of each glTF attribute ``decimate`` weighs (both UV sets share one).
+_WEIGHT_FIELDS = {"NORMAL": "normal_weight", "TEXCOORD_0": "uv_weight",
+                  "TEXCOORD_1": "uv_weight", "COLOR_0": "color_weight"}
 
 
 @dataclass(frozen=True)
@@ -60,7 +63,7 @@ class BuildOptions(BaseModel):
 
     model_config = ConfigDict(extra="forbid", frozen=True)
 
-    method: Annotated[Literal["qem", "cluster"], Field(
+    method: Annotated[Literal[METHODS], Field(
         "qem", description="qem: quadric edge collapse (best quality; keeps topology and "
         "attributes); cluster: octree vertex clustering recorded as splits (faster; joins "
         "parts; geometry only: the other options but attributes do not apply).")]
@@ -110,8 +113,7 @@ class BuildOptions(BaseModel):
 
     def attribute_weights(self) -> dict:
         """``decimate``'s attribute_weights: weight by glTF attribute name."""
-        return {"NORMAL": self.normal_weight, "TEXCOORD_0": self.uv_weight,
-                "TEXCOORD_1": self.uv_weight, "COLOR_0": self.color_weight}
+        return {name: getattr(self, field) for name, field in _WEIGHT_FIELDS.items()}
 
     @classmethod
     def check(cls, options: BuildOptions | dict | None = None, **overrides) -> BuildOptions:
@@ -133,8 +135,7 @@ class BuildOptions(BaseModel):
             values = dict(options or {})
         values.update(overrides)
         weights = values.pop("attribute_weights", None) or {}
-        for name, field in (("NORMAL", "normal_weight"), ("TEXCOORD_0", "uv_weight"),
-                            ("TEXCOORD_1", "uv_weight"), ("COLOR_0", "color_weight")):
+        for name, field in _WEIGHT_FIELDS.items():
             if name in weights:
                 values.setdefault(field, weights[name])
         unknown = set(weights) - set(DEFAULT_ATTRIBUTE_WEIGHTS)
@@ -149,11 +150,6 @@ class BuildOptions(BaseModel):
             return cls.model_validate(values)
         except ValidationError as exc:
             raise MeshError(describe_error(exc)) from None
-
-    def changed(self) -> dict:
-        """The options that differ from their defaults, by name."""
-        return {name: value for name, value in self.model_dump().items()
-                if value != type(self).model_fields[name].default}
 
 
 # pydantic's wording where it is longer than the point

@@ -6,6 +6,10 @@ from collections import Counter, defaultdict
 
 import numpy as np
 
+from lodserver.mesh import to_unit_box, unit_box
+from lodserver.simplify.quadrics import DET_RELATIVE_EPS, REGULARIZATION
+from lodserver.simplify.rules import DEGENERATE_AREA
+
 
 def plane_error(positions, faces, vertex, point):
     """Sum over the faces at ``vertex`` of area x squared distance from ``point`` to the face plane."""
@@ -62,10 +66,8 @@ def fans(faces, n):
 # (Garland & Heckbert 1997, section 5), the placement by numpy's solver, the
 # rules as set operations on the faces around the two vertices. Kinds:
 # 0 interior, 1 border, 2 locked (simplify.rules).
-
-DET_RELATIVE_EPS = 1e-7     # as quadrics.DET_RELATIVE_EPS
-REGULARIZATION = 1e-6       # as quadrics.REGULARIZATION
-DEGENERATE_AREA = 1e-20     # as simplify.rules.DEGENERATE_AREA
+# The tolerances (DET_RELATIVE_EPS, REGULARIZATION, DEGENERATE_AREA) are the
+# kernel's own, imported above.
 
 
 def vertex_kinds(faces, n, locked=None):
@@ -223,7 +225,5 @@ def refusals(positions, faces, kind, s, r, p, flip_cos=0.2):
 
 def unit_frame(positions):
     """Positions scaled into the unit box, as the kernel sees them: (unit, lo, extent)."""
-    positions = np.asarray(positions, float)
-    lo = positions.min(axis=0)
-    extent = float((positions.max(axis=0) - lo).max()) or 1.0
-    return (positions - lo) / extent, lo, extent
+    lo, extent = unit_box(positions)
+    return to_unit_box(positions, lo, extent), lo, extent

@@ -2,7 +2,6 @@
 
 import json
 import shutil
-import struct
 
 import numpy as np
 import pytest
@@ -14,14 +13,12 @@ from lodserver.mesh import MeshError
 from lodserver.options import BuildOptions
 from lodserver.pipeline import MANIFEST, export_folder, export_lods, find_sources
 
+from .conftest import glb_chunks
 from .meshes import DATA
 
 
 def _glb_json(path):
-    data = path.read_bytes()
-    length, kind = struct.unpack_from("<I4s", data, 12)
-    assert data[:4] == b"glTF" and kind == b"JSON"
-    return json.loads(data[20:20 + length])
+    return glb_chunks(path.read_bytes())[0]
 
 
 def _assets(root):

@@ -17,7 +17,6 @@ import hashlib
 import logging
 import os
 import re
-import tempfile
 import threading
 from collections import OrderedDict
 from pathlib import Path
@@ -25,6 +24,7 @@ from pathlib import Path
 from fastapi import Request, Response
 from starlette.responses import FileResponse
 
+from ..io.files import write_atomic
 from ..packets import PACKET_VERSION
 
 log = logging.getLogger(__name__)
@@ -109,19 +109,10 @@ class BodyCache:
                 self._size -= body_size(dropped)
         return True
 
-    def get_or_make(self, key: str, make) -> bytes | memoryview:
-        body = self.get(key)
-        if body is None:
-            # Encode outside the lock: two racing requests both encode, which is harmless.
-            body = make()
-            self.put(key, body)
-        return body
 
-
-# A body file is named by its ETag's hex digits; anything else in the folder is
-# a temporary file of an interrupted write (or not ours).
+# A body file is named by its ETag's hex digits; a name starting with "." is a
+# temporary file of an interrupted write (write_atomic's); anything else is not ours.
 _NAME = re.compile(r"[0-9a-f]{32}")
-_TEMPORARY = ".tmp-"
 
 
 class BodyFiles:
@@ -137,8 +128,9 @@ class BodyFiles:
         Most bytes of files at any time, temporary files included; the least
         recently used are removed to make room, except those being sent.
 
-    A file is written to a temporary name, flushed to disk and renamed
-    (``os.replace``), so a reader never sees a partial body, even after a crash.
+    A file is written by :func:`~lodserver.io.files.write_atomic` (a temporary
+    name, flushed to disk, renamed), so a reader never sees a partial body, even
+    after a crash.
     A file being sent is *leased*: eviction skips it, so it is never removed
     between a request finding it and its response opening it.
     """
@@ -153,7 +145,7 @@ class BodyFiles:
         self.folder.mkdir(parents=True, exist_ok=True)
         found = []
         for entry in os.scandir(self.folder):
-            if entry.name.startswith(_TEMPORARY):
+            if entry.name.startswith("."):
                 _remove(entry.path)
             elif _NAME.fullmatch(entry.name) and entry.is_file(follow_symlinks=False):
                 stat = entry.stat(follow_symlinks=False)
@@ -204,20 +196,13 @@ class BodyFiles:
             if not self._make_room(size):
                 return False
             self._reserved += size
-        temporary, written = None, False
+        written = False
         try:
-            descriptor, temporary = tempfile.mkstemp(dir=self.folder, prefix=_TEMPORARY)
-            with os.fdopen(descriptor, "wb") as out:
-                out.write(body)
-                out.flush()
-                os.fsync(out.fileno())     # renamed only once on disk: never a partial body
-            os.replace(temporary, self.folder / name)
+            write_atomic(self.folder / name, body)     # never a partial body
             written = True
         except OSError as exc:
             log.warning("a response body was not written to the body files: %s", exc)
         finally:
-            if not written and temporary is not None:
-                _remove(temporary)
             with self._lock:
                 self._reserved -= size
                 if written:

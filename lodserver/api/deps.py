@@ -12,7 +12,6 @@ from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 from ..service.jobs import JobRunner
 from ..service.parsing import RETRY_AFTER, ParserBusy
 from ..service.store import ID_PATTERN, Store
-from .caching import BodyCache
 from .settings import Settings, get_settings
 from .upload import Upload, receive_upload
 
@@ -27,13 +26,8 @@ def get_jobs(request: Request) -> JobRunner:
     return request.app.state.jobs
 
 
-def get_cache(request: Request) -> BodyCache:
-    return request.app.state.cache
-
-
 StoreDep = Annotated[Store, Depends(get_store)]
 JobsDep = Annotated[JobRunner, Depends(get_jobs)]
-CacheDep = Annotated[BodyCache, Depends(get_cache)]
 
 _bearer = HTTPBearer(auto_error=False, description="Needed on write endpoints when the server "
                      "has LODSERVER_TOKEN set.")

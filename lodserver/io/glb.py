@@ -276,15 +276,18 @@ def _geometry_document(vertex_count: int, face_count: int, lo: list, hi: list) -
         "scene": 0,
         "scenes": [{"nodes": [0]}],
         "nodes": [{"mesh": 0}],
-        "meshes": [{"primitives": [{"attributes": {"POSITION": 0}, "indices": 1, "mode": 4}]}],
+        "meshes": [{"primitives": [{"attributes": {"POSITION": 0}, "indices": 1,
+                                     "mode": TRIANGLES}]}],
         "accessors": [
-            {"bufferView": 0, "componentType": 5126, "count": vertex_count, "type": "VEC3",
+            {"bufferView": 0, "componentType": FLOAT, "count": vertex_count, "type": "VEC3",
              "min": lo, "max": hi},
-            {"bufferView": 1, "componentType": 5125, "count": 3 * face_count, "type": "SCALAR"},
+            {"bufferView": 1, "componentType": UINT, "count": 3 * face_count, "type": "SCALAR"},
         ],
         "bufferViews": [
-            {"buffer": 0, "byteOffset": 0, "byteLength": vertex_bytes, "target": 34962},
-            {"buffer": 0, "byteOffset": vertex_bytes, "byteLength": index_bytes, "target": 34963},
+            {"buffer": 0, "byteOffset": 0, "byteLength": vertex_bytes,
+             "target": ARRAY_BUFFER},
+            {"buffer": 0, "byteOffset": vertex_bytes, "byteLength": index_bytes,
+             "target": ELEMENT_ARRAY_BUFFER},
         ],
         "buffers": [{"byteLength": vertex_bytes + index_bytes}],
     }

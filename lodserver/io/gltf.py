@@ -634,12 +634,6 @@ def _read_materials(document: dict, views: list, files: _ReferencedFiles) -> Mat
     return Materials(gltf, tuple(images))
 
 
-def image_mime_type(data: bytes) -> str | None:
-    """The glTF mimeType of encoded image bytes, from their signature; None if unknown
-    (:func:`lodserver.images.image_type`, kept under this name for its callers)."""
-    return image_type(data)
-
-
 def extension_names(tree) -> set[str]:
     """Names of every ``extensions`` entry anywhere in a JSON tree."""
     found = set()

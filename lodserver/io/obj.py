@@ -26,7 +26,7 @@ from .clean import fan_triangulate, srgb_to_linear
 from .gltf import face_normals
 from .images import image_type
 from .limits import LoadLimits
-from .references import MissingReferenceError, reference_bytes, resolve_reference
+from .references import MissingReferenceError, read_reference, resolve_reference
 
 
 # Image formats converted to PNG for glTF, and the most pixels converted (8192 x 8192).
@@ -260,8 +260,8 @@ def _mtl_files(library: str, folder: Path, missing: list, root: Path | None,
         file = resolve_reference(name, folder, root, "material library", url=False)
         if file in read_before:
             return None
-        data = reference_bytes(name, folder, root, "material library",
-                               limit=limits.max_file_bytes, url=False)
+        data = read_reference(file, name, "material library", limit=limits.max_file_bytes,
+                              follow=root is None)
         read_before.add(file)
         return file, data
 
@@ -330,9 +330,10 @@ def _mtl_texture(arguments: list, folder: Path, material: str, root: Path | None
     name = " ".join(arguments[at:])
     what = f"material {material!r} texture"
     try:
-        file = Path(os.path.abspath(resolve_reference(name, folder, root, what, url=False)))
-        data = None if file in known else reference_bytes(
-            name, folder, root, what, limit=limits.max_file_bytes, url=False)
+        resolved = resolve_reference(name, folder, root, what, url=False)
+        file = Path(os.path.abspath(resolved))
+        data = None if file in known else read_reference(
+            resolved, name, what, limit=limits.max_file_bytes, follow=root is None)
     except MissingReferenceError:
         raise MeshError(f"its material {material!r} uses the texture {name!r}, "
                         "which is missing") from None

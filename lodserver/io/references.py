@@ -188,10 +188,3 @@ def read_reference(file: Path, uri: str, what: str, *, limit: int | None,
     if len(data) < size:
         raise MeshError(f"its {what} file {uri!r} ended before its stated size")
     return data
-
-
-def reference_bytes(uri: str, folder: Path, root: Path | None, what: str, *,
-                    limit: int | None, length: int | None = None, url: bool = True) -> bytes:
-    """:func:`resolve_reference` then :func:`read_reference` (files only, not data: URIs)."""
-    file = resolve_reference(uri, folder, root, what, url=url)
-    return read_reference(file, uri, what, limit=limit, length=length, follow=root is None)

@@ -9,6 +9,7 @@ import numpy as np
 from .nearest import FLAT_SIN2, closest_on_segment, cross, edge_side, nearest_on_mesh
 from .surface import distance_figures, judged, sample_barycentric
 
+# Attributes attribute_deviation always reports (None where it cannot compare).
 _COMPARED = ("NORMAL", "TEXCOORD_0", "TEXCOORD_1", "COLOR_0")
 
 

@@ -7,6 +7,7 @@ import numpy as np
 from ..mesh import Mesh
 from .nearest import as_mesh, face_areas, nearest_on_mesh, used_diagonal
 
+
 def sample_surface(positions, faces, count, *, seed=0) -> np.ndarray:
     """``count`` points drawn uniformly over the surface area, shape (count, 3).
 
@@ -20,10 +21,7 @@ def sample_surface(positions, faces, count, *, seed=0) -> np.ndarray:
 
 
 def sample_mesh(mesh: Mesh, count, seed) -> np.ndarray:
-    face, s, r2 = _sample_parameters(mesh, count, seed)
-    corners = mesh.faces[face]
-    a, b, c = (mesh.positions[corners[:, k]] for k in range(3))
-    return (1.0 - s) * a + s * (1.0 - r2) * b + s * r2 * c
+    return sample_barycentric(mesh, count, seed)[0]
 
 
 def sample_barycentric(mesh: Mesh, count, seed):
@@ -140,9 +138,3 @@ def distance_figures(d2_ab, d2_ba, diagonal) -> dict:
         "hausdorff_ba": h_ba / diagonal,
     }
 
-
-# ---------------------------------------------------------------------------
-# Appearance: attributes compared at corresponding surface points
-# ---------------------------------------------------------------------------
-
-# Attributes attribute_deviation always reports (None where it cannot compare).

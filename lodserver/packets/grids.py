@@ -164,8 +164,7 @@ def grid_of(pm: ProgressiveMesh, *, bits: int | None = None) -> Grid:
     """
     bits = default_bits(pm) if bits is None else check_bits(bits)
     lo, extent = _box_of(pm)
-    step = extent / (2**bits - 1) if extent > 0 else 1.0
-    return Grid(lo, step, bits)
+    return Grid(lo, extent / (2**bits - 1), bits)
 
 
 # The boxes of each progressive mesh in use, so that a request on a big mesh does not
@@ -177,7 +176,8 @@ _boxes_lock = threading.Lock()
 
 def _box_of(pm: ProgressiveMesh) -> tuple[tuple[float, float, float], float]:
     """The smallest coordinate of any position at any level, per axis, and the
-    largest extent over the axes."""
+    largest extent over the axes (``mesh.unit_box``: 1.0 if they all coincide,
+    which no mesh with a face does)."""
     with _boxes_lock:
         box = _boxes.get(pm)
     if box is None:

@@ -143,11 +143,13 @@ def cached_records(pm: ProgressiveMesh, forward: bool) -> RecordStreams:
         return slot[1]
 
 
-def records_ready(pm: ProgressiveMesh) -> bool:
-    """Whether ``pm``'s records are encoded both ways."""
+def records_ready(pm: ProgressiveMesh, forward: bool | None = None) -> bool:
+    """Whether ``pm``'s records are encoded in direction ``forward`` (True: splits),
+    or both ways when ``forward`` is None."""
     with _cache_lock:
         slots = dict(record_cache.get(pm, {}))
-    return len(slots) == 2 and all(slot[1] is not None for slot in slots.values())
+    directions = (True, False) if forward is None else (forward,)
+    return all(slots.get(d, (None, None))[1] is not None for d in directions)
 
 
 def encode_records(pm: ProgressiveMesh) -> None:

@@ -271,10 +271,10 @@ class LocalStore(Store):
             known = {row[0] for row in self._db.execute("SELECT id FROM meshes")}
         for folder in (self.sources, self.artefacts):
             for path in folder.iterdir():
+                stem = path.name.split(".")[0]
                 if path.name.startswith(".") and path.name.endswith(".tmp"):
                     path.unlink(missing_ok=True)
-                elif path.is_file() and ID_PATTERN.match(path.name.split(".")[0]) and \
-                        path.name.split(".")[0] not in known:
+                elif path.is_file() and ID_PATTERN.match(stem) and stem not in known:
                     log.warning("removing %s/%s: no catalogue row names it", folder.name,
                                 path.name)
                     path.unlink(missing_ok=True)

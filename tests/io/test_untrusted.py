@@ -230,7 +230,7 @@ def test_a_file_named_many_times_is_read_once(upload, monkeypatch):
     (upload / "a.mtl").write_text("newmtl skin\nmap_Kd image.png\n")
     (upload / "a.obj").write_text("mtllib a.mtl\n" * 500 + "usemtl skin\n"
                                   "v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n")
-    monkeypatch.setattr(obj_reader, "reference_bytes", counting(obj_reader.reference_bytes))
+    monkeypatch.setattr(obj_reader, "read_reference", counting(obj_reader.read_reference))
     mesh, _ = load_mesh(upload / "a.obj", root=upload)
     assert sorted(reads) == ["a.mtl", "image.png"] and mesh.materials.count == 1
 

@@ -7,8 +7,6 @@ taken), large ones written to a body file and streamed from it.
 
 from __future__ import annotations
 
-import threading
-import weakref
 from typing import Annotated, Literal
 
 from fastapi import APIRouter, Query, Request, Response
@@ -22,9 +20,8 @@ from ...service.levels import (
     resolve_level,
 )
 from ...io.glb import encode_lod_chain
-from ...packets import MAX_BITS, MIN_BITS, packet_between, prepare_records
+from ...packets import MAX_BITS, MIN_BITS, packet_between, prepare_records, records_ready
 from ...pipeline import DEFAULT_LODS, lod_chain, parse_lods
-from ...progressive.mesh import ProgressiveMesh
 from ..bodies import LIGHT_FACES, BodiesDep
 from ..caching import etag_for, immutable, is_fresh
 from ..deps import MeshId, StoreDep
@@ -90,33 +87,11 @@ def get_splits(mesh_id: MeshId, store: StoreDep, bodies: BodiesDep, request: Req
     if is_fresh(request, etag):
         return immutable(None, media_type="application/octet-stream", etag=etag)
     forward = to > start
-    light = start == to or (bits is None and _records_ready(pm, forward))
-
-    def make():
-        body = packet_between(pm, start, to, bits=bits)
-        if bits is None and start != to:
-            _mark_records_ready(pm, forward)
-        return body
-
-    return bodies.respond(etag, make, media_type="application/octet-stream",
-                          weight=0 if light else 1)
-
-
-# The directions (forward: splits) whose records packet_between has encoded, per
-# loaded mesh: the records live as long as the mesh object, like this mark. Until
-# then a packet request encodes every record of its direction, which is heavy.
-_ready: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
-_ready_lock = threading.Lock()
-
-
-def _records_ready(pm: ProgressiveMesh, forward: bool) -> bool:
-    with _ready_lock:
-        return forward in _ready.get(pm, ())
-
-
-def _mark_records_ready(pm: ProgressiveMesh, forward: bool) -> None:
-    with _ready_lock:
-        _ready.setdefault(pm, set()).add(forward)
+    # a packet at the default grid is a slice once its direction's records are
+    # encoded (by the build, the background preparation or an earlier packet)
+    light = start == to or (bits is None and records_ready(pm, forward))
+    return bodies.respond(etag, lambda: packet_between(pm, start, to, bits=bits),
+                          media_type="application/octet-stream", weight=0 if light else 1)
 
 
 MAX_CHAIN_LEVELS = 16
