@@ -1,4 +1,4 @@
-"""Command line: lodserver build | extract | simplify | export | info | serve.
+"""Command line: lodserver build | extract | simplify | export | info | serve | worker.
 
 Every failure ends with one sentence on stderr and a non-zero exit code:
 1 for bad input or a failed operation, 2 for a malformed command line. Every
@@ -201,15 +201,21 @@ def _cmd_simplify(args) -> int:
 
 
 def _cmd_export(args) -> int:
-    from .pipeline import export_lods, parse_lods
+    from .pipeline import export_lods, is_url, parse_lods
 
     ratios = parse_lods(args.lods)
     options = options_from(args)
-    if Path(args.source).is_dir():
+    if is_url(args.source) or Path(args.source).is_dir():
         if Path(args.output).suffix.lower() == ".glb":
             raise MeshError(f"{args.source} is a folder, so -o names the folder to write into, "
                             f"not a .glb file ({args.output})")
         return _export_folder(args, ratios, options)
+    if args.scheduler is not None:
+        raise MeshError("--scheduler runs the assets of a folder: name a folder, "
+                        f"not a file ({args.source})")
+    if is_url(args.output):
+        raise MeshError(f"a file's levels are written to a local .glb; object-store URLs "
+                        f"such as {args.output} are for folders")
     if Path(args.source).suffix.lower() != ".pm":
         _announce_compile(options.method)
     progress = _Progress()
@@ -241,14 +247,27 @@ def _levels(done) -> str:
 
 def _export_folder(args, ratios, options) -> int:
     """Every mesh file under ``args.source`` into the folder ``args.output``: a bar
-    over the files on a terminal, a line per file, exit 1 if any failed."""
+    over the files on a terminal, a line per file, exit 1 if any failed (the same
+    on a Dask cluster, ``--scheduler``)."""
     from tqdm import tqdm
 
-    from .pipeline import export_folder, find_sources
+    from .pipeline import export_folder, find_sources, is_url
+    from .schedulers import check_scheduler
 
+    check_scheduler(args.scheduler)
     sources = find_sources(args.source)
-    if any(path.suffix.lower() != ".pm" for path in sources):
+    # kernels compile where the builds run: here, or in workers on this machine
+    if args.scheduler in (None, "local") and any(path.suffix.lower() != ".pm"
+                                                 for path in sources):
         _announce_compile(options.method)
+    root = str(args.output).rstrip("/")
+
+    def name(path) -> str:
+        # outputs as the user named the folder: a path under it, or a key under the URL
+        if is_url(args.output):
+            return str(path)[len(root) + 1:]
+        return str(Path(path).relative_to(args.output))
+
     bar = tqdm(total=len(sources), unit="asset", disable=None,
                dynamic_ncols=True, desc="exporting", file=sys.stderr)
 
@@ -256,7 +275,7 @@ def _export_folder(args, ratios, options) -> int:
         if isinstance(outcome, str) and outcome != "up to date":
             bar.write(f"{relative}: FAILED: {outcome}", file=sys.stderr)
         elif not isinstance(outcome, str):
-            outputs = ", ".join(str(Path(p).relative_to(args.output)) for p in outcome.outputs)
+            outputs = ", ".join(name(p) for p in outcome.outputs)
             bar.write(f"{relative} -> {outputs}: {_levels(outcome)}", file=sys.stderr)
         bar.update(1)
 
@@ -264,7 +283,8 @@ def _export_folder(args, ratios, options) -> int:
     try:
         report = export_folder(args.source, args.output, lods=ratios, separate=args.separate,
                                reach=args.reach, jobs=args.jobs, force=args.force,
-                               options=options, untrusted=args.untrusted, progress=progress)
+                               options=options, untrusted=args.untrusted,
+                               scheduler=args.scheduler, progress=progress)
     finally:
         bar.close()
     print(f"{args.output}: {report.total} assets in {time.perf_counter() - start:.2f} s: "
@@ -285,14 +305,83 @@ def _cmd_info(args) -> int:
     return 0
 
 
+def _server_settings(args):
+    """The ``LODSERVER_*`` settings (``--data`` is one of them), and the store they
+    name opened once as a check; (settings, None), or (None, one sentence) when a
+    variable is invalid or the catalogue, the store or the data directory is unusable."""
+    from pydantic import ValidationError
+
+    from .api.main import open_store
+    from .api.settings import Settings
+    from .service.catalog import CatalogUnavailable
+    from .service.store import StoreError
+
+    if args.data is not None:
+        os.environ["LODSERVER_DATA_DIR"] = str(args.data)
+    try:
+        settings = Settings()
+    except ValidationError as exc:
+        # pydantic's own text repeats the value, which may hold a password
+        return None, "; ".join(f"LODSERVER_{'_'.join(map(str, e['loc'])).upper()}: "
+                               f"{e['msg'].removeprefix('Value error, ')}" for e in exc.errors())
+    try:
+        open_store(settings).close()
+    except (CatalogUnavailable, StoreError, ValueError) as exc:
+        return None, str(exc)
+    return settings, None
+
+
 def _cmd_serve(args) -> int:
     import uvicorn
 
-    # The app reads its settings from LODSERVER_* variables; the flag is one of them.
-    if args.data is not None:
-        os.environ["LODSERVER_DATA_DIR"] = str(args.data)
+    # The app reads its settings from LODSERVER_* variables; checked here first,
+    # so that a wrong URL is one sentence and exit code 1, not a traceback.
+    settings, problem = _server_settings(args)
+    if problem:
+        print(f"lodserver serve: {problem}", file=sys.stderr)
+        return 1
     uvicorn.run("lodserver.api.main:create_app", factory=True, host=args.host, port=args.port,
                 log_level=args.log_level)
+    return 0
+
+
+def _cmd_worker(args) -> int:
+    import logging
+    import signal
+    import threading
+
+    from .api.main import build_runner, open_store
+    from .service.catalog import redact_url
+    from .service.parsing import ParsePool
+
+    if args.workers is not None:
+        os.environ["LODSERVER_WORKERS"] = str(args.workers)
+    settings, problem = _server_settings(args)
+    if problem is None and settings.workers == 0:
+        problem = "a worker with 0 builds at a time would do nothing; pass --workers 1 or more"
+    if problem:
+        print(f"lodserver worker: {problem}", file=sys.stderr)
+        return 1
+    logging.basicConfig(level=args.log_level.upper(), stream=sys.stderr,
+                        format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    stop = threading.Event()
+    for signum in (signal.SIGTERM, signal.SIGINT):
+        signal.signal(signum, lambda *_: stop.set())
+    store = open_store(settings)
+    parser = ParsePool(workers=settings.parse_workers, queue=settings.parse_queue,
+                       memory_bytes=settings.parse_memory_bytes)
+    runner = build_runner(store, settings, parser)
+    try:
+        runner.start(warm=settings.warm_kernels)
+        where = redact_url(settings.catalog_url) if settings.catalog_url else "the data directory"
+        print(f"lodserver worker: building from the queue of {where}, {settings.workers} at a "
+              "time; Ctrl-C or SIGTERM stops it (builds under way go back to the queue)",
+              file=sys.stderr, flush=True)
+        while not stop.wait(1.0):
+            pass
+    finally:
+        runner.shutdown()
+        store.close()
     return 0
 
 
@@ -362,7 +451,9 @@ def _parser() -> argparse.ArgumentParser:
                  "each, for a file or for every mesh file under a folder",
                  "lodserver export assets/ -o lods/ --lods 1,0.25,0.05 --jobs 2")
     p.add_argument("source", help="a .pm artefact or a mesh file to build one from; or a "
-                   "folder: every mesh file under it, its layout mirrored in OUTPUT")
+                   "folder: every mesh file under it, its layout mirrored in OUTPUT (a "
+                   "folder may be an object-store URL, s3://bucket/prefix, for SOURCE and "
+                   "OUTPUT alike; endpoint and credentials from the AWS_* variables)")
     p.add_argument("--lods", default="1,0.5,0.2,0.05", metavar="R1,R2,...",
                    help="face ratios of the levels, finest first, each in (0, 1] "
                         "(default 1,0.5,0.2,0.05); level i's screen coverage hint is "
@@ -379,7 +470,13 @@ def _parser() -> argparse.ArgumentParser:
                         "keeps positions only (cluster)")
     p.add_argument("--jobs", type=int, default=1,
                    help="folder source: meshes built at once (default 1; each holds its mesh "
-                        "in memory)")
+                        "in memory); with --scheduler local, the worker processes")
+    p.add_argument("--scheduler", metavar="tcp://HOST:PORT|local",
+                   help="folder source: run each mesh as a task on the Dask cluster whose "
+                        "scheduler is at that address, or on a LocalCluster of --jobs "
+                        "processes started for the run (needs pip install "
+                        "'lodserver[distributed]'; default: threads in this process; local "
+                        "folders must be seen by every worker at the same path)")
     p.add_argument("--force", action="store_true",
                    help="folder source: rebuild every mesh, even those whose file and options "
                         "match the last run (lodserver-export.json in OUTPUT)")
@@ -400,6 +497,18 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--log-level", default="info",
                    choices=["critical", "error", "warning", "info", "debug"])
     p.set_defaults(run=_cmd_serve)
+
+    p = _command(sub, "worker", "build meshes from the shared build queue without serving "
+                 "HTTP (settings: LODSERVER_* variables, as for serve)",
+                 "LODSERVER_CATALOG_URL=postgresql://db/lods LODSERVER_STORE_URL=s3://bucket/lods "
+                 "lodserver worker --data ./worker-data")
+    p.add_argument("--data", type=Path, help="this worker's own data directory, for scratch "
+                   "files and cached artefacts (default: $LODSERVER_DATA_DIR or ./lodserver-data)")
+    p.add_argument("--workers", type=int, help="builds at a time (default: $LODSERVER_WORKERS "
+                   "or 1)")
+    p.add_argument("--log-level", default="info",
+                   choices=["critical", "error", "warning", "info", "debug"])
+    p.set_defaults(run=_cmd_worker)
     return parser
 
 

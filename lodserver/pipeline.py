@@ -12,16 +12,30 @@ and never leaves a partial output. A manifest beside the outputs
 (``lodserver-export.json``) records each source's SHA-256 and the options used,
 so a second run rebuilds only what changed. Only the named file is hashed:
 after editing a texture or a ``.bin`` beside a ``.gltf``, pass ``force``.
+
+Each asset is one task (:func:`export_asset`, given an :class:`AssetJob`) run
+where ``scheduler`` says (:mod:`.schedulers`: threads here by default, or a Dask
+cluster); this process alone hashes the sources, reads and writes the manifest
+and reports, so the outcome does not depend on where the tasks ran. Either
+folder may be an object-store URL (``s3://bucket/prefix``, through fsspec): a
+task fetches its source and the files it names into a temporary folder, and
+writes each output as one whole object.
 """
 
 from __future__ import annotations
 
 import hashlib
 import json
+import posixpath
+import re
+import tempfile
 import time
-from concurrent.futures import ThreadPoolExecutor, as_completed
-from dataclasses import dataclass, field
-from pathlib import Path
+import uuid
+from concurrent.futures import ThreadPoolExecutor
+from contextlib import contextmanager, nullcontext
+from dataclasses import dataclass, field, replace
+from pathlib import Path, PurePosixPath
+from urllib.parse import unquote
 
 from .io.glb import coverage_from_ratios, encode_lod_chain
 from .io import SUPPORTED_INPUT, encode_mesh, write_atomic
@@ -32,6 +46,8 @@ from .progressive.mesh import ProgressiveMesh
 DEFAULT_LODS = (1.0, 0.5, 0.2, 0.05)
 SOURCE_SUFFIXES = tuple(f".{kind}" for kind in SUPPORTED_INPUT) + (".pm",)
 MANIFEST = "lodserver-export.json"
+# objects of an object-store source hashed at once (each GET is mostly waiting)
+STORE_READERS = 16
 _MANIFEST_VERSION = 1
 
 
@@ -57,7 +73,7 @@ def check_lods(ratios) -> tuple[float, ...]:
 class Exported:
     """One source's levels of detail, as written."""
 
-    source: Path
+    source: Path                # a str URL for an object-store folder
     outputs: list[Path]
     faces: list[int]            # per level, finest first
     coverage: list[float]       # MSFT_screencoverage per level
@@ -183,44 +199,68 @@ class FolderReport:
         return len(self.written) + len(self.up_to_date) + len(self.failed)
 
 
+def is_url(location) -> bool:
+    """Whether ``location`` names an object-store folder (``s3://bucket/prefix``), not a path."""
+    return isinstance(location, str) and _URL.match(location) is not None
+
+
+_URL = re.compile(r"^[A-Za-z][A-Za-z0-9+.\-]+://")
+
+
 def find_sources(folder) -> list[Path]:
     """Mesh files (and ``.pm`` artefacts) under ``folder``, sorted, as relative paths.
 
     Hidden files and folders (a leading dot) are left out, as are files inside a
     folder holding an export manifest: an output folder inside the source is
-    not read back as input.
+    not read back as input. ``folder`` may be an object-store URL (see
+    :func:`export_folder`); the paths are then ``PurePosixPath``.
     """
+    if is_url(folder):
+        fs, root = _filesystem(folder)
+        return _keep_sources([PurePosixPath(key[len(root) + 1:]) for key in _listing(fs, root)])
     folder = Path(folder)
-    outputs = {path.parent for path in folder.rglob(MANIFEST)}
-    found = []
-    for path in sorted(folder.rglob("*")):
-        relative = path.relative_to(folder)
-        if (not path.is_file() or path.suffix.lower() not in SOURCE_SUFFIXES
-                or any(part.startswith(".") for part in relative.parts)
-                or any(out == path.parent or out in path.parents for out in outputs)):
-            continue
-        found.append(relative)
-    return found
+    return _keep_sources([path.relative_to(folder) for path in sorted(folder.rglob("*"))
+                          if path.is_file()])
+
+
+def _keep_sources(relatives: list) -> list:
+    outputs = {relative.parent for relative in relatives if relative.name == MANIFEST}
+    return [relative for relative in sorted(relatives)
+            if relative.suffix.lower() in SOURCE_SUFFIXES
+            and not any(part.startswith(".") for part in relative.parts)
+            and not any(out == relative.parent or out in relative.parents for out in outputs)]
 
 
 def export_folder(source, output, *, lods=DEFAULT_LODS, separate: bool = False,
                   reach: str = "none", jobs: int = 1, force: bool = False,
                   options: BuildOptions | None = None, untrusted: bool = False,
-                  progress=None) -> FolderReport:
+                  scheduler=None, progress=None) -> FolderReport:
     """Export every mesh file under ``source`` into ``output`` (see the module docstring).
 
     Parameters
     ----------
-    source, output : path
+    source, output : path or str
         Folders; ``output`` is created. ``source/a/b.obj`` goes to ``output/a/b.glb``.
+        Either may be an object-store URL (``s3://bucket/prefix``; the endpoint and
+        credentials come from the standard AWS variables, such as
+        ``AWS_ENDPOINT_URL``): a task then fetches its source, with the files it
+        names (a glTF's buffers and images, an OBJ's MTL and textures), into a
+        temporary folder, and writes each output as one whole object.
     lods, separate, reach, options
         As for :func:`export_lods`; the manifest records them all, so changing
         one rebuilds.
     jobs : int
-        Sources built at once (threads: the compiled kernels release the GIL).
-        Each holds its mesh in memory.
+        Sources built at once: threads of the local pool (the compiled kernels
+        release the GIL), or worker processes of ``scheduler="local"``. Each holds
+        its mesh in memory.
     force : bool
         Rebuild sources the manifest says are up to date.
+    scheduler : None, str or distributed.Client
+        Where the builds run (:mod:`.schedulers`): None, the local pool; ``"local"``,
+        a Dask ``LocalCluster`` started for this call; a Dask address
+        (``tcp://HOST:PORT``) or a ``Client``: that cluster, whose workers must
+        see local folders at the same paths. The outputs and the manifest are the
+        same byte for byte.
     progress : callable, optional
         ``progress(relative_path, outcome)`` as each source ends, ``outcome`` an
         :class:`Exported`, the string ``"up to date"``, or a failure's reason.
@@ -234,112 +274,397 @@ def export_folder(source, output, *, lods=DEFAULT_LODS, separate: bool = False,
     Raises
     ------
     MeshError
-        If ``source`` is not a folder, holds no mesh file, or the options are bad.
+        If ``source`` is not a folder, holds no mesh file, or the options or the
+        scheduler are bad (``schedulers.SchedulerError``).
     """
+    from .schedulers import check_scheduler, open_scheduler
+
     ratios = check_lods(lods)
     check_reach(reach)
     options = BuildOptions.check(options)
-    source, output = Path(source), Path(output)
-    if not source.is_dir():
+    check_scheduler(scheduler)
+    if jobs < 1:
+        raise MeshError(f"jobs must be at least 1, got {jobs}")
+    inputs, outputs = _Folder(source), _Folder(output)
+    if not inputs.is_folder():
         raise MeshError(f"{source} is not a folder")
     sources = find_sources(source)
     if not sources:
         raise MeshError(f"{source} holds no mesh file ({', '.join(SOURCE_SUFFIXES)})")
-    if jobs < 1:
-        raise MeshError(f"jobs must be at least 1, got {jobs}")
-    output.mkdir(parents=True, exist_ok=True)
+    outputs.create()
     recorded = {"lods": list(ratios), "separate": separate, "reach": reach,
                 "build": options.model_dump()}
-    manifest_path = output / MANIFEST
-    manifest = _read_manifest(manifest_path)
+    manifest = outputs.read_manifest()
+    existing = outputs.existing()
     report = FolderReport()
 
     def finish(relative, outcome):
         if progress is not None:
             progress(relative, outcome)
 
+    def fail(relative, reason, *, built=False):
+        if built:       # a build that failed forgets the last good one
+            manifest.pop(_key(relative), None)
+        report.failed[relative] = reason
+        finish(relative, reason)
+
     # Two sources that differ only in their suffix would write the same file.
     targets: dict[Path, list[Path]] = {}
     for relative in sources:
         targets.setdefault(relative.with_suffix(".glb"), []).append(relative)
+    digests = inputs.sha256_all([group[0] for group in targets.values() if len(group) == 1])
     todo = []
     for target, group in targets.items():
         if len(group) > 1:
             names = " and ".join(str(r) for r in group)
             for relative in group:
-                report.failed[relative] = (f"{names} would both be written to {target}; "
-                                           f"rename one")
-                finish(relative, report.failed[relative])
+                fail(relative, f"{names} would both be written to {target}; rename one")
             continue
         relative = group[0]
-        try:
-            digest = _sha256(source / relative)
-        except OSError as exc:
-            report.failed[relative] = f"cannot read it: {exc.strerror or exc}"
-            finish(relative, report.failed[relative])
+        digest = digests[relative]
+        if isinstance(digest, OSError):
+            fail(relative, f"cannot read it: {digest.strerror or digest}")
             continue
-        entry = manifest.get(str(relative))
+        entry = manifest.get(_key(relative))
         if (not force and entry is not None and entry.get("sha256") == digest
                 and entry.get("options") == recorded
-                and all((output / path).is_file() for path in entry.get("outputs", ()))):
+                and all(path in existing for path in entry.get("outputs", ()))):
             report.up_to_date.append(relative)
             finish(relative, "up to date")
             continue
         todo.append((relative, digest))
 
-    def one(relative):
-        return export_lods(source / relative, output / relative.with_suffix(".glb"),
-                           lods=ratios, separate=separate, reach=reach, options=options,
-                           untrusted=untrusted)
-
+    # the local pool's threads share this process's working folder; a cluster's
+    # workers need absolute paths (or URLs)
+    shared = scheduler is not None
     try:
-        with ThreadPoolExecutor(max_workers=jobs) as pool:
-            running = {pool.submit(one, relative): (relative, digest) for relative, digest in todo}
-            for done in as_completed(running):
-                relative, digest = running[done]
-                try:
-                    exported = done.result()
-                except (MeshError, OSError) as exc:
-                    reason = str(exc)
-                except Exception as exc:  # a bug on one asset must not stop the others
-                    reason = f"internal error: {type(exc).__name__}: {exc}"
+        # nothing to build: no cluster started (a LocalCluster takes seconds)
+        with (open_scheduler(scheduler, jobs=jobs) if todo else nullcontext()) as runner:
+            running = {}
+            for relative, digest in todo:
+                job = AssetJob(inputs.shared(shared), outputs.shared(shared),
+                               PurePosixPath(relative).as_posix(), ratios,
+                               separate, reach, options, untrusted)
+                key = f"lodserver-export-{_key(relative)}-{uuid.uuid4().hex[:12]}"
+                running[runner.submit(export_asset, job, key)] = (relative, digest)
+            for done in runner.completed(list(running)) if running else ():
+                relative, digest = running.pop(done)
+                outcome = runner.outcome(done)
+                if isinstance(outcome, BaseException):   # the scheduler's, not the asset's
+                    fail(relative, f"its task was lost: {type(outcome).__name__}: {outcome}",
+                         built=True)
+                elif isinstance(outcome, str):
+                    fail(relative, outcome, built=True)
                 else:
-                    manifest[str(relative)] = {
+                    exported = replace(outcome, source=inputs.location(relative),
+                                       outputs=[outputs.location(name)
+                                                for name in outcome.outputs])
+                    manifest[_key(relative)] = {
                         "sha256": digest, "options": recorded,
-                        "outputs": [str(p.relative_to(output)) for p in exported.outputs]}
+                        "outputs": [str(name) for name in outcome.outputs]}
                     report.written.append(exported)
                     finish(relative, exported)
-                    continue
-                manifest.pop(str(relative), None)
-                report.failed[relative] = reason
-                finish(relative, reason)
     finally:
         # what finished is remembered even if the run is cut short; sources that are
-        # gone are forgotten (their outputs are left alone)
-        present = {str(relative) for relative in sources}
+        # gone are forgotten (their outputs are left alone). Only this process writes
+        # the manifest: a task retried on another worker cannot race it.
+        present = {_key(relative) for relative in sources}
         kept = {name: entry for name, entry in manifest.items() if name in present}
         document = {"version": _MANIFEST_VERSION, "sources": dict(sorted(kept.items()))}
-        write_atomic(manifest_path, (json.dumps(document, indent=1) + "\n").encode())
-    report.written.sort(key=lambda e: e.source)
+        outputs.write(MANIFEST, (json.dumps(document, indent=1) + "\n").encode())
+    report.written.sort(key=lambda e: PurePosixPath(str(e.source)))
     return report
 
 
-def _sha256(path: Path) -> str:
-    digest = hashlib.sha256()
-    with open(path, "rb") as file:
-        for block in iter(lambda: file.read(1 << 20), b""):
-            digest.update(block)
-    return digest.hexdigest()
+def _key(relative) -> str:
+    # the manifest's name of a source: its relative path as the OS writes it
+    return str(relative)
 
 
-def _read_manifest(path: Path) -> dict:
-    """The sources recorded by an earlier run; empty when there is none or it is unreadable
-    (then everything is rebuilt, which is always safe)."""
+@dataclass(frozen=True)
+class AssetJob:
+    """One asset of a folder export, as a task gets it (picklable; folders as strings:
+    absolute local paths every worker sees, or object-store URLs)."""
+
+    source: str
+    output: str
+    relative: str            # the source file under ``source``, '/'-separated
+    lods: tuple
+    separate: bool
+    reach: str
+    options: BuildOptions
+    untrusted: bool
+
+
+def export_asset(job: AssetJob):
+    """Export one asset of a folder (the task a scheduler runs): :func:`export_lods`,
+    fetching the source and writing the outputs through the object store when its
+    folders are URLs.
+
+    Returns the :class:`Exported`, with ``source`` and ``outputs`` relative
+    (``PurePosixPath``) to the job's folders, or the reason it failed (str).
+    Running it twice writes the same files (each whole): a worker lost
+    mid-task costs only the rerun.
+    """
     try:
-        document = json.loads(path.read_text())
-    except (OSError, ValueError):
-        return {}
-    if not isinstance(document, dict) or document.get("version") != _MANIFEST_VERSION:
-        return {}
-    sources = document.get("sources")
-    return dict(sources) if isinstance(sources, dict) else {}
+        return _export_asset(job)
+    except (MeshError, OSError) as exc:
+        return str(exc)
+    except Exception as exc:  # a bug on one asset must not stop the others
+        return f"internal error: {type(exc).__name__}: {exc}"
+
+
+def _export_asset(job: AssetJob) -> Exported:
+    relative = PurePosixPath(job.relative)
+    target = relative.with_suffix(".glb")
+    with tempfile.TemporaryDirectory(prefix="lodserver-export-") as scratch:
+        if is_url(job.source):
+            fs, root = _filesystem(job.source)
+            source = _fetch_with_references(fs, root, relative, Path(scratch, "in"))
+        else:
+            source = Path(job.source, *relative.parts)
+        written_to = Path(scratch, "out") if is_url(job.output) else Path(job.output)
+        exported = export_lods(source, written_to.joinpath(*target.parts), lods=job.lods,
+                               separate=job.separate, reach=job.reach, options=job.options,
+                               untrusted=job.untrusted)
+        names = [PurePosixPath(path.relative_to(written_to).as_posix())
+                 for path in exported.outputs]
+        if is_url(job.output):
+            fs, root = _filesystem(job.output)
+            for path, name in zip(exported.outputs, names):
+                # one PUT of the whole object (or a multipart upload, completed at
+                # once): a reader sees the old object or the new one
+                fs.put_file(str(path), f"{root}/{name}")
+    return replace(exported, source=relative, outputs=names)
+
+
+class _Folder:
+    """A folder of the pipeline: a local path, or an object-store prefix through fsspec."""
+
+    def __init__(self, location):
+        self.remote = is_url(location)
+        if self.remote:
+            self.url = location.rstrip("/")
+            self.fs, self.root = _filesystem(self.url)
+        else:
+            self.path = Path(location)
+
+    def shared(self, absolute: bool) -> str:
+        """The folder as a task gets it: the URL, or the path (absolute if asked)."""
+        if self.remote:
+            return self.url
+        return str(self.path.absolute() if absolute else self.path)
+
+    def is_folder(self) -> bool:
+        return self.fs.isdir(self.root) if self.remote else self.path.is_dir()
+
+    def create(self) -> None:
+        # an object store has no folders: a key's prefix exists once a key does
+        if not self.remote:
+            self.path.mkdir(parents=True, exist_ok=True)
+
+    def location(self, relative):
+        """Where ``relative`` is, as the caller named the folder (a Path or a URL)."""
+        if self.remote:
+            return f"{self.url}/{PurePosixPath(relative)}"
+        return self.path.joinpath(*PurePosixPath(relative).parts)
+
+    def existing(self):
+        """An object answering ``name in existing``: is ``output/name`` a file."""
+        if not self.remote:
+            return _LocalFiles(self.path)
+        return {key[len(self.root) + 1:] for key in _listing(self.fs, self.root)}
+
+    def sha256_all(self, relatives: list) -> dict:
+        """``{relative: SHA-256 hex digest, or the OSError reading it raised}``.
+
+        Local files are read one after the other, as ever; objects
+        ``STORE_READERS`` at once, since each GET waits mostly on the store's
+        latency, and this pass runs before any task starts.
+        """
+        def digest(relative):
+            try:
+                return self.sha256(relative)
+            except OSError as exc:
+                return exc
+
+        if not self.remote:
+            return {relative: digest(relative) for relative in relatives}
+        with ThreadPoolExecutor(max_workers=STORE_READERS) as pool:
+            return dict(zip(relatives, pool.map(digest, relatives)))
+
+    def sha256(self, relative) -> str:
+        if not self.remote:
+            return _sha256(self.path / relative)
+        with _store_errors(), self.fs.open(f"{self.root}/{PurePosixPath(relative)}",
+                                           "rb") as file:
+            return _sha256_of(file)
+
+    def read_manifest(self) -> dict:
+        """The sources recorded by an earlier run; empty when there is none or it is
+        unreadable (then everything is rebuilt, which is always safe)."""
+        try:
+            if self.remote:
+                text = self.fs.cat_file(f"{self.root}/{MANIFEST}")
+            else:
+                text = (self.path / MANIFEST).read_bytes()
+            document = json.loads(text)
+        except (OSError, ValueError):
+            return {}
+        if not isinstance(document, dict) or document.get("version") != _MANIFEST_VERSION:
+            return {}
+        sources = document.get("sources")
+        return dict(sources) if isinstance(sources, dict) else {}
+
+    def write(self, name: str, data: bytes) -> None:
+        if self.remote:
+            self.fs.pipe_file(f"{self.root}/{name}", data)     # one PUT: whole or not at all
+        else:
+            write_atomic(self.path / name, data)
+
+
+class _LocalFiles:
+    def __init__(self, folder: Path):
+        self.folder = folder
+
+    def __contains__(self, name) -> bool:
+        return (self.folder / name).is_file()
+
+
+def _filesystem(url: str):
+    """``(filesystem, root)`` for an object-store URL; root without the scheme or a
+    trailing slash. A fresh instance: fsspec's cache would keep a client made for
+    other AWS_* settings."""
+    try:
+        import fsspec
+        fs, root = fsspec.core.url_to_fs(url, skip_instance_cache=True)
+    except ImportError as exc:
+        raise MeshError(f"object-store folders such as {url} need the distributed extra "
+                        f"(pip install 'lodserver[distributed]'): {exc}") from None
+    except ValueError as exc:
+        raise MeshError(f"cannot use {url}: {exc}") from None
+    return _Store(fs), root.rstrip("/")
+
+
+class _Store:
+    """An fsspec filesystem whose calls raise OSError for the object store's own errors
+    (botocore's: no credentials, no endpoint, ...), which name no Python type the
+    callers know; ``OSError`` is what a folder that cannot be read raises here."""
+
+    def __init__(self, fs):
+        self._fs = fs
+
+    def __getattr__(self, name):
+        attribute = getattr(self._fs, name)
+        if not callable(attribute):
+            return attribute
+
+        def call(*args, **kwargs):
+            with _store_errors():
+                return attribute(*args, **kwargs)
+        return call
+
+
+@contextmanager
+def _store_errors():
+    try:
+        yield
+    except OSError:
+        raise
+    except Exception as exc:
+        if not type(exc).__module__.startswith(("botocore", "aiobotocore", "s3fs", "fsspec")):
+            raise
+        raise OSError(f"the object store failed: {exc}") from None
+
+
+def _listing(fs, root: str) -> list[str]:
+    """Every key under ``root`` (none when it does not exist)."""
+    try:
+        return sorted(fs.find(root))
+    except FileNotFoundError:
+        return []
+
+
+# The keywords of MTL lines that name a texture file (the name is the line's tail,
+# after options whose count varies, so every tail is tried).
+_MTL_MAPS = re.compile(rb"(?m)^[ \t]*(?:map_\w+|bump|disp|decal|refl|norm)[ \t]+(.+?)[ \t]*\r?$")
+_MTLLIB = re.compile(rb"(?m)^[ \t]*mtllib[ \t]+(.+?)[ \t]*\r?$")
+# a file naming more than this many files is not fetched past them
+_MAX_REFERENCES = 256
+
+
+def _fetch_with_references(fs, root: str, relative: PurePosixPath, into: Path) -> Path:
+    """Copy ``root/relative`` and the files it names into ``into`` (same layout).
+
+    What is named: a ``.gltf``'s buffer and image URIs, an OBJ's ``mtllib``
+    files and their texture maps. Only names that resolve inside ``root`` and
+    exist there are fetched; the loader then judges the copy exactly as it would
+    the original (a missing texture is its error, not ours). Returns the local
+    copy of the source.
+    """
+    fetched: set[PurePosixPath] = set()
+    pending = [relative]
+    while pending and len(fetched) <= _MAX_REFERENCES:
+        name = pending.pop()
+        if name in fetched:
+            continue
+        key = f"{root}/{name}"
+        if name != relative and not fs.isfile(key):
+            continue
+        local = into.joinpath(*name.parts)
+        local.parent.mkdir(parents=True, exist_ok=True)
+        fs.get_file(key, str(local))
+        fetched.add(name)
+        for reference in _named_files(local.read_bytes(), name.suffix.lower()):
+            resolved = _inside(name.parent, reference)
+            if resolved is not None:
+                pending.append(resolved)
+    return into.joinpath(*relative.parts)
+
+
+def _named_files(data: bytes, suffix: str) -> list[str]:
+    """The file names a ``.gltf``, ``.obj`` or ``.mtl`` file's bytes may refer to
+    (candidates: an MTL line's every tail, an ``mtllib`` line whole and word by word)."""
+    if suffix == ".gltf":
+        try:
+            document = json.loads(data)
+        except ValueError:
+            return []
+        records = [record for kind in ("buffers", "images")
+                   for record in (document.get(kind) or []) if isinstance(record, dict)]
+        return [unquote(record["uri"]) for record in records
+                if isinstance(record.get("uri"), str) and not record["uri"].startswith("data:")]
+    pattern = {".obj": _MTLLIB, ".mtl": _MTL_MAPS}.get(suffix)
+    if pattern is None:
+        return []
+    names = []
+    for match in pattern.finditer(data):
+        words = match.group(1).decode("utf-8", errors="replace").split()
+        if suffix == ".obj":
+            names += [" ".join(words)] + words
+        else:
+            names += [" ".join(words[at:]) for at in range(len(words))]
+    return names
+
+
+def _inside(folder: PurePosixPath, name: str) -> PurePosixPath | None:
+    """``name`` relative to ``folder``, normalised; None if absolute or above the root."""
+    name = name.replace("\\", "/")
+    if not name or name.startswith("/") or _URL.match(name):
+        return None
+    joined = posixpath.normpath(posixpath.join(str(folder), name))
+    if joined == ".." or joined.startswith("../") or joined.startswith("/"):
+        return None
+    return PurePosixPath(joined)
+
+
+def _sha256(path: Path) -> str:
+    with open(path, "rb") as file:
+        return _sha256_of(file)
+
+
+def _sha256_of(file) -> str:
+    digest = hashlib.sha256()
+    for block in iter(lambda: file.read(1 << 20), b""):
+        digest.update(block)
+    return digest.hexdigest()

@@ -1,8 +1,15 @@
-"""Immutable responses: ETags, 304s, and the two caches of encoded bodies.
+"""Cacheable responses: versions, ETags, 304s, and the two caches of encoded bodies.
 
-An artefact never changes once written and ids are never reused, so a level or
-a packet is fully named by the artefact's digest and the request's resolved
-parameters: that name is the ETag, and the response may be cached for a year.
+An artefact never changes once written, so a level or a packet is fully named
+by the artefact's digest and the request's resolved parameters: that name is
+the ETag. A URL naming only the mesh id, though, may come to mean other bytes
+(the mesh deleted, its id given a new build, or rebuilt), so a shared cache (a
+CDN in front of several servers) may keep such a response only briefly
+(:data:`REVALIDATE`, then a 304 by ETag). A URL that also names the artefact's
+*version* (``v=``, the first :data:`VERSION_DIGITS` hex digits of its SHA-256,
+handed out by ``GET /meshes/{id}``) can only ever mean one body: it is served
+:data:`IMMUTABLE`, cacheable for a year. A version that is no longer the
+mesh's is a 404 that no cache keeps (:func:`cache_control`).
 
 Small bodies are kept in memory (:class:`BodyCache`). Large ones (a LOD chain,
 a full-detail json level: tens to hundreds of megabytes) are written once to an
@@ -20,8 +27,9 @@ import re
 import threading
 from collections import OrderedDict
 from pathlib import Path
+from typing import Annotated
 
-from fastapi import Request, Response
+from fastapi import HTTPException, Query, Request, Response
 from starlette.responses import FileResponse
 
 from ..io.files import write_atomic
@@ -30,6 +38,14 @@ from ..packets import PACKET_VERSION
 log = logging.getLogger(__name__)
 
 IMMUTABLE = "public, max-age=31536000, immutable"
+# An unversioned URL: a shared cache may serve it for a minute (so a delete or a
+# rebuild shows through a CDN within one), then revalidates it with its ETag.
+REVALIDATE_SECONDS = 60
+REVALIDATE = f"public, max-age={REVALIDATE_SECONDS}"
+# A version is this many hex digits of the artefact's SHA-256 (64 bits: two
+# builds of one id sharing a prefix by chance are not a practical concern).
+VERSION_DIGITS = 16
+VERSION_PATTERN = f"^[0-9a-f]{{{VERSION_DIGITS}}}$"
 # Encoded bodies kept in memory, by total size: repeated requests skip the encoder.
 CACHE_BYTES = 128 * 2**20
 
@@ -38,6 +54,70 @@ def etag_for(digest: str, *parts) -> str:
     """A strong ETag for the response named by an artefact digest and parameters."""
     name = ":".join(str(part) for part in (digest, PACKET_VERSION, *parts))
     return '"' + hashlib.sha256(name.encode()).hexdigest()[:32] + '"'
+
+
+def version_of(digest: str | None) -> str | None:
+    """The version of an artefact whose SHA-256 is ``digest`` (hex), for ``v=``."""
+    return digest[:VERSION_DIGITS] if digest else None
+
+
+def versioned_urls(mesh_id: str, digest: str | None) -> dict[str, str] | None:
+    """The URLs of a ready mesh's level, packet and chain routes and its materials,
+    at its artefact's version (a client appends the route's other parameters:
+    ``&ratio=0.1``); None without an artefact."""
+    version = version_of(digest)
+    if version is None:
+        return None
+    return {route: f"/meshes/{mesh_id}/{route}?v={version}"
+            for route in ("lod", "splits", "chain", "materials")}
+
+
+def cache_control(digest: str, mesh_id: str, version: str | None) -> str:
+    """The Cache-Control of a response from the artefact ``digest`` of ``mesh_id``
+    asked for at ``version`` (``v=``, or None): :data:`IMMUTABLE` when it names
+    that artefact, :data:`REVALIDATE` when absent. A version the mesh no longer
+    has is an HTTP 404 marked ``no-store``: its bytes are gone, and a cache must
+    not keep the refusal either (the same bytes may be built again)."""
+    if version is None:
+        return REVALIDATE
+    if version == version_of(digest):
+        return IMMUTABLE
+    raise HTTPException(404, f"mesh {mesh_id} has no version {version!r}; its current "
+                        f"version is {version_of(digest)!r}: GET /meshes/{mesh_id} for its "
+                        "URLs", headers={"Cache-Control": "no-store"})
+
+
+VersionQuery = Annotated[str | None, Query(pattern=VERSION_PATTERN, description=(
+    f"The artefact's version ({VERSION_DIGITS} hex digits, as GET /meshes/{{id}} hands it out "
+    "in its urls): the response is then cacheable for a year; 404 if the mesh no longer has "
+    "that version."))]
+
+
+def load_versioned(store, mesh_id: str, version: str | None):
+    """(pm, digest, Cache-Control) of a ready mesh of ``store``, ``version`` (the
+    request's ``v=``, or None) checked by :func:`cache_control`.
+
+    The row is read before and after the load: when both name one digest, the
+    loaded mesh is that artefact (artefact keys name their digest), so neither the
+    ETag nor a year-long Cache-Control ever labels another build's bytes. A
+    rebuild landing in between is read again."""
+    for _ in range(3):
+        digest = store.get(mesh_id=mesh_id).digest
+        if digest is None:
+            store.load(mesh_id=mesh_id)        # not ready: its NotReadyError (409)
+        policy = cache_control(digest, mesh_id, version)   # a wrong v: 404, nothing loaded
+        pm = store.load(mesh_id=mesh_id)
+        if store.get(mesh_id=mesh_id).digest == digest:
+            return pm, digest, policy
+    raise HTTPException(503, f"mesh {mesh_id} is being rebuilt; retry in a moment",
+                        headers={"Retry-After": "1"})
+
+
+def with_cache_control(response: Response, value: str) -> Response:
+    """``response`` with its Cache-Control set to ``value`` (a 304 too: it must
+    carry the policy of the response it stands for)."""
+    response.headers["Cache-Control"] = value
+    return response
 
 
 def is_fresh(request: Request, etag: str) -> bool:

@@ -27,12 +27,11 @@ from .settings import Settings, get_settings
 @asynccontextmanager
 async def lifespan(app: FastAPI):
     settings: Settings = app.state.settings
-    store = LocalStore(settings.data_dir, loaded_meshes=settings.loaded_meshes)
+    store = open_store(settings)
     # its worker processes start on the first parse, not here
     parser = ParsePool(workers=settings.parse_workers, queue=settings.parse_queue,
                        memory_bytes=settings.parse_memory_bytes)
-    jobs = JobRunner(store, workers=settings.workers, max_triangles=settings.max_triangles,
-                     parser=parser)
+    jobs = build_runner(store, settings, parser)
     jobs.start(warm=settings.warm_kernels)
     app.state.store, app.state.jobs, app.state.cache = store, jobs, BodyCache()
     try:
@@ -43,6 +42,21 @@ async def lifespan(app: FastAPI):
         # later request schedules them again); the one being encoded finishes
         await run_in_threadpool(shutdown_background)
         store.close()
+
+
+def open_store(settings: Settings) -> LocalStore:
+    """The store the settings name: the data directory, with the catalogue and
+    blobs of ``LODSERVER_CATALOG_URL`` and ``LODSERVER_STORE_URL`` when set."""
+    return LocalStore(settings.data_dir, loaded_meshes=settings.loaded_meshes,
+                      catalog=settings.catalog_url, blobs=settings.store_url,
+                      cache_bytes=settings.cache_bytes)
+
+
+def build_runner(store: LocalStore, settings: Settings, parser: ParsePool) -> JobRunner:
+    """The job runner of a server (or of ``lodserver worker``) by the settings."""
+    return JobRunner(store, workers=settings.workers, max_triangles=settings.max_triangles,
+                     parser=parser, lease_seconds=settings.lease_seconds,
+                     poll_seconds=settings.queue_poll_seconds)
 
 
 def _operation_id(route: APIRoute) -> str:

@@ -6,8 +6,10 @@ from datetime import datetime, timezone
 
 from pydantic import BaseModel, Field
 
+from ..io.fileset import load_warnings
 from ..options import BuildOptions
 from ..service.store import MeshRecord, Status
+from .caching import version_of, versioned_urls
 
 
 class MeshCreate(BuildOptions):
@@ -27,6 +29,10 @@ class MeshCreated(BaseModel):
     id: str
     status: Status
     href: str = Field(description="Where to poll the build.")
+    main: str | None = Field(None, description="The file built (of a set: the mesh file).")
+    files: list[str] = Field(default_factory=list, description="The files of the upload.")
+    warnings: list[str] = Field(default_factory=list, description="What the load left out "
+                                "(files the mesh names that were not uploaded, data not kept).")
 
 
 class ErrorPoint(BaseModel):
@@ -53,8 +59,21 @@ class MeshPublic(BaseModel):
     splits: int | None = None
     max_error: float | None = None
     error_curve: list[ErrorPoint] = Field(default_factory=list)
+    bounds: dict[str, list[float]] | None = Field(
+        None, description="Full-detail bounding box: {min: [x, y, z], max: [x, y, z]}, mesh units "
+                          "(absent for meshes built before it was recorded).")
     load_report: dict | None = None
+    warnings: list[str] = Field(default_factory=list, description="What the load left out, "
+                                "in sentences (from load_report), once ready.")
+    queue_position: int | None = Field(None, description="While queued: how many uploads "
+                                       "queued before this one wait to be built (0: next).")
     failure: str | None = Field(None, description="Why the build failed.")
+    version: str | None = Field(None, description="Once ready: the artefact's version, the "
+                                "v= of the URLs in urls.")
+    urls: dict[str, str] | None = Field(None, description="Once ready: the lod, splits, chain "
+                                        "and materials URLs at this version (append the "
+                                        "route's parameters: &ratio=0.1), which any cache, a "
+                                        "CDN too, may keep for a year.")
     created: datetime
     updated: datetime
 
@@ -67,9 +86,13 @@ class MeshPublic(BaseModel):
             vertices=summary.get("vertices"), faces=summary.get("faces"),
             base_vertices=summary.get("base_vertices"), base_faces=summary.get("base_faces"),
             splits=summary.get("splits"), max_error=summary.get("max_error"),
-            error_curve=summary.get("error_curve", []),
+            error_curve=summary.get("error_curve", []), bounds=summary.get("bounds"),
             load_report=summary.get("metadata", {}).get("load_report"),
+            warnings=load_warnings(summary.get("metadata", {}).get("load_report")),
             failure=record.failure,
+            version=version_of(record.digest) if record.status is Status.READY else None,
+            urls=versioned_urls(record.id, record.digest) if record.status is Status.READY
+            else None,
             created=datetime.fromtimestamp(record.created, timezone.utc),
             updated=datetime.fromtimestamp(record.updated, timezone.utc))
 

@@ -15,6 +15,9 @@ from pydantic import Field, SecretStr, field_validator
 from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict
 
 from ..io.limits import DEFAULT_MAX_TRIANGLES
+from ..service.cache import DEFAULT_CACHE_BYTES
+from ..service.catalog import redact_url
+from ..service.jobs import LEASE_SECONDS, POLL_SECONDS
 from ..service.parsing import PARSE_MEMORY_BYTES
 from ..service.store import LOADED_CACHE_SIZE
 
@@ -35,7 +38,24 @@ class Settings(BaseSettings):
     cors_origins: Annotated[list[str], NoDecode] = Field(
         default_factory=list, description="Origins allowed by CORS: comma-separated or a JSON "
         "list; '*' for any.")
-    workers: int = Field(1, ge=1, le=64, description="Concurrent builds.")
+    workers: int = Field(1, ge=0, le=64, description="Concurrent builds; 0: this server "
+                         "builds nothing and leaves its uploads to other servers or "
+                         "`lodserver worker` processes sharing the catalogue.")
+    catalog_url: str | None = Field(None, description="The catalogue and build queue: "
+                                    "postgresql://user:password@host:port/database to share "
+                                    "one between servers and workers, or sqlite:///path; "
+                                    "unset: catalogue.sqlite3 in data_dir.")
+    store_url: str | None = Field(None, description="Where uploads and artefacts are kept: "
+                                  "s3://bucket/prefix (endpoint and credentials from the AWS_* "
+                                  "variables) or a folder every server sees; unset: data_dir.")
+    cache_bytes: int = Field(DEFAULT_CACHE_BYTES, ge=0, description="With store_url: bytes of "
+                             "artefacts read from the store kept under data_dir/cache (least "
+                             "recently used removed).")
+    lease_seconds: float = Field(LEASE_SECONDS, ge=2, le=600, description="A build's lease: "
+                                 "a build whose server or worker died is taken over by another "
+                                 "after at most this long (renewed every third of it).")
+    queue_poll_seconds: float = Field(POLL_SECONDS, gt=0, le=60, description="How often an "
+                                      "idle server or worker looks for builds queued by others.")
     parse_workers: int = Field(1, ge=1, le=64, description="Uploads parsed at once, each in "
                                "a worker process of its own.")
     parse_queue: int = Field(4, ge=0, le=1024, description="Uploads waiting for a parse "
@@ -72,6 +92,20 @@ class Settings(BaseSettings):
     @classmethod
     def _empty_token_is_none(cls, value):
         return None if value in ("", None) else value
+
+    @field_validator("catalog_url", "store_url", mode="before")
+    @classmethod
+    def _empty_url_is_none(cls, value):
+        return None if value in ("", None) else value
+
+    @field_validator("catalog_url")
+    @classmethod
+    def _known_catalog(cls, value):
+        if value is not None and value.split(":", 1)[0].lower() not in (
+                "postgresql", "postgres", "sqlite"):
+            raise ValueError("a catalogue URL starts with postgresql:// or sqlite://, not "
+                             f"{redact_url(value)!r}")
+        return value
 
     @field_validator("cors_origins", mode="before")
     @classmethod

@@ -1,13 +1,23 @@
-"""Background builds: a thread pool turning queued uploads into artefacts.
+"""Background builds: threads claiming queued uploads and turning them into artefacts.
 
-Each build takes the mesh parsed when its upload was checked (``parsing``), or
-(a build resumed after a restart) parses the stored source again through the
-same pool, runs ``build.build`` (the numba kernel releases the GIL, so a worker
-thread does not stall the server) and hands the result to the store. Progress
-goes to the store a few times a second. A build that fails marks only its own
-mesh failed, with the reason (running out of disk space says so); a build
-cancelled by shutdown goes back to the queue for the next process
-(``Store.recover``), and one cancelled by a delete is dropped.
+The build queue is the catalogue (``catalog.py``), shared by every server and
+``lodserver worker`` with the same ``LODSERVER_CATALOG_URL``. Each of a runner's
+``workers`` threads claims a build (the uploads submitted here first, then,
+once :meth:`JobRunner.start` ran, any queued build or one whose lease ran
+out), holds it under a lease that a heartbeat thread renews every third of
+its length, and writes its progress and result fenced by the claim: a build
+whose lease was taken over (its process stalled or was cut off) or whose mesh
+was deleted, on this server or another, sees its next write refused and stops,
+and never records a second completion.
+
+A build takes the mesh parsed when its upload was checked (``parsing``) when
+this process accepted the upload, or parses the stored source again through
+the same pool, runs ``build.build`` (the numba kernel releases the GIL, so a
+worker thread does not stall the server) and hands the result to the store.
+Progress goes to the store a few times a second. A build that fails marks
+only its own mesh failed, with the reason (running out of disk space says
+so); a build cancelled by shutdown goes back to the queue for any process,
+and one cancelled by a delete is dropped.
 """
 
 from __future__ import annotations
@@ -18,7 +28,8 @@ import shutil
 import sqlite3
 import threading
 import time
-from concurrent.futures import ThreadPoolExecutor
+from collections import OrderedDict, deque
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -28,16 +39,24 @@ from ..io import LoadReport
 from ..io.limits import DEFAULT_MAX_TRIANGLES, LoadLimits
 from ..mesh import Mesh, MeshError
 from .parsing import ParsePool, ParserClosed, check_mesh_file
-from .store import MeshRecord, Store, StorageFullError, StoreError, UnknownMeshError, is_disk_full
+from .store import (Claim, LeaseLostError, MeshRecord, Store, StorageFullError, StoreError,
+                    UnknownMeshError, is_disk_full)
 
-__all__ = ["JobRunner", "warm_up"]
+__all__ = ["JobRunner", "LEASE_SECONDS", "POLL_SECONDS", "warm_up"]
 
 log = logging.getLogger(__name__)
 
-# Seconds between progress writes: enough for a progress bar, few SQLite writes.
+# Seconds between progress writes: enough for a progress bar, few catalogue writes.
 PROGRESS_INTERVAL = 0.5
+# A build's lease, in seconds: how long a build whose process died waits before
+# another process takes it over. Renewed every third of it, so a renewal may
+# be late twice (a loaded machine, a slow catalogue) before the lease is lost.
+LEASE_SECONDS = 15.0
+# Seconds between looks at the queue by an idle runner that builds for everyone.
+POLL_SECONDS = 1.0
 _DISK_FULL = ("the server ran out of disk space while building; upload the mesh again once "
               "space is freed")
+
 
 def warm_up() -> None:
     """Build a tiny mesh and encode its packets both ways, so numba loads (or
@@ -66,49 +85,96 @@ def _prepare_packets(store: Store, mesh_id: str) -> None:
         log.exception("could not prepare the packets of mesh %s", mesh_id)
 
 
+
+@dataclass
+class _Build:
+    """A build this runner holds: its claim, its stop signal, its last renewal."""
+
+    claim: Claim
+    cancel: threading.Event = field(default_factory=threading.Event)
+    renewed: float = field(default_factory=time.monotonic)
+    lost: bool = False
+
+
 class JobRunner:
-    """Runs builds for a store in a pool of worker threads.
+    """Builds from a store's queue in worker threads, under leases.
 
     Parameters
     ----------
     store : Store
     workers : int
-        Concurrent builds; each takes one core while its kernel runs.
+        Concurrent builds; each takes one core while its kernel runs. 0 builds
+        nothing here (the uploads accepted wait for another server or a
+        ``lodserver worker``).
     max_triangles : int
         Triangle limit checked again at build time (settings may have changed).
     parser : ParsePool, optional
         Where files are parsed (the server's); None parses in the calling
         thread, unbounded (a trusted caller's own files).
+    lease_seconds : float
+        The lease of a claimed build (:data:`LEASE_SECONDS`).
+    poll_seconds : float
+        How often idle workers look for builds queued by other processes.
 
+    Until :meth:`start`, only the builds :meth:`submit`-ted here are claimed.
     ``ready`` is set once the kernels are warm (``start(warm=True)``) or at
     once without warming: until then a build would sit compiling.
     """
 
     def __init__(self, store: Store, *, workers: int = 1,
-                 max_triangles: int = DEFAULT_MAX_TRIANGLES, parser: ParsePool | None = None):
+                 max_triangles: int = DEFAULT_MAX_TRIANGLES, parser: ParsePool | None = None,
+                 lease_seconds: float = LEASE_SECONDS, poll_seconds: float = POLL_SECONDS):
+        if lease_seconds <= 0 or poll_seconds <= 0:
+            raise ValueError("lease_seconds and poll_seconds must be positive")
         self.store = store
+        self.workers = max(0, int(workers))
         self.max_triangles = max_triangles
         self.parser = parser
+        self.lease_seconds = float(lease_seconds)
+        self.poll_seconds = float(poll_seconds)
         self.ready = threading.Event()
         self.warmed_at: float | None = None
-        self._pool = ThreadPoolExecutor(max_workers=max(1, workers), thread_name_prefix="build")
-        self._cancel: dict[str, threading.Event] = {}
         # Meshes parsed when their upload was checked, for their build to reuse:
-        # a million-face file is not parsed twice. Only a few are kept (memory);
-        # the others, and builds resumed after a restart, parse their file again.
-        self._parsed: dict[str, tuple[Mesh, LoadReport]] = {}
-        self._keep_parsed = max(1, workers) + 1
+        # a million-face file is not parsed twice. Only a few are kept (memory),
+        # the oldest dropped (another process may have built it); the others,
+        # and builds of uploads to other processes, parse their file again.
+        self._parsed: OrderedDict[str, tuple[Mesh, LoadReport]] = OrderedDict()
+        self._keep_parsed = max(1, self.workers) + 1
         self._lock = threading.Lock()
+        self._wake = threading.Condition(self._lock)
+        self._wanted: deque[str] = deque()      # submitted here: claimed first
+        self._claim_any = False                 # also builds queued by others (start)
+        self._idle_until = 0.0                  # the queue was empty: next look then
+        self._active: dict[str, _Build] = {}
+        self._threads: list[threading.Thread] = []
+        self._stopped = threading.Event()       # the heartbeat's end
         self._closing = False
 
+    # ---- starting and stopping ----------------------------------------------------
     def start(self, *, warm: bool = True) -> None:
-        """Warm the kernels, then queue the builds a previous process left unfinished."""
+        """Warm the kernels, settle the builds this node's previous process left,
+        then build from the whole queue."""
         if warm:
-            self._pool.submit(self._warm)
+            threading.Thread(target=self._warm, name="warm-kernels", daemon=True).start()
         else:
             self.ready.set()
-        for mesh_id in self.store.recover():
-            self.submit(mesh_id)
+        pending = self.store.recover()
+        with self._wake:
+            self._claim_any = True
+            self._wanted.extend(pending)
+            self._wake.notify_all()
+        self._start_threads()
+
+    def _start_threads(self) -> None:
+        with self._lock:
+            if self._threads or self._closing or self.workers == 0:
+                return
+            self._threads = [threading.Thread(target=self._work, name=f"build-{n}", daemon=True)
+                             for n in range(self.workers)]
+            self._threads.append(threading.Thread(target=self._heartbeat, name="build-leases",
+                                                  daemon=True))
+        for thread in self._threads:
+            thread.start()
 
     def _warm(self) -> None:
         started = time.monotonic()
@@ -121,6 +187,22 @@ class JobRunner:
             self.ready.set()
             log.info("kernels warm in %.1f s", time.monotonic() - started)
 
+    def shutdown(self) -> None:
+        """Cancel every build and wait for the workers; unfinished builds go back to
+        the queue (for any process, at once: their leases are given up)."""
+        with self._wake:
+            self._closing = True
+            builds = list(self._active.values())
+            self._wake.notify_all()
+        for running in builds:
+            running.cancel.set()
+        if self.parser is not None:
+            self.parser.shutdown()      # a build waiting on a parse stops waiting
+        self._stopped.set()
+        for thread in self._threads:
+            thread.join()
+
+    # ---- uploads ----------------------------------------------------------------
     def parse(self, source: Path, *, file_type: str, name: str, root=None,
               admit: bool = True) -> tuple[Mesh, LoadReport]:
         """Parse and check ``source`` (in the parse pool when there is one).
@@ -142,8 +224,9 @@ class JobRunner:
             raise
 
     def accept(self, *, source: Path, name: str, file_type: str, options: dict,
-               root: Path | None = None) -> MeshRecord:
-        """Check an uploaded file and queue its build.
+               root: Path | None = None, with_report: bool = False):
+        """Check an uploaded file and queue its build; its MeshRecord (and, with
+        ``with_report``, the parse's LoadReport after it, as a pair).
 
         The file is loaded once here so that a file that is not a usable mesh
         is refused at once (``MeshError``, ``LimitError``, naming ``name``)
@@ -158,53 +241,111 @@ class JobRunner:
                                        options=options)
         finally:
             Path(source).unlink(missing_ok=True)
-        with self._lock:
-            if len(self._parsed) < self._keep_parsed:
+        if self.workers:
+            with self._lock:
                 self._parsed[record.id] = parsed
+                while len(self._parsed) > self._keep_parsed:
+                    self._parsed.popitem(last=False)
         self.submit(record.id)
-        return record
+        return (record, parsed[1]) if with_report else record
 
     def forget(self, *, mesh_id: str) -> None:
-        """Delete a mesh, stopping its build if one is queued or running."""
+        """Delete a mesh, stopping its build if it runs here (a build elsewhere
+        stops at its next write, which the deleted row refuses)."""
         self.store.get(mesh_id=mesh_id)
         self.cancel(mesh_id)
         self.store.delete(mesh_id=mesh_id)
 
     def submit(self, mesh_id: str) -> None:
-        with self._lock:
-            if self._closing or mesh_id in self._cancel:
+        """Build ``mesh_id`` here next, if it is still queued when a worker is free."""
+        if self.workers == 0:
+            return
+        with self._wake:
+            if self._closing:
                 return
-            self._cancel[mesh_id] = threading.Event()
-        self._pool.submit(self._run, mesh_id)
+            self._wanted.append(mesh_id)
+            self._wake.notify()
+        self._start_threads()
 
     def cancel(self, mesh_id: str) -> None:
         """Stop a queued or running build (its mesh is being deleted)."""
         with self._lock:
             self._parsed.pop(mesh_id, None)
-            event = self._cancel.get(mesh_id)
-        if event is not None:
-            event.set()
+            running = self._active.get(mesh_id)
+        if running is not None:
+            running.cancel.set()
 
-    def shutdown(self) -> None:
-        """Cancel every build and wait for the workers; unfinished builds stay queued."""
-        with self._lock:
-            self._closing = True
-            events = list(self._cancel.values())
-        for event in events:
-            event.set()
-        if self.parser is not None:
-            self.parser.shutdown()      # a build waiting on a parse stops waiting
-        self._pool.shutdown(wait=True, cancel_futures=True)
+    # ---- the workers --------------------------------------------------------------
+    def _next(self) -> tuple[bool, str | None]:
+        """Wait for something to claim: (False, None) to stop, (True, id) for a
+        submitted mesh, (True, None) for whatever the queue holds."""
+        with self._wake:
+            while True:
+                if self._closing:
+                    return False, None
+                if self._wanted:
+                    return True, self._wanted.popleft()
+                wait = None
+                if self._claim_any:
+                    wait = self._idle_until - time.monotonic()
+                    if wait <= 0:
+                        return True, None
+                self._wake.wait(wait)
 
-    def _run(self, mesh_id: str) -> None:
+    def _work(self) -> None:
+        while True:
+            go, mesh_id = self._next()
+            if not go:
+                return
+            try:
+                claim = self.store.claim(lease_seconds=self.lease_seconds, mesh_id=mesh_id)
+            except Exception as exc:
+                # the catalogue is unreachable (say): look again after a pause (the
+                # mesh stays queued, for whoever looks next)
+                log.warning("could not claim a build: %s", exc)
+                claim, mesh_id = None, None
+            if claim is None:
+                if mesh_id is None:     # nothing queued: the next look after a pause
+                    with self._lock:
+                        self._idle_until = time.monotonic() + self.poll_seconds
+                continue
+            self._run(claim)
+
+    def _heartbeat(self) -> None:
+        """Renew the leases of the builds held here; stop those whose lease is lost."""
+        while not self._stopped.wait(self.lease_seconds / 3):
+            with self._lock:
+                builds = list(self._active.values())
+            for running in builds:
+                try:
+                    held = self.store.renew(claim=running.claim, lease_seconds=self.lease_seconds)
+                except Exception as exc:
+                    # cannot tell: give up only once the lease has surely run out
+                    log.warning("could not renew the lease of mesh %s: %s",
+                                running.claim.mesh_id, exc)
+                    held = time.monotonic() - running.renewed < self.lease_seconds
+                else:
+                    if held:
+                        running.renewed = time.monotonic()
+                if not held and not running.lost:
+                    log.warning("the build of mesh %s lost its lease (deleted, or taken over); "
+                                "stopping it", running.claim.mesh_id)
+                    running.lost = True
+                    running.cancel.set()
+
+    def _run(self, claim: Claim) -> None:
+        mesh_id = claim.mesh_id
+        running = _Build(claim)
         with self._lock:
-            cancel = self._cancel[mesh_id]
-        settled = False   # ready or failed: nothing left to resume
+            self._active[mesh_id] = running
+            if self._closing:
+                running.cancel.set()
+        settled = False   # ready or failed, or no longer ours: nothing to give back
         try:
-            if not cancel.is_set():
-                settled = self._build(mesh_id, cancel)
-        except UnknownMeshError:
-            settled = True  # deleted meanwhile
+            if not running.cancel.is_set():
+                settled = self._build(running)
+        except (UnknownMeshError, LeaseLostError):
+            settled = True  # deleted meanwhile, or another process builds it now
         except ParserClosed:
             pass            # shutting down: requeued below
         except Exception as exc:
@@ -217,54 +358,58 @@ class JobRunner:
                 log.exception("build of mesh %s failed", mesh_id)
                 reason = "internal error while building; the server log has the details"
             try:
-                self.store.mark_failed(mesh_id=mesh_id, reason=reason)
+                self.store.mark_failed(mesh_id=mesh_id, reason=reason, attempt=claim.attempt)
             except (StoreError, OSError, sqlite3.Error):
                 log.exception("could not record the failure of mesh %s", mesh_id)
         finally:
             with self._lock:
-                self._cancel.pop(mesh_id, None)
-            if not settled and self._closing:
+                self._active.pop(mesh_id, None)
+            if not settled and not running.lost:
                 try:
-                    self.store.requeue(mesh_id=mesh_id)
-                except StoreError:
-                    pass
+                    self.store.requeue(mesh_id=mesh_id, attempt=claim.attempt)
+                except (StoreError, OSError, sqlite3.Error):
+                    pass    # deleted, taken over, or unreachable: the lease runs out
 
     def _parse_stored(self, record: MeshRecord) -> tuple[Mesh, LoadReport]:
-        """Parse a stored source again (a build resumed after a restart), by the
-        upload's rule: alone in a folder of its own, linked (or copied) into one."""
-        source = self.store.source_path(mesh_id=record.id)
+        """Parse a stored source again (a build of an upload to another process, or
+        resumed after a restart), by the upload's rule: alone in a folder of its own."""
         folder = self.store.scratch(prefix="build-")
         try:
-            staged = folder / source.name
-            try:
-                os.link(source, staged)
-            except OSError:
-                shutil.copyfile(source, staged)
+            staged = self.store.stage_source(mesh_id=record.id, folder=folder)
             return self.parse(staged, file_type=record.file_type, name=record.name,
                               root=folder, admit=False)
         finally:
             shutil.rmtree(folder, ignore_errors=True)
 
-    def _build(self, mesh_id: str, cancel: threading.Event) -> bool:
-        """Build one mesh; False if cancelled before it was ready or failed."""
-        store = self.store
-        record = store.get(mesh_id=mesh_id)
-        store.mark_building(mesh_id=mesh_id)
+    def _build(self, running: _Build) -> bool:
+        """Build one claimed mesh; False if cancelled before it was ready or failed."""
+        store, record, cancel = self.store, running.claim.record, running.cancel
+        mesh_id, attempt = record.id, running.claim.attempt
         with self._lock:
             parsed = self._parsed.pop(mesh_id, None)
         try:
             mesh, report = parsed or self._parse_stored(record)
-        except MeshError as exc:
-            store.mark_failed(mesh_id=mesh_id, reason=str(exc))
+        except (MeshError, StoreError) as exc:
+            if isinstance(exc, (UnknownMeshError, LeaseLostError)):
+                raise
+            store.mark_failed(mesh_id=mesh_id, reason=str(exc), attempt=attempt)
             return True
 
         last = [0.0]
 
         def progress(done, expected):
             now = time.monotonic()
-            if now - last[0] >= PROGRESS_INTERVAL:
-                last[0] = now
-                store.set_progress(mesh_id=mesh_id, progress=min(done / max(expected, 1), 0.99))
+            if now - last[0] < PROGRESS_INTERVAL:
+                return
+            last[0] = now
+            try:
+                store.set_progress(mesh_id=mesh_id, progress=min(done / max(expected, 1), 0.99),
+                                   attempt=attempt)
+            except (UnknownMeshError, LeaseLostError):
+                running.lost = True     # deleted, or taken over: stop at once
+                cancel.set()
+            except Exception as exc:     # a progress bar is not worth a build
+                log.warning("could not record the progress of mesh %s: %s", mesh_id, exc)
 
         options = dict(record.options)
         locked = None
@@ -275,13 +420,13 @@ class JobRunner:
         try:
             pm = build(mesh, locked=locked, progress=progress, cancel=cancel, **options)
         except MeshError as exc:
-            store.mark_failed(mesh_id=mesh_id, reason=str(exc))
+            store.mark_failed(mesh_id=mesh_id, reason=str(exc), attempt=attempt)
             return True
         if cancel.is_set():
             return False  # a cut-short decimation is not the mesh's progressive mesh
         pm.metadata["source"] = record.name
         pm.metadata["load_report"] = report.as_dict()
-        store.put_artefact(mesh_id=mesh_id, pm=pm)
+        store.put_artefact(mesh_id=mesh_id, pm=pm, attempt=attempt)
         _prepare_packets(store, mesh_id)
         return True
 

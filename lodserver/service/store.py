@@ -1,56 +1,76 @@
-"""Where meshes live: the catalogue of builds and their immutable artefacts.
+"""Where meshes live: the catalogue of builds, their sources and immutable artefacts.
 
 :class:`Store` is the interface the job runner and the API use; every method
 takes keyword arguments and knows nothing of HTTP. :class:`LocalStore` is the
-embedded default, needing no setup: one data directory holding
+store as one process sees it: its own data directory, plus a catalogue and
+a blob store that default to that directory and may be shared by any number
+of servers and workers (``LODSERVER_CATALOG_URL``, ``LODSERVER_STORE_URL``).
 
-- ``catalogue.sqlite3`` : one row per mesh (status, progress, counts, error
-  curve summary, failure reason, timestamps), in SQLite's WAL mode;
-- ``sources/<id>.<ext>`` : the uploaded file, kept until its build is done;
-- ``artefacts/<id>.pm``  : the progressive mesh, written atomically by
-  ``codec.save_progressive`` and never changed afterwards;
+The data directory (one process's alone: it is locked while open) holds
+
+- ``catalogue.sqlite3`` : the default catalogue (``catalog.py``: one row per
+  mesh and the build queue, with leases), in SQLite's WAL mode;
+- ``sources/<id>.<ext>`` : the uploaded file, kept until its build is done, and
+- ``artefacts/<id>.<sha256>.pm`` : the progressive mesh, under a key naming its
+  own digest, written once (atomically) and never changed: both in the default
+  blob store, the directory itself; with ``LODSERVER_STORE_URL`` they live there;
 - ``tmp/``                : scratch folders (an upload being received, a source
-  being parsed), one per use, emptied every time a store opens;
-- ``quarantine/``         : artefacts found corrupt, moved aside for an operator.
+  being parsed, an artefact being written), emptied every time a store opens;
+- ``quarantine/``         : artefacts found corrupt, moved aside for an operator;
+- ``node``                : this directory's name in lease owners, so a restart
+  takes back at once the builds its previous process held.
 
-A mesh's life: ``queued`` (source stored) -> ``building`` -> ``ready`` (artefact
-written, then the row flipped, so a ready row always has its artefact) or
-``failed`` (with a reason). Opening a store after a crash or restart re-queues
-the builds that were queued or building, or fails them if their source is gone,
-and removes what a crash left half done: scratch folders, temporary files, and
-sources or artefacts that no row names. An artefact that fails its checks when
-loaded is detected once: the mesh is marked failed with the reason and the file
-moved to ``quarantine/``, so later requests get that reason without a re-read.
+A mesh's life: ``queued`` (source stored, then the row: a row always has its
+source) -> ``building`` (claimed under a lease) -> ``ready`` (artefact stored,
+then the row flipped, so a ready row always has its artefact) or ``failed``
+(with a reason). A build's writes are fenced by its claim's attempt number
+(:class:`LeaseLostError` once another process holds it). Opening a store
+requeues the builds its node's previous process held, fails queued builds
+whose source is gone, and, when the files are the data directory's own,
+removes what a crash left half done: scratch folders, temporary files, and
+sources or artefacts no row names. An artefact that fails its checks when
+loaded is detected once: the mesh is marked failed with the reason and the
+file moved to ``quarantine/``, so later requests get that reason without a re-read.
 
-Running out of disk space (``ENOSPC``/``EDQUOT``, or SQLite's "disk is full")
-raises :class:`StorageFullError` and leaves the catalogue and files as they were.
+A loaded progressive mesh is kept in memory (bounded), and served again only
+after the catalogue row says the mesh is still ready with the same digest
+(one indexed read), so a delete or failure on another server is seen at once.
+
+Running out of disk space (``ENOSPC``/``EDQUOT``, SQLite's "disk is full",
+PostgreSQL's 53100) raises :class:`StorageFullError` and leaves the catalogue
+and files as they were.
 
 Ids are random url-safe tokens (``secrets.token_urlsafe``), checked against
-:data:`ID_PATTERN` before any path is made from them.
+:data:`ID_PATTERN` before any path or key is made from them.
 """
 
 from __future__ import annotations
 
-import errno
-import hashlib
-import json
+import fcntl
 import logging
 import os
 import re
 import secrets
 import shutil
-import sqlite3
 import tempfile
 import threading
 import time
 from abc import ABC, abstractmethod
 from collections import OrderedDict
-from dataclasses import dataclass, field
-from enum import Enum
 from pathlib import Path
 
+from ..io.files import write_atomic
 from ..progressive.artefact import ArtefactError, load_progressive, save_progressive
 from ..progressive.mesh import ProgressiveMesh
+from .blobs import Blobs, BlobNotFoundError, LocalBlobs, open_blobs, sha256_file
+from .cache import DEFAULT_CACHE_BYTES, ArtefactCache
+from .catalog import MAX_LOST, Catalog, Claim, MeshRecord, Status, new_owner, open_catalog
+from .errors import StorageFullError, StoreError, is_disk_full
+
+__all__ = ["CORRUPT_ARTEFACT", "ID_PATTERN", "LOADED_CACHE_SIZE", "Claim", "LeaseLostError",
+           "LocalStore", "MeshRecord", "NotReadyError", "SourceLostError", "Status",
+           "StorageFullError", "Store", "StoreError", "UnknownMeshError", "check_id",
+           "is_disk_full"]
 
 log = logging.getLogger(__name__)
 
@@ -60,34 +80,11 @@ ID_PATTERN = re.compile(r"^[A-Za-z0-9_-]{22}$")
 # encoded records: 144 + 39 MB for the 1.1M-face bunny.
 LOADED_CACHE_SIZE = 8
 
-
-class Status(str, Enum):
-    QUEUED = "queued"
-    BUILDING = "building"
-    READY = "ready"
-    FAILED = "failed"
-
-
-class StoreError(Exception):
-    """A store operation cannot be done; the message says why."""
-
-
-class StorageFullError(StoreError):
-    """The data directory's disk (or quota) is full; nothing was changed."""
-
-
-def is_disk_full(exc: BaseException) -> bool:
-    """Whether ``exc`` says the disk or the quota is full (OSError or SQLite)."""
-    if isinstance(exc, OSError):
-        return exc.errno in (errno.ENOSPC, errno.EDQUOT)
-    if isinstance(exc, sqlite3.OperationalError):
-        return (getattr(exc, "sqlite_errorcode", None) == 13      # SQLITE_FULL
-                or "disk is full" in str(exc))
-    return False
-
-
 # The failure of a mesh whose artefact failed its checks when it was loaded.
 CORRUPT_ARTEFACT = "its stored artefact is corrupt"
+_SOURCE_LOST = "the uploaded file was lost before its build finished; upload it again"
+_ABANDONED = (f"its build stopped {MAX_LOST} times with the process building it (killed, or "
+              "out of memory), so it is not tried again; upload it again, perhaps smaller")
 
 
 class UnknownMeshError(StoreError, LookupError):
@@ -96,6 +93,22 @@ class UnknownMeshError(StoreError, LookupError):
     def __init__(self, mesh_id: str):
         super().__init__(f"no mesh has the id {mesh_id!r}")
         self.mesh_id = mesh_id
+
+
+class LeaseLostError(StoreError):
+    """A build's write was refused: its claim is no longer current (another process
+    took the build over after the lease ran out, or it was settled)."""
+
+    def __init__(self, mesh_id: str):
+        super().__init__(f"the build of mesh {mesh_id} is no longer held by this process")
+        self.mesh_id = mesh_id
+
+
+class SourceLostError(StoreError):
+    """The uploaded file of a queued build is gone from the store."""
+
+    def __init__(self):
+        super().__init__(_SOURCE_LOST)
 
 
 class NotReadyError(StoreError):
@@ -113,33 +126,13 @@ class NotReadyError(StoreError):
         self.record = record
 
 
-@dataclass(frozen=True)
-class MeshRecord:
-    """One catalogue row.
-
-    summary : ``ProgressiveMesh.summary()`` without its metadata (counts and the
-    error curve) once ready, else empty. ``digest`` is the artefact's SHA-256,
-    the seed of every ETag served from it.
-    """
-
-    id: str
-    name: str
-    status: Status
-    progress: float
-    file_type: str
-    source_bytes: int
-    options: dict = field(default_factory=dict)
-    summary: dict = field(default_factory=dict)
-    failure: str | None = None
-    digest: str | None = None
-    created: float = 0.0
-    updated: float = 0.0
-
-
 class Store(ABC):
-    """Storage of meshes: the catalogue, the sources awaiting a build, the artefacts.
+    """Storage of meshes: the catalogue and build queue, the sources, the artefacts.
 
     Methods raise :class:`UnknownMeshError` for an unknown or malformed id.
+    The build methods take the ``attempt`` of the caller's :class:`Claim`: with
+    it, a write only happens while that claim is current (else
+    :class:`LeaseLostError`); without it (tests, tools) it happens regardless.
     Implementations must be safe to call from several threads.
     """
 
@@ -166,27 +159,39 @@ class Store(ABC):
 
     @abstractmethod
     def delete(self, *, mesh_id: str) -> None:
-        """Forget a mesh and remove its files."""
+        """Forget a mesh and remove its files (a build running anywhere loses its claim)."""
 
     @abstractmethod
-    def source_path(self, *, mesh_id: str) -> Path:
-        """A local path of the uploaded file (for the build)."""
+    def stage_source(self, *, mesh_id: str, folder: Path) -> Path:
+        """The uploaded file as a file in ``folder`` (linked, copied or fetched), for a build."""
 
     @abstractmethod
-    def mark_building(self, *, mesh_id: str) -> None: ...
+    def claim(self, *, lease_seconds: float, mesh_id: str | None = None) -> Claim | None:
+        """Take the oldest queued build (or only ``mesh_id``), or one whose lease ran
+        out, under a lease of ``lease_seconds``; None when there is none."""
 
     @abstractmethod
-    def set_progress(self, *, mesh_id: str, progress: float) -> None: ...
+    def renew(self, *, claim: Claim, lease_seconds: float) -> bool:
+        """Extend ``claim``'s lease; False once it is no longer current."""
 
     @abstractmethod
-    def requeue(self, *, mesh_id: str) -> None:
-        """Back to queued (a build interrupted by shutdown)."""
+    def mark_building(self, *, mesh_id: str) -> None:
+        """Building, without a lease (claimable by anyone): for tools and tests."""
 
     @abstractmethod
-    def mark_failed(self, *, mesh_id: str, reason: str) -> None: ...
+    def set_progress(self, *, mesh_id: str, progress: float, attempt: int | None = None) -> None:
+        ...
 
     @abstractmethod
-    def put_artefact(self, *, mesh_id: str, pm: ProgressiveMesh) -> MeshRecord:
+    def requeue(self, *, mesh_id: str, attempt: int | None = None) -> None:
+        """Back to queued (a build interrupted by shutdown), its lease given up."""
+
+    @abstractmethod
+    def mark_failed(self, *, mesh_id: str, reason: str, attempt: int | None = None) -> None: ...
+
+    @abstractmethod
+    def put_artefact(self, *, mesh_id: str, pm: ProgressiveMesh,
+                     attempt: int | None = None) -> MeshRecord:
         """Store the built artefact, mark the mesh ready and drop its source."""
 
     @abstractmethod
@@ -196,31 +201,24 @@ class Store(ABC):
 
     @abstractmethod
     def recover(self) -> list[str]:
-        """Settle builds left unfinished by a previous process; the ids to build."""
+        """Settle builds left unfinished by this node's previous process; the queued ids."""
+
+    def queue_position(self, *, mesh_id: str) -> int | None:
+        """While ``mesh_id`` is queued, how many queued meshes were created before it
+        (builds are claimed oldest first: 0 is next); None when it is not queued.
+        This default pages through :meth:`list`; a store with a catalogue asks it."""
+        record = self.get(mesh_id=mesh_id)
+        if record.status is not Status.QUEUED:
+            return None
+        ahead, offset = 0, 0
+        while page := self.list(limit=1000, offset=offset):
+            ahead += sum(other.status is Status.QUEUED and (other.created, other.id)
+                         < (record.created, record.id) for other in page)
+            offset += len(page)
+        return ahead
 
     def close(self) -> None:
         """Release resources; the default holds none."""
-
-
-_COLUMNS = ("id", "name", "status", "progress", "file_type", "source_bytes", "options", "summary",
-            "failure", "digest", "created", "updated")
-_SCHEMA = """
-CREATE TABLE IF NOT EXISTS meshes (
-    id TEXT PRIMARY KEY,
-    name TEXT NOT NULL,
-    status TEXT NOT NULL,
-    progress REAL NOT NULL,
-    file_type TEXT NOT NULL,
-    source_bytes INTEGER NOT NULL,
-    options TEXT NOT NULL,
-    summary TEXT NOT NULL,
-    failure TEXT,
-    digest TEXT,
-    created REAL NOT NULL,
-    updated REAL NOT NULL
-);
-CREATE INDEX IF NOT EXISTS meshes_created ON meshes (created);
-"""
 
 
 def check_id(mesh_id: str) -> str:
@@ -230,77 +228,134 @@ def check_id(mesh_id: str) -> str:
     return mesh_id
 
 
-class LocalStore(Store):
-    """The embedded store: a data directory with SQLite and files (module docstring)."""
+def source_key(record: MeshRecord) -> str:
+    return f"sources/{check_id(record.id)}.{record.file_type}"
 
-    def __init__(self, root, *, loaded_meshes: int = LOADED_CACHE_SIZE):
+
+def artefact_key(mesh_id: str, digest: str) -> str:
+    """The key of a mesh's artefact: its id and the SHA-256 of its bytes. It is
+    content-addressed within the mesh (a cached copy can never be stale), yet no
+    two meshes share one, so deleting a mesh deletes its artefact with no count
+    of references (identical uploads would otherwise race a delete)."""
+    if not re.fullmatch(r"[0-9a-f]{64}", digest or ""):
+        raise StoreError(f"mesh {mesh_id} has no artefact digest")
+    return f"artefacts/{check_id(mesh_id)}.{digest}.pm"
+
+
+class LocalStore(Store):
+    """A data directory of this process, with a catalogue and blobs (module docstring).
+
+    Parameters
+    ----------
+    root : path
+        The data directory; created if absent; locked while the store is open
+        (:class:`StoreError` if another process has it).
+    loaded_meshes : int
+        Progressive meshes kept in memory.
+    catalog : Catalog or str, optional
+        The catalogue or its URL (``catalog.open_catalog``); default SQLite in ``root``.
+    blobs : Blobs or str, optional
+        The blob store or its URL (``blobs.open_blobs``); default ``root`` itself.
+    cache_bytes : int
+        Remote blobs only: bytes of fetched artefacts kept under ``root/cache``.
+    """
+
+    def __init__(self, root, *, loaded_meshes: int = LOADED_CACHE_SIZE,
+                 catalog: Catalog | str | None = None, blobs: Blobs | str | None = None,
+                 cache_bytes: int = DEFAULT_CACHE_BYTES):
         if loaded_meshes < 1:
             raise ValueError(f"loaded_meshes must be at least 1, got {loaded_meshes}")
         self.loaded_meshes = loaded_meshes
         # absolute, so that the paths scrubbed from error messages are the ones used
         self.root = Path(root).absolute()
-        self.sources = self.root / "sources"
-        self.artefacts = self.root / "artefacts"
         self.tmp = self.root / "tmp"
         self.quarantine = self.root / "quarantine"
-        for folder in (self.root, self.sources, self.artefacts, self.tmp):
+        for folder in (self.root, self.tmp):
             folder.mkdir(parents=True, exist_ok=True)
-        # One connection shared by threads, serialised by a lock: writes are
-        # small and rare next to the builds, and SQLite serialises writers anyway.
+        self._lock_file = _lock_directory(self.root)
+        try:
+            self.node = _node_name(self.root)
+            self.owner = new_owner(self.node)
+            # the files are the data directory's own unless a store URL is given
+            self.shared_files = blobs is not None
+            self.blobs = blobs if isinstance(blobs, Blobs) else open_blobs(blobs or self.root)
+            self.local_files = isinstance(self.blobs, LocalBlobs)
+            if self.local_files:
+                self.sources = Path(self.blobs.root) / "sources"
+                self.artefacts = Path(self.blobs.root) / "artefacts"
+                for folder in (self.sources, self.artefacts):
+                    folder.mkdir(parents=True, exist_ok=True)
+            self.catalog = (catalog if isinstance(catalog, Catalog)
+                            else open_catalog(catalog, data_dir=self.root))
+        except BaseException:
+            self._lock_file.close()
+            raise
+        # artefacts read from a remote store, kept on this machine (bounded)
+        self._cache = None if self.local_files else ArtefactCache(self.root / "cache",
+                                                                  cache_bytes)
         self._lock = threading.RLock()
-        self._db = sqlite3.connect(self.root / "catalogue.sqlite3", check_same_thread=False,
-                                   isolation_level=None)
-        self._db.execute("PRAGMA journal_mode=WAL")
-        self._db.execute("PRAGMA synchronous=NORMAL")
-        self._db.executescript(_SCHEMA)
-        self._loaded: OrderedDict[str, ProgressiveMesh] = OrderedDict()
+        # id -> (digest, pm): served again only while the row has that digest
+        self._loaded: OrderedDict[str, tuple[str, ProgressiveMesh]] = OrderedDict()
         self._loading: dict[str, threading.Lock] = {}
         self._sweep()
 
     def _sweep(self) -> None:
         """Remove what an interrupted process left: scratch folders (uploads cut
-        off by a kill), temporary files of interrupted writes, and sources or
-        artefacts no row names (a crash between a file's rename and its row).
-        Only called while opening, before any request or build can be using them."""
+        off by a kill), and, when the files are this directory's own, temporary
+        files of interrupted writes and sources or artefacts no row names (a
+        crash between a file's rename and its row). Only called while opening,
+        before any request or build of this process can be using them; files in a
+        shared store are never swept here (another server may be mid-write)."""
         for stale in self.tmp.iterdir():
             if stale.is_dir() and not stale.is_symlink():
                 shutil.rmtree(stale, ignore_errors=True)
             else:
                 stale.unlink(missing_ok=True)
-        with self._lock:
-            known = {row[0] for row in self._db.execute("SELECT id FROM meshes")}
+        if self.shared_files or not self.local_files:
+            return
+        rows = {mesh_id: (status, digest) for mesh_id, _, status, digest
+                in self.catalog.artefacts()}
         for folder in (self.sources, self.artefacts):
             for path in folder.iterdir():
-                stem = path.name.split(".")[0]
+                stem, *rest = path.name.split(".")
                 if path.name.startswith(".") and path.name.endswith(".tmp"):
                     path.unlink(missing_ok=True)
-                elif path.is_file() and ID_PATTERN.match(stem) and stem not in known:
+                elif not (path.is_file() and ID_PATTERN.match(stem)):
+                    continue
+                elif stem not in rows:
                     log.warning("removing %s/%s: no catalogue row names it", folder.name,
                                 path.name)
                     path.unlink(missing_ok=True)
+                elif folder is self.artefacts:
+                    self._sweep_artefact(path, stem, rest, *rows[stem])
+
+    def _sweep_artefact(self, path: Path, mesh_id: str, rest: list[str], status: str,
+                        digest: str | None) -> None:
+        if rest == ["pm"] and status == Status.READY.value and digest:
+            # a data directory from before keys named the digest
+            os.replace(path, self.artefacts / Path(artefact_key(mesh_id, digest)).name)
+        elif rest != [digest, "pm"]:
+            log.warning("removing artefacts/%s: not the artefact its row names", path.name)
+            path.unlink(missing_ok=True)
 
     def scratch(self, *, prefix: str) -> Path:
         return Path(tempfile.mkdtemp(prefix=prefix, dir=self.tmp))
 
     # ---- rows -------------------------------------------------------------
     def _row(self, mesh_id: str) -> MeshRecord:
-        check_id(mesh_id)
-        with self._lock:
-            row = self._db.execute(f"SELECT {', '.join(_COLUMNS)} FROM meshes WHERE id = ?",
-                                   (mesh_id,)).fetchone()
-        if row is None:
+        record = self.catalog.get(mesh_id=check_id(mesh_id))
+        if record is None:
             raise UnknownMeshError(mesh_id)
-        return _record(row)
+        return record
 
-    def _update(self, mesh_id: str, **values) -> None:
-        check_id(mesh_id)
-        values["updated"] = time.time()
-        assignments = ", ".join(f"{key} = ?" for key in values)
-        with self._lock:
-            cursor = self._db.execute(f"UPDATE meshes SET {assignments} WHERE id = ?",
-                                      (*values.values(), mesh_id))
-        if cursor.rowcount == 0:
-            raise UnknownMeshError(mesh_id)
+    def _update(self, mesh_id: str, attempt: int | None = None, **values) -> MeshRecord:
+        record = self.catalog.update(mesh_id=check_id(mesh_id), values=values,
+                                     updated=time.time(), attempt=attempt)
+        if record is None:
+            if attempt is None or self.catalog.get(mesh_id=mesh_id) is None:
+                raise UnknownMeshError(mesh_id)
+            raise LeaseLostError(mesh_id)
+        return record
 
     def create(self, *, name: str, source: Path, file_type: str, options: dict) -> MeshRecord:
         mesh_id = secrets.token_urlsafe(16)
@@ -308,129 +363,215 @@ class LocalStore(Store):
         if not re.fullmatch(r"[a-z0-9]{1,8}", file_type):
             raise StoreError(f"file type {file_type!r} is not a plain extension")
         source = Path(source)
-        target = self.sources / f"{mesh_id}.{file_type}"
-        # Under a temporary name first (a rename when the source is in tmp/, a copy
-        # otherwise, which may run out of space): a crash mid-copy leaves a .tmp
-        # file the next start removes, never a half source under a real name.
-        partial = self.sources / f".{mesh_id}.{file_type}.tmp"
+        now = time.time()
+        record = MeshRecord(id=mesh_id, name=name, status=Status.QUEUED, progress=0.0,
+                            file_type=file_type, source_bytes=source.stat().st_size,
+                            options=dict(options), created=now, updated=now)
+        key = source_key(record)
+        if self.local_files:
+            stored = self._store_local_source(source, key)
+        else:
+            try:
+                self.blobs.put_file(key, source)        # a copy: `source` stays until the row
+            except BaseException as exc:
+                _raise_if_full(exc, "storing the upload")
+                raise
+        try:
+            self.catalog.insert(record)
+        except BaseException as exc:
+            # no row: give the file back to the caller (a rename), or drop it
+            if self.local_files:
+                try:
+                    os.replace(stored, source)
+                except OSError:
+                    stored.unlink(missing_ok=True)
+            else:
+                self.blobs.delete(key)
+            _raise_if_full(exc, "storing the upload")
+            raise
+        if not self.local_files:
+            source.unlink(missing_ok=True)
+        return record
+
+    def _store_local_source(self, source: Path, key: str) -> Path:
+        """Move ``source`` to ``key`` of the local blobs, through a temporary name
+        (a rename when the source is in tmp/, a copy otherwise, which may run out of
+        space): a crash mid-copy leaves a .tmp file the next start removes, never a
+        half source under a real name."""
+        target = self._local(key)
+        partial = target.with_name(f".{target.name}.tmp")
         try:
             shutil.move(str(source), partial)
+            os.replace(partial, target)
         except BaseException as exc:
+            if partial.exists() and not source.exists():
+                os.replace(partial, source)
             partial.unlink(missing_ok=True)
             _raise_if_full(exc, "storing the upload")
             raise
-        try:
-            size = partial.stat().st_size
-            os.replace(partial, target)
-            now = time.time()
-            row = (mesh_id, name, Status.QUEUED.value, 0.0, file_type, size,
-                   json.dumps(options), "{}", None, None, now, now)
-            with self._lock:
-                self._db.execute(f"INSERT INTO meshes ({', '.join(_COLUMNS)}) "
-                                 f"VALUES ({', '.join('?' * len(_COLUMNS))})", row)
-        except BaseException as exc:
-            # no row: give the file back to the caller (a rename), or drop it
-            for stored in (target, partial):
-                if stored.exists():
-                    try:
-                        os.replace(stored, source)
-                    except OSError:
-                        stored.unlink(missing_ok=True)
-            _raise_if_full(exc, "storing the upload")
-            raise
-        return _record(row)
+        return target
 
     def get(self, *, mesh_id: str) -> MeshRecord:
         return self._row(mesh_id)
 
     def list(self, *, limit: int = 100, offset: int = 0) -> list[MeshRecord]:
-        with self._lock:
-            rows = self._db.execute(f"SELECT {', '.join(_COLUMNS)} FROM meshes "
-                                    "ORDER BY created DESC, id LIMIT ? OFFSET ?",
-                                    (int(limit), int(offset))).fetchall()
-        return [_record(row) for row in rows]
+        return self.catalog.list(limit=limit, offset=offset)
 
     def delete(self, *, mesh_id: str) -> None:
-        record = self._row(mesh_id)
+        record = self.catalog.delete(mesh_id=check_id(mesh_id))
+        if record is None:
+            raise UnknownMeshError(mesh_id)
         with self._lock:
-            self._db.execute("DELETE FROM meshes WHERE id = ?", (mesh_id,))
             self._loaded.pop(mesh_id, None)
-        self._source(record).unlink(missing_ok=True)
-        self._artefact(mesh_id).unlink(missing_ok=True)
+        # the row is gone first: a server loading this mesh now finds no row, never
+        # a row without its files. The mesh is gone whatever happens to its files.
+        keys = [source_key(record)]
+        if record.digest:
+            keys.append(artefact_key(mesh_id, record.digest))
+        for key in keys:
+            try:
+                self.blobs.delete(key)
+            except StoreError as exc:
+                log.warning("mesh %s deleted, but not its object %s: %s", mesh_id, key, exc)
 
     def source_path(self, *, mesh_id: str) -> Path:
-        return self._source(self._row(mesh_id))
+        """Where the uploaded file of ``mesh_id`` is kept (local files only)."""
+        if not self.local_files:
+            raise StoreError("the sources are in a remote store; use stage_source")
+        return self._local(source_key(self._row(mesh_id)))
+
+    def stage_source(self, *, mesh_id: str, folder: Path) -> Path:
+        key = source_key(self._row(mesh_id))
+        staged = Path(folder) / key.split("/")[-1]
+        local = self.blobs.local_path(key)
+        if local is not None:
+            try:
+                os.link(local, staged)
+                return staged
+            except OSError:
+                pass        # another file system: a copy
+        try:
+            self.blobs.get_file(key, staged)
+        except BlobNotFoundError:
+            raise SourceLostError() from None
+        return staged
+
+    # ---- the queue ---------------------------------------------------------
+    def claim(self, *, lease_seconds: float, mesh_id: str | None = None) -> Claim | None:
+        now = time.time()
+        for record in self.catalog.abandon(max_lost=MAX_LOST, reason=_ABANDONED, updated=now):
+            log.error("mesh %s: %s", record.id, _ABANDONED)
+            self.blobs.delete(source_key(record))
+        return self.catalog.claim(owner=self.owner, lease_seconds=lease_seconds, updated=now,
+                                  mesh_id=None if mesh_id is None else check_id(mesh_id))
+
+    def renew(self, *, claim: Claim, lease_seconds: float) -> bool:
+        return self.catalog.renew(claim=claim, lease_seconds=lease_seconds)
 
     def mark_building(self, *, mesh_id: str) -> None:
-        self._update(mesh_id, status=Status.BUILDING.value, progress=0.0, failure=None)
+        self._update(mesh_id, status=Status.BUILDING.value, progress=0.0, failure=None,
+                     lease_owner=None, lease_until=None)
 
-    def set_progress(self, *, mesh_id: str, progress: float) -> None:
-        self._update(mesh_id, progress=float(min(max(progress, 0.0), 1.0)))
+    def set_progress(self, *, mesh_id: str, progress: float, attempt: int | None = None) -> None:
+        self._update(mesh_id, attempt, progress=float(min(max(progress, 0.0), 1.0)))
 
-    def requeue(self, *, mesh_id: str) -> None:
-        self._update(mesh_id, status=Status.QUEUED.value, progress=0.0)
+    def requeue(self, *, mesh_id: str, attempt: int | None = None) -> None:
+        self._update(mesh_id, attempt, status=Status.QUEUED.value, progress=0.0,
+                     lease_owner=None, lease_until=None)
 
-    def mark_failed(self, *, mesh_id: str, reason: str) -> None:
+    def mark_failed(self, *, mesh_id: str, reason: str, attempt: int | None = None) -> None:
+        record = self._update(mesh_id, attempt, status=Status.FAILED.value, failure=reason,
+                              lease_owner=None, lease_until=None)
+        self.blobs.delete(source_key(record))
+
+    def put_artefact(self, *, mesh_id: str, pm: ProgressiveMesh,
+                     attempt: int | None = None) -> MeshRecord:
         record = self._row(mesh_id)
-        self._update(mesh_id, status=Status.FAILED.value, failure=reason)
-        self._source(record).unlink(missing_ok=True)
-
-    def put_artefact(self, *, mesh_id: str, pm: ProgressiveMesh) -> MeshRecord:
-        record = self._row(mesh_id)
-        path = self._artefact(mesh_id)
+        folder = self.scratch(prefix="artefact-")
         try:
-            save_progressive(pm, path)      # atomic: nothing is left if it fails
-        except BaseException as exc:
-            _raise_if_full(exc, "writing the artefact")
+            path = folder / "artefact.pm"
+            try:
+                save_progressive(pm, path)      # atomic: nothing is left if it fails
+                digest = sha256_file(path)
+                key = artefact_key(mesh_id, digest)
+                self.blobs.put_file(key, path, move=True)
+            except BaseException as exc:
+                _raise_if_full(exc, "writing the artefact")
+                raise
+        finally:
+            shutil.rmtree(folder, ignore_errors=True)
+        summary = {key_: value for key_, value in pm.summary().items() if key_ != "metadata"}
+        summary["metadata"] = {name: pm.metadata[name] for name in ("load_report", "options")
+                               if name in pm.metadata}
+        try:
+            ready = self._update(mesh_id, attempt, status=Status.READY.value, progress=1.0,
+                                 failure=None, summary=summary, digest=digest,
+                                 lease_owner=None, lease_until=None)
+        except LeaseLostError:
+            # Another process holds the build now: it may be storing this very key
+            # (builds are deterministic), so the object is left for it.
             raise
-        try:
-            digest = hashlib.sha256(path.read_bytes()).hexdigest()
-            summary = {key: value for key, value in pm.summary().items() if key != "metadata"}
-            summary["metadata"] = {key: pm.metadata[key] for key in ("load_report", "options")
-                                   if key in pm.metadata}
-            self._update(mesh_id, status=Status.READY.value, progress=1.0, failure=None,
-                         summary=json.dumps(summary), digest=digest)
         except BaseException as exc:
-            # deleted while building, or the row could not be written: the
-            # artefact has no row to serve it
-            path.unlink(missing_ok=True)
+            # deleted while building (no row can ever name this key again), or the
+            # row could not be written: the artefact has no row to serve it
+            self.blobs.delete(key)
             _raise_if_full(exc, "recording the artefact")
             raise
-        self._source(record).unlink(missing_ok=True)
-        return self._row(mesh_id)
+        self.blobs.delete(source_key(record))
+        return ready
 
+    # ---- loading -------------------------------------------------------------
     def load(self, *, mesh_id: str) -> ProgressiveMesh:
+        # The row first, every time (one indexed read): another server may have
+        # deleted or failed the mesh since it was loaded here.
+        record = self._row(mesh_id)
+        if record.status is not Status.READY:
+            with self._lock:
+                self._loaded.pop(mesh_id, None)
+            raise NotReadyError(record)
+        cached = self._cached(record)
+        if cached is not None:
+            return cached
         with self._lock:
-            pm = self._loaded.get(mesh_id)
-            if pm is not None:
-                self._loaded.move_to_end(mesh_id)
-                return pm
             loading = self._loading.setdefault(mesh_id, threading.Lock())
         # One load per mesh at a time: requests racing for a mesh just built share
         # one object, and with it what is cached on it (its packet records).
         with loading:
-            with self._lock:
-                pm = self._loaded.get(mesh_id)
-            if pm is not None:
-                return pm
             try:
-                record = self._row(mesh_id)
-                if record.status is not Status.READY:
-                    raise NotReadyError(record)
-                pm = self._read_artefact(record)
-                with self._lock:
-                    self._loaded[mesh_id] = pm
-                    while len(self._loaded) > self.loaded_meshes:
-                        self._loaded.popitem(last=False)
+                pm = self._cached(record)
+                if pm is None:
+                    pm = self._read_artefact(record)
+                    with self._lock:
+                        self._loaded[mesh_id] = (record.digest, pm)
+                        while len(self._loaded) > self.loaded_meshes:
+                            self._loaded.popitem(last=False)
             finally:
                 with self._lock:
                     self._loading.pop(mesh_id, None)
         return pm
 
+    def _cached(self, record: MeshRecord) -> ProgressiveMesh | None:
+        with self._lock:
+            entry = self._loaded.get(record.id)
+            if entry is None or entry[0] != record.digest:
+                return None
+            self._loaded.move_to_end(record.id)
+            return entry[1]
+
     def _read_artefact(self, record: MeshRecord) -> ProgressiveMesh:
         """Decode a ready mesh's artefact; a missing or corrupt one fails the mesh
         (once: the row then says why, and the file is moved to ``quarantine/``)."""
-        path = self._artefact(record.id)
+        key = artefact_key(record.id, record.digest)
+        if self.local_files:
+            return self._decode(record, key, self._local(key))
+        try:
+            # held in place while read: another request's fetch cannot evict it
+            with self._cache.lease(key, lambda dest: self.blobs.get_file(key, dest)) as path:
+                return self._decode(record, key, path)
+        except BlobNotFoundError:
+            raise self._fail_artefact(record, key, "it is missing from the store") from None
+
+    def _decode(self, record: MeshRecord, key: str, path: Path) -> ProgressiveMesh:
         try:
             return load_progressive(path)
         except ArtefactError as exc:
@@ -438,16 +579,22 @@ class LocalStore(Store):
             if isinstance(cause, OSError) and not isinstance(cause, FileNotFoundError):
                 raise cause from None   # EIO, EMFILE: the server's state, not the mesh's
             detail = str(exc).replace(str(path), "the file")
-            raise self._fail_artefact(record, detail) from None
+            raise self._fail_artefact(record, key, detail, path) from None
 
-    def _fail_artefact(self, record: MeshRecord, detail: str) -> NotReadyError:
+    def _fail_artefact(self, record: MeshRecord, key: str, detail: str,
+                       path: Path | None = None) -> NotReadyError:
         reason = f"{CORRUPT_ARTEFACT} ({detail}); delete the mesh and upload it again"
         log.error("mesh %s: %s", record.id, reason)
-        path = self._artefact(record.id)
-        if path.exists():
+        if path is not None and path.exists():
             try:
                 self.quarantine.mkdir(exist_ok=True)
-                os.replace(path, self.quarantine / path.name)
+                if self.local_files:
+                    os.replace(path, self.quarantine / Path(key).name)
+                else:
+                    # the store's object stays (the row still names it, for an
+                    # operator); this server's copy is set aside and forgotten
+                    shutil.copyfile(path, self.quarantine / Path(key).name)
+                    self._cache.discard(key)
             except OSError:
                 log.exception("could not move the artefact of mesh %s to quarantine/",
                               record.id)
@@ -455,43 +602,64 @@ class LocalStore(Store):
         return NotReadyError(self._row(record.id))
 
     def recover(self) -> list[str]:
-        with self._lock:
-            rows = self._db.execute(f"SELECT {', '.join(_COLUMNS)} FROM meshes WHERE status IN "
-                                    "(?, ?) ORDER BY created",
-                                    (Status.QUEUED.value, Status.BUILDING.value)).fetchall()
+        requeued = self.catalog.recover(node=self.node, updated=time.time())
+        if requeued:
+            log.info("requeued %d build(s) left by this node's previous process", len(requeued))
         pending = []
-        for record in map(_record, rows):
-            if self._source(record).is_file():
-                self.requeue(mesh_id=record.id)
+        for record in self.catalog.pending():
+            if self.blobs.exists(source_key(record)):
                 pending.append(record.id)
             else:
-                self.mark_failed(mesh_id=record.id, reason="the uploaded file was lost before "
-                                 "its build finished; upload it again")
+                self.mark_failed(mesh_id=record.id, reason=_SOURCE_LOST)
         return pending
 
+    def queue_position(self, *, mesh_id: str) -> int | None:
+        record = self._row(mesh_id)
+        return self.catalog.queued_before(record) if record.status is Status.QUEUED else None
+
     def close(self) -> None:
-        with self._lock:
-            self._db.close()
+        self.catalog.close()
+        self._lock_file.close()         # releases the data directory's lock
 
     # ---- paths ------------------------------------------------------------
-    def _source(self, record: MeshRecord) -> Path:
-        return self.sources / f"{check_id(record.id)}.{record.file_type}"
+    def _local(self, key: str) -> Path:
+        return Path(self.blobs.root, *key.split("/"))
 
-    def _artefact(self, mesh_id: str) -> Path:
-        return self.artefacts / f"{check_id(mesh_id)}.pm"
+
+def _lock_directory(root: Path):
+    """An exclusive lock on ``root`` held while the returned file is open: two
+    processes sharing one data directory would sweep each other's scratch files."""
+    file = open(root / "lodserver.lock", "a+b")
+    try:
+        fcntl.flock(file.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except OSError:
+        file.close()
+        raise StoreError("the data directory is in use by another lodserver process; give "
+                         "each server and worker its own LODSERVER_DATA_DIR (they share "
+                         "LODSERVER_STORE_URL and LODSERVER_CATALOG_URL)") from None
+    return file
+
+
+def _node_name(root: Path) -> str:
+    """The data directory's lasting name in lease owners (made once)."""
+    path = root / "node"
+    try:
+        name = path.read_text().strip()
+        if re.fullmatch(r"[A-Za-z0-9_-]{8,64}", name):
+            return name
+    except FileNotFoundError:
+        pass
+    name = secrets.token_urlsafe(9)
+    write_atomic(path, name.encode())
+    return name
 
 
 def _raise_if_full(exc: BaseException, doing: str) -> None:
     """Raise a :class:`StorageFullError` (one sentence, no path) from ``exc`` if it
     says the disk is full; otherwise return, for the caller to re-raise ``exc``."""
+    if isinstance(exc, StorageFullError):
+        raise exc
     if is_disk_full(exc):
         raise StorageFullError(f"the server ran out of disk space while {doing}; "
                                "try again once space is freed") from exc
 
-
-def _record(row) -> MeshRecord:
-    values = dict(zip(_COLUMNS, row))
-    values["status"] = Status(values["status"])
-    values["options"] = json.loads(values["options"])
-    values["summary"] = json.loads(values["summary"])
-    return MeshRecord(**values)

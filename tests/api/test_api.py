@@ -149,7 +149,8 @@ def test_json_levels_hold_wedges_materials_and_where_to_find_them(textured):
 def test_materials_and_images_are_served_with_their_types(textured):
     client, mesh_id = textured
     response = client.get(f"/meshes/{mesh_id}/materials")
-    assert response.status_code == 200 and "immutable" in response.headers["cache-control"]
+    # unversioned URLs: cached briefly, then revalidated (versions: tests/api/test_cdn.py)
+    assert response.status_code == 200 and "max-age=60" in response.headers["cache-control"]
     document = response.json()
     assert document["materials"][0]["pbrMetallicRoughness"]["baseColorTexture"] == {"index": 0}
     assert document["textures"] == [{"source": 0, "sampler": 0}]
@@ -158,7 +159,7 @@ def test_materials_and_images_are_served_with_their_types(textured):
     png = client.get(f"/meshes/{mesh_id}/{image['uri']}")
     assert png.status_code == 200 and png.headers["content-type"] == "image/png"
     assert png.content == (DATA / "spot_texture.png").read_bytes()
-    assert "immutable" in png.headers["cache-control"]
+    assert "max-age=60" in png.headers["cache-control"]
     again = client.get(f"/meshes/{mesh_id}/images/0", headers={"If-None-Match": png.headers["etag"]})
     assert again.status_code == 304
     missing = client.get(f"/meshes/{mesh_id}/images/1")
@@ -183,7 +184,7 @@ def test_immutable_responses_carry_etags_and_answer_304(served, path, params):
     client, mesh_id = served
     first = client.get(f"/meshes/{mesh_id}/{path}", params=params)
     assert first.status_code == 200
-    assert "immutable" in first.headers["cache-control"]
+    assert "max-age=60" in first.headers["cache-control"]      # unversioned (test_cdn.py)
     again = client.get(f"/meshes/{mesh_id}/{path}", params=params,
                        headers={"If-None-Match": first.headers["etag"]})
     assert again.status_code == 304 and again.headers["etag"] == first.headers["etag"]

@@ -1,8 +1,14 @@
-"""The fixture the service tests share."""
+"""The fixtures the service tests share."""
 
 import pytest
 
+from lodserver.service.catalog import PostgresCatalog
 from lodserver.service.store import LocalStore
+
+from ..services.postgres import postgres_server, postgres_url  # noqa: F401 (fixtures)
+
+# Parametrize ``catalog_url`` (indirect) over these: every queue test runs on both.
+DIALECTS = ["sqlite", "postgresql"]
 
 
 @pytest.fixture
@@ -11,3 +17,16 @@ def store(tmp_path):
     store = LocalStore(tmp_path / "data")
     yield store
     store.close()
+
+
+@pytest.fixture
+def catalog_url(request, tmp_path):
+    """A catalogue URL of the kind ``request.param`` names ("sqlite": a file under
+    tmp_path/shared; "postgresql": the module's database), its table empty."""
+    if request.param == "sqlite":
+        return f"sqlite://{tmp_path}/shared/catalogue.sqlite3"
+    url = request.getfixturevalue("postgres_url")
+    catalog = PostgresCatalog(url)
+    catalog._run("DELETE FROM meshes")
+    catalog.close()
+    return url

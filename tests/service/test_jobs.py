@@ -1,14 +1,18 @@
-"""Background builds: failures stay with their mesh, shutdown leaves builds resumable."""
+"""Background builds: failures stay with their mesh, shutdown leaves builds resumable,
+and runners of two stores sharing one catalogue see each other's deletes and failures."""
 
 import threading
 import time
 
+import pytest
+
 from lodserver.service import jobs as jobs_module
 from lodserver.service.jobs import JobRunner
 from lodserver.mesh import MeshError
-from lodserver.service.store import Status
+from lodserver.service.store import LocalStore, Status
 
 from ..meshes import DATA, progressive
+from .conftest import DIALECTS
 
 
 def _queue(store, tmp_path, name):
@@ -89,3 +93,90 @@ def test_a_build_reuses_the_mesh_its_upload_check_parsed(store, tmp_path, monkey
     assert _wait(store, record.id).status is Status.READY
     runner.shutdown()
     assert len(parsed) == 1
+
+
+@pytest.fixture
+def shared(catalog_url, tmp_path):
+    """Two stores (two servers' view): own data directories, one catalogue, one store."""
+    stores = [LocalStore(tmp_path / name, catalog=catalog_url, blobs=str(tmp_path / "blobs"))
+              for name in ("one", "two")]
+    yield stores
+    for store in stores:
+        store.close()
+
+
+@pytest.mark.parametrize("catalog_url", DIALECTS, indirect=True)
+def test_a_delete_on_one_server_stops_the_build_on_another(shared, tmp_path, monkeypatch):
+    one, two = shared
+    started, stopped = threading.Event(), threading.Event()
+
+    def endless_build(mesh, *, cancel, progress, **options):
+        started.set()
+        done = 0
+        while not cancel.wait(0.05):        # a build reporting progress, never finishing
+            done += 1
+            progress(done, 10**6)
+        stopped.set()
+        return progressive("grid")
+
+    monkeypatch.setattr(jobs_module, "build", endless_build)
+    builder = JobRunner(two, lease_seconds=3, poll_seconds=0.1)
+    builder.start(warm=False)               # builds whatever the catalogue queues
+    mesh_id = _queue(one, tmp_path, "far")
+    assert started.wait(30)
+    assert _wait(one, mesh_id, statuses=("building",)).status is Status.BUILDING
+    deleted = time.monotonic()
+    one.delete(mesh_id=mesh_id)              # another server's delete
+    assert stopped.wait(10)
+    # its next progress write found the row gone (well before a lease renewal)
+    assert time.monotonic() - deleted < 2
+    builder.shutdown()
+    assert list((tmp_path / "blobs" / "artefacts").iterdir()) == []
+
+
+@pytest.mark.parametrize("catalog_url", DIALECTS, indirect=True)
+def test_progress_and_failures_are_seen_across_servers(shared, tmp_path, monkeypatch):
+    one, two = shared
+    halfway, go_on = threading.Event(), threading.Event()
+
+    def failing_build(mesh, *, progress, **options):
+        progress(0, 10)
+        time.sleep(jobs_module.PROGRESS_INTERVAL)
+        progress(5, 10)
+        halfway.set()
+        go_on.wait(30)
+        raise MeshError("the mesh folds onto itself")
+
+    monkeypatch.setattr(jobs_module, "build", failing_build)
+    builder = JobRunner(two, lease_seconds=3, poll_seconds=0.1)
+    builder.start(warm=False)
+    mesh_id = _queue(one, tmp_path, "bad")
+    assert halfway.wait(30)
+    assert one.get(mesh_id=mesh_id).progress == 0.5
+    go_on.set()
+    failed = _wait(one, mesh_id)
+    assert failed.status is Status.FAILED and failed.failure == "the mesh folds onto itself"
+    builder.shutdown()
+    assert list((tmp_path / "blobs" / "sources").iterdir()) == []
+
+
+@pytest.mark.parametrize("catalog_url", DIALECTS, indirect=True)
+def test_a_runner_that_only_serves_builds_nothing(shared, tmp_path):
+    one, two = shared
+    serving = JobRunner(one, workers=0, poll_seconds=0.1)
+    serving.start(warm=False)
+    record = serving.accept(source=_copy(tmp_path, "s"), name="s.obj", file_type="obj",
+                            options={})
+    time.sleep(0.5)
+    assert one.get(mesh_id=record.id).status is Status.QUEUED
+    builder = JobRunner(two, poll_seconds=0.1)
+    builder.start(warm=False)
+    assert _wait(one, record.id).status is Status.READY
+    for runner in (serving, builder):
+        runner.shutdown()
+
+
+def _copy(tmp_path, name):
+    source = tmp_path / f"{name}.obj"
+    source.write_bytes((DATA / "spot.obj").read_bytes())
+    return source

@@ -147,3 +147,18 @@ def test_loaded_meshes_are_bounded(tmp_path):
     store.load(mesh_id=ids[1])                  # drops the first from memory
     assert store.load(mesh_id=ids[0]) is not first
     store.close()
+
+
+def test_an_artefact_stored_before_keys_named_digests_is_renamed_and_served(tmp_path):
+    store = LocalStore(tmp_path / "data")
+    record = store.create(name="grid", source=_source(tmp_path), file_type="obj", options={})
+    ready = store.put_artefact(mesh_id=record.id, pm=progressive("grid"))
+    current = store.artefacts / f"{record.id}.{ready.digest}.pm"
+    current.rename(store.artefacts / f"{record.id}.pm")       # the layout of older versions
+    stray = store.artefacts / f"{record.id}.{'0' * 64}.pm"      # a build that lost its claim
+    stray.write_bytes(b"not the row's")
+    store.close()
+    reopened = LocalStore(tmp_path / "data")
+    assert sorted(p.name for p in reopened.artefacts.iterdir()) == [current.name]
+    assert reopened.load(mesh_id=record.id).vertex_count == progressive("grid").vertex_count
+    reopened.close()

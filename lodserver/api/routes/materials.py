@@ -1,4 +1,4 @@
-"""A mesh's materials and their images (immutable, cacheable)."""
+"""A mesh's materials and their images (cacheable by version, as levels: ``api/caching.py``)."""
 
 from __future__ import annotations
 
@@ -8,7 +8,8 @@ import orjson
 from fastapi import APIRouter, Path, Request, Response
 
 from ...service.materials import AbsentError, image_of, materials_document
-from ..caching import etag_for, immutable, is_fresh
+from ..caching import (VersionQuery, etag_for, immutable, is_fresh, load_versioned,
+                       with_cache_control)
 from ..deps import MeshId, StoreDep
 from ..models import Message
 
@@ -23,30 +24,35 @@ IMAGE_TYPES = ("image/png", "image/jpeg", "image/webp", "image/ktx2")
 
 @router.get("/{mesh_id}/materials", responses={**_ERRORS, 200: {"content": {
     "application/json": {}}, "description": "glTF materials, textures, samplers and images."}})
-def get_materials(mesh_id: MeshId, store: StoreDep, request: Request) -> Response:
+def get_materials(mesh_id: MeshId, store: StoreDep, request: Request,
+                  v: VersionQuery = None) -> Response:
     """The mesh's glTF material, texture, sampler and image records; each image's
-    ``uri`` (``images/{i}``, relative to this document) is ``GET .../images/{i}``.
+    ``uri`` (``images/{i}``, relative to this document) is ``GET .../images/{i}``,
+    at version ``v`` when it is given (``images/{i}?v=...``).
     404 when the mesh has no materials."""
-    pm = store.load(mesh_id=mesh_id)
-    etag = etag_for(store.get(mesh_id=mesh_id).digest, "materials")
+    pm, digest, policy = load_versioned(store, mesh_id, v)
+    etag = etag_for(digest, "materials", *(["v"] if v else []))
     if is_fresh(request, etag):
-        return immutable(None, media_type="application/json", etag=etag)
-    return immutable(orjson.dumps(materials_document(pm)), media_type="application/json",
-                     etag=etag)
+        return with_cache_control(immutable(None, media_type="application/json", etag=etag),
+                                  policy)
+    uri = (lambda i: f"images/{i}?v={v}") if v else (lambda i: f"images/{i}")
+    return with_cache_control(immutable(orjson.dumps(materials_document(pm, image_uri=uri)),
+                                        media_type="application/json", etag=etag), policy)
 
 
 @router.get("/{mesh_id}/images/{index}", responses={**_ERRORS, 200: {"content": {
     media: {} for media in IMAGE_TYPES}, "description": "The image's bytes, as uploaded."}})
 def get_image(mesh_id: MeshId, store: StoreDep, request: Request,
-              index: Annotated[int, Path(ge=0, le=2**31 - 1)]) -> Response:
+              index: Annotated[int, Path(ge=0, le=2**31 - 1)],
+              v: VersionQuery = None) -> Response:
     """Image ``index`` of the mesh's materials, byte for byte, with its media type
     (PNG, JPEG, WebP or KTX2; 404 for any other)."""
-    pm = store.load(mesh_id=mesh_id)
+    pm, digest, policy = load_versioned(store, mesh_id, v)
     data, media = image_of(pm, index)
     if media not in IMAGE_TYPES:
         raise AbsentError(f"image {index} of this mesh is not a PNG, JPEG, WebP or KTX2 "
                           "image, so it is not served")
-    etag = etag_for(store.get(mesh_id=mesh_id).digest, "image", index)
+    etag = etag_for(digest, "image", index)
     if is_fresh(request, etag):
-        return immutable(None, media_type=media, etag=etag)
-    return immutable(data, media_type=media, etag=etag)
+        return with_cache_control(immutable(None, media_type=media, etag=etag), policy)
+    return with_cache_control(immutable(data, media_type=media, etag=etag), policy)

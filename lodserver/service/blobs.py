@@ -1,0 +1,409 @@
+"""Where bytes live: a local folder or an object store, behind one small interface.
+
+:func:`open_blobs` takes the store URL (``LODSERVER_STORE_URL``): a plain path or
+``file://`` URL gives :class:`LocalBlobs` (the embedded default, a folder of the
+data directory), ``s3://bucket/prefix`` an S3-compatible object store through
+fsspec and s3fs (:class:`FsspecBlobs`), with the endpoint and credentials taken
+from the standard AWS environment variables (``AWS_ENDPOINT_URL``,
+``AWS_ACCESS_KEY_ID``, ``AWS_SECRET_ACCESS_KEY``, ``AWS_DEFAULT_REGION``).
+Any other fsspec URL (``memory://``, say) works the same way.
+
+A *key* names an object relative to the store's root: ``/``-separated segments
+of letters, digits, ``.``, ``_`` and ``-``, none starting with ``.`` (names
+starting with a dot are this module's temporary files) and none ``..``; at
+most :data:`MAX_KEY` characters. Anything else is a :class:`BlobKeyError`
+before the store is touched.
+
+Writes are atomic for readers: a local object is written under a temporary
+name beside its key, flushed and renamed; an S3 PUT (single or multipart, as
+fsspec chooses by size) makes the object visible only once it is complete. So
+no reader, on this machine or another, ever sees half an object.
+
+Errors are :class:`~lodserver.service.errors.StoreError` subclasses whose
+message is one sentence naming the key, never a server path:
+:class:`BlobNotFoundError` for a missing object, :class:`StorageFullError`
+when the local disk is full, :class:`StoreError` for an unreachable or
+refusing object store.
+"""
+
+from __future__ import annotations
+
+import errno
+import hashlib
+import os
+import re
+import shutil
+import uuid
+from abc import ABC, abstractmethod
+from collections.abc import Iterator
+from pathlib import Path
+from typing import BinaryIO
+from urllib.parse import urlsplit
+
+from ..io.files import write_atomic
+from .errors import StorageFullError, StoreError, is_disk_full
+
+MAX_KEY = 512
+_SEGMENT = re.compile(r"[A-Za-z0-9_-][A-Za-z0-9._-]*")
+# Reads and copies go in pieces of this size (bytes): bounded memory for any object.
+CHUNK = 1 << 20
+# s3fs's own default part size: 50 MiB parts, for files of 100 MiB and more.
+PART_BYTES = 50 * 2**20
+
+
+class BlobKeyError(StoreError, ValueError):
+    """A key that is not a plain relative name (module docstring)."""
+
+
+class BlobNotFoundError(StoreError, FileNotFoundError):
+    """No object is stored under the key."""
+
+    def __init__(self, key: str):
+        super().__init__(f"no stored object has the key {key!r}")
+        self.key = key
+
+
+def check_key(key: str) -> str:
+    """``key`` if it is a valid key (module docstring), else :class:`BlobKeyError`."""
+    if not isinstance(key, str) or not key or len(key) > MAX_KEY:
+        raise BlobKeyError(f"a key is a non-empty string of at most {MAX_KEY} characters")
+    segments = key.split("/")
+    if not all(_SEGMENT.fullmatch(segment) for segment in segments):
+        raise BlobKeyError(f"the key {key[:64]!r} is not a relative name of plain segments "
+                           "(letters, digits, '.', '_', '-'; none starting with '.')")
+    return key
+
+
+def sha256_file(path) -> str:
+    """The SHA-256 of a file's bytes (hex, 64 characters), read in pieces."""
+    digest = hashlib.sha256()
+    with open(path, "rb") as file:
+        while piece := file.read(CHUNK):
+            digest.update(piece)
+    return digest.hexdigest()
+
+
+class Blobs(ABC):
+    """Objects by key (module docstring). Safe to use from several threads."""
+
+    url: str
+
+    @abstractmethod
+    def put_file(self, key: str, path, *, move: bool = False) -> None:
+        """Store the file at ``path`` under ``key``, replacing any object there,
+        atomically for readers. ``move=True`` lets the store take the file (a rename
+        when it can): once stored, it is gone from ``path``."""
+
+    @abstractmethod
+    def put_bytes(self, key: str, data) -> None:
+        """Store ``data`` (bytes-like) under ``key``, atomically for readers."""
+
+    @abstractmethod
+    def open(self, key: str) -> BinaryIO:
+        """A binary file object reading the object; the caller closes it."""
+
+    @abstractmethod
+    def get_file(self, key: str, dest) -> None:
+        """Copy the object to the local file ``dest`` (written under a temporary
+        name and renamed, so ``dest`` is never partial)."""
+
+    @abstractmethod
+    def exists(self, key: str) -> bool: ...
+
+    @abstractmethod
+    def size(self, key: str) -> int:
+        """The object's size in bytes."""
+
+    @abstractmethod
+    def delete(self, key: str) -> None:
+        """Remove the object; nothing happens if there is none."""
+
+    @abstractmethod
+    def keys(self, prefix: str = "") -> Iterator[str]:
+        """The keys under ``prefix`` (a key's leading segments, or ''), in no order."""
+
+    def local_path(self, key: str) -> Path | None:
+        """The object's own file when the store is a local folder (read it, never
+        write it), else None: the caller then fetches a copy (``get_file``)."""
+        return None
+
+    def get_bytes(self, key: str) -> bytes:
+        with self.open(key) as file:
+            return file.read()
+
+
+def open_blobs(url_or_path) -> Blobs:
+    """The store named by ``url_or_path``: a local folder (a path or ``file://``
+    URL; created if absent) or an fsspec URL such as ``s3://bucket/prefix``."""
+    text = str(url_or_path)
+    scheme = urlsplit(text).scheme if "://" in text else ""
+    if scheme in ("", "file"):
+        return LocalBlobs(text[len("file://"):] if scheme == "file" else text)
+    return FsspecBlobs(text)
+
+
+# ---- a local folder ---------------------------------------------------------------
+
+def _temporary_beside(path: Path) -> Path:
+    # the naming of write_atomic's temporaries, so one sweep removes both
+    return path.with_name(f".{path.name}.{uuid.uuid4().hex}.tmp")
+
+
+def copy_atomic(source, dest) -> None:
+    """Copy the file ``source`` to ``dest`` through a temporary file beside ``dest``,
+    fsynced, then renamed: ``dest`` is the old file or the whole new one."""
+    dest = Path(dest)
+    temporary = _temporary_beside(dest)
+    try:
+        with open(source, "rb") as reader, open(temporary, "xb") as writer:
+            shutil.copyfileobj(reader, writer, CHUNK)
+            writer.flush()
+            os.fsync(writer.fileno())
+        os.replace(temporary, dest)
+    except BaseException:
+        temporary.unlink(missing_ok=True)
+        raise
+
+
+class LocalBlobs(Blobs):
+    """Objects as files under a folder, a key's segments as sub-folders."""
+
+    def __init__(self, root):
+        self.root = Path(root).absolute()
+        self.url = self.root.as_uri()
+        self.root.mkdir(parents=True, exist_ok=True)
+
+    def _path(self, key: str) -> Path:
+        return self.root.joinpath(*check_key(key).split("/"))
+
+    def _writable(self, key: str) -> Path:
+        path = self._path(key)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        return path
+
+    def put_file(self, key: str, path, *, move: bool = False) -> None:
+        try:
+            target = self._writable(key)
+            if move:
+                try:
+                    # same file system: flushed (as a copy would be), then a
+                    # rename, atomic and without copying
+                    with open(path, "rb") as file:
+                        os.fsync(file.fileno())
+                    os.replace(path, target)
+                    return
+                except OSError as exc:
+                    if exc.errno != errno.EXDEV:     # another file system: copy
+                        raise
+            copy_atomic(path, target)
+            if move:
+                Path(path).unlink(missing_ok=True)
+        except OSError as exc:
+            raise _local_error(exc, key, "storing") from exc
+
+    def put_bytes(self, key: str, data) -> None:
+        try:
+            write_atomic(self._writable(key), data)
+        except OSError as exc:
+            raise _local_error(exc, key, "storing") from exc
+
+    def open(self, key: str) -> BinaryIO:
+        try:
+            return open(self._path(key), "rb")
+        except OSError as exc:
+            raise _local_error(exc, key, "reading") from exc
+
+    def get_file(self, key: str, dest) -> None:
+        try:
+            copy_atomic(self._path(key), dest)
+        except OSError as exc:
+            raise _local_error(exc, key, "copying") from exc
+
+    def exists(self, key: str) -> bool:
+        return self._path(key).is_file()
+
+    def size(self, key: str) -> int:
+        try:
+            return self._path(key).stat().st_size
+        except OSError as exc:
+            raise _local_error(exc, key, "reading") from exc
+
+    def delete(self, key: str) -> None:
+        try:
+            self._path(key).unlink(missing_ok=True)
+        except OSError as exc:
+            raise _local_error(exc, key, "deleting") from exc
+
+    def keys(self, prefix: str = "") -> Iterator[str]:
+        base = self._path(prefix) if prefix else self.root
+        for folder, _, files in os.walk(base):
+            relative = Path(folder).relative_to(self.root).parts
+            for name in files:
+                if not name.startswith("."):
+                    yield "/".join((*relative, name))
+
+    def local_path(self, key: str) -> Path | None:
+        path = self._path(key)
+        return path if path.is_file() else None
+
+
+def _local_error(exc: OSError, key: str, doing: str) -> StoreError:
+    """One sentence, no path: missing, disk full, or the OS's reason."""
+    if isinstance(exc, FileNotFoundError) and doing != "storing":
+        return BlobNotFoundError(key)
+    if is_disk_full(exc):
+        return StorageFullError(f"the server ran out of disk space while {doing} {key!r}; "
+                                "try again once space is freed")
+    return StoreError(f"the store failed while {doing} {key!r}: "
+                      f"{exc.strerror or type(exc).__name__}")
+
+
+# ---- an object store through fsspec -----------------------------------------------
+
+def s3_options() -> dict:
+    """s3fs options from the standard AWS variables. The endpoint is passed
+    explicitly (``AWS_ENDPOINT_URL_S3`` or ``AWS_ENDPOINT_URL``) so that fsspec's
+    cache of file-system instances keeps one per endpoint; listings are not cached,
+    because other servers write to the same bucket."""
+    options = {"use_listings_cache": False}
+    endpoint = os.environ.get("AWS_ENDPOINT_URL_S3") or os.environ.get("AWS_ENDPOINT_URL")
+    if endpoint:
+        options["endpoint_url"] = endpoint
+    return options
+
+
+class FsspecBlobs(Blobs):
+    """Objects under ``protocol://root`` of an fsspec file system (S3 through s3fs).
+
+    Parameters
+    ----------
+    url : str
+        ``s3://bucket/prefix`` (the prefix may be empty), or another fsspec URL.
+    check : bool
+        Make sure the root's bucket exists now, so a wrong URL fails at start with
+        a :class:`StoreError` rather than at the first upload.
+    part_bytes : int
+        S3 only: a file of at least twice this many bytes goes up as a multipart
+        upload of parts this size (S3's smallest part is 5 MiB); a smaller one is
+        one PUT, read into memory whole (s3fs).
+    fs_options
+        More options of the fsspec file system (s3fs: ``config_kwargs=`` for
+        botocore's timeouts and retries...), over those of :func:`s3_options`.
+    """
+
+    def __init__(self, url: str, *, check: bool = True, part_bytes: int = PART_BYTES,
+                 **fs_options):
+        import fsspec
+
+        protocol, _, rest = url.partition("://")
+        self.url = f"{protocol}://{rest.strip('/')}"
+        try:
+            defaults = s3_options() if protocol in ("s3", "s3a") else {}
+            self.fs = fsspec.filesystem(protocol, **{**defaults, **fs_options})
+        except (ImportError, ValueError) as exc:
+            raise StoreError(f"the store URL scheme {protocol!r} is not available "
+                             f"({exc}); for s3:// install lodserver[distributed]") from None
+        self.root = rest.strip("/")
+        self._put_options = {"chunksize": max(int(part_bytes), 5 * 2**20)} \
+            if protocol in ("s3", "s3a") else {}
+        if not self.root:
+            raise StoreError("an object-store URL names a bucket: s3://bucket/prefix")
+        if check and protocol in ("s3", "s3a"):
+            # info, not exists: exists says False for an endpoint that is down too
+            self._call("reaching", self.root.split("/")[0], self.fs.info,
+                       self.root.split("/")[0])
+
+    def _path(self, key: str) -> str:
+        return f"{self.root}/{check_key(key)}"
+
+    def _call(self, doing: str, key: str, function, *args, **kwargs):
+        """``function(*args)``, its failures as one-sentence store errors."""
+        try:
+            return function(*args, **kwargs)
+        except FileNotFoundError:
+            if doing == "reaching":
+                raise StoreError(f"the object store has no bucket {key!r}; create it "
+                                 "first") from None
+            if doing == "storing":
+                raise StoreError(f"the object store failed while storing {key!r}: its bucket "
+                                 "does not exist") from None
+            raise BlobNotFoundError(key) from None
+        except PermissionError:
+            raise StoreError(f"the object store refused access while {doing} {key!r}; check "
+                             "the AWS credentials") from None
+        except OSError as exc:
+            if is_disk_full(exc):
+                raise StorageFullError(f"the server ran out of disk space while {doing} "
+                                       f"{key!r}; try again once space is freed") from exc
+            raise StoreError(f"the object store failed while {doing} {key!r}: "
+                             f"{_reason(exc)}") from exc
+        except Exception as exc:
+            # botocore's connection errors are not OSErrors
+            if type(exc).__module__.split(".")[0] in ("botocore", "aiobotocore", "aiohttp"):
+                raise StoreError(f"the object store could not be reached while {doing} "
+                                 f"{key!r}: {type(exc).__name__}") from exc
+            raise
+
+    def put_file(self, key: str, path, *, move: bool = False) -> None:
+        # s3fs sends a file of at least twice part_bytes as a multipart upload;
+        # S3 shows the object only once the upload completes, never in part.
+        self._call("storing", key, self.fs.put_file, os.fspath(path), self._path(key),
+                   **self._put_options)
+        if move:
+            Path(path).unlink(missing_ok=True)
+
+    def put_bytes(self, key: str, data) -> None:
+        self._call("storing", key, self.fs.pipe_file, self._path(key), bytes(data))
+
+    def open(self, key: str) -> BinaryIO:
+        # s3fs reads in ranged GETs pinned to the object's ETag: should the object
+        # be replaced while it is read, a read raises OSError (FileExpired) rather
+        # than mix two versions. Content-addressed keys are never replaced.
+        return self._call("reading", key, self.fs.open, self._path(key), "rb")
+
+    def get_bytes(self, key: str) -> bytes:
+        # one GET: always one whole version of the object
+        return self._call("reading", key, self.fs.cat_file, self._path(key))
+
+    def get_file(self, key: str, dest) -> None:
+        dest = Path(dest)
+        temporary = _temporary_beside(dest)
+        try:
+            self._call("copying", key, self.fs.get_file, self._path(key), os.fspath(temporary))
+            try:
+                os.replace(temporary, dest)
+            except OSError as exc:
+                raise _local_error(exc, key, "copying") from exc
+        finally:
+            temporary.unlink(missing_ok=True)
+
+    def exists(self, key: str) -> bool:
+        return bool(self._call("reading", key, self.fs.exists, self._path(key)))
+
+    def size(self, key: str) -> int:
+        return int(self._call("reading", key, self.fs.info, self._path(key))["size"])
+
+    def delete(self, key: str) -> None:
+        try:
+            self._call("deleting", key, self.fs.rm_file, self._path(key))
+        except BlobNotFoundError:
+            pass
+
+    def keys(self, prefix: str = "") -> Iterator[str]:
+        base = self._path(prefix) if prefix else self.root
+        try:
+            found = self._call("listing", prefix or "/", self.fs.find, base)
+        except BlobNotFoundError:
+            return
+        # file systems differ in a leading "/" (memory://) and the protocol
+        start = len(self.root) + 1
+        for path in found:
+            path = path.split("://", 1)[-1].strip("/")
+            if path.startswith(self.root + "/"):
+                yield path[start:]
+
+
+def _reason(exc: OSError) -> str:
+    """A short reason for ``exc`` without the URL s3fs puts in some messages."""
+    text = exc.strerror or str(exc) or type(exc).__name__
+    return re.sub(r"\S+://\S+", "the object", text)[:200]
