@@ -1,15 +1,20 @@
 """Receiving ``POST /meshes``: a multipart body streamed into the data directory.
 
-The body is parsed as it arrives (python-multipart's streaming parser) and the
-file part is written, a batch of chunks at a time in a worker thread, to a
-folder of its own under ``<data_dir>/tmp/``: never through the system temp
+The body is parsed as it arrives (python-multipart's streaming parser) and
+each file part is written, a batch of chunks at a time in a worker thread, to
+a folder of its own under ``<data_dir>/tmp/``: never through the system temp
 directory, never copied again, and never a disk write on the event loop. The
-folder holds only the uploaded file, which is the ``root`` its references must
-resolve in. The body is counted while it streams in, so an oversized upload is
-refused (413) as soon as it passes the limit, before it is all read; a
-``Content-Length`` already over the limit is refused before reading anything.
+folder holds only the uploaded files, which is the ``root`` their references
+must resolve in. The body is counted while it streams in, so an oversized
+upload is refused (413) as soon as it passes the limit, before it is all read;
+a ``Content-Length`` already over the limit is refused before reading anything.
 On any failure the folder and what was written into it are removed; whatever
 a killed process leaves there, the store removes when it next opens.
+
+An upload is one mesh file, or a set (:mod:`lodserver.io.fileset`): several
+``file`` parts (an OBJ with its MTL and textures, a ``.gltf`` with its
+``.bin`` and images) or one ``.zip`` of them. :func:`prepare_source` turns a
+set into the one archive the store keeps, after picking its main file.
 """
 
 from __future__ import annotations
@@ -21,23 +26,32 @@ from pathlib import Path, PurePath
 
 import anyio
 from fastapi import Request
-from starlette.requests import ClientDisconnect
 from python_multipart.exceptions import MultipartParseError
 from python_multipart.multipart import MultipartParser, parse_options_header
+from starlette.requests import ClientDisconnect
 
 from ..io import SUPPORTED_INPUT
+from ..io.fileset import (DEFAULT_SET_LIMITS, FileSetLimits, NoMeshFile, pack_set, pick_main,
+                          plain_name)
 from ..io.limits import LimitError
 from ..mesh import MeshError
-from ..service.store import Store, StorageFullError, is_disk_full
+from ..service.parsing import SET_TYPE
+from ..service.store import StorageFullError, Store, is_disk_full
 
-# Form fields beside the file: a handful of build options, each short.
+# Form fields beside the files: a handful of build options, each short.
 MAX_FIELDS = 16
 MAX_FIELD_BYTES = 64 * 2**10
 # Body bytes handed to the writer thread at once: few thread hops, little memory.
 BATCH_BYTES = 1 * 2**20
-# File names used as they are on disk: letters, digits and a little punctuation,
-# not starting with a dot (the extension check already refuses "." and "..").
+# A lone mesh file's name is kept on disk (the loader's messages name the file
+# by it) if it is this plain: letters, digits and a little punctuation, not
+# starting with a dot; else it is saved under a fixed name. The files of a set
+# must keep their names (they name each other), so they follow io.fileset.plain_name.
 _PLAIN_NAME = re.compile(r"[^\W][\w .+,()\-]*")
+# Where a set's archive and an unpacked zip go inside the upload's folder: names
+# starting with a dot, which no uploaded file may have (plain_name), so they never clash.
+_ARCHIVE = ".set.zip"
+_UNPACKED = ".unpacked"
 
 
 class UnsupportedUpload(MeshError):
@@ -46,28 +60,53 @@ class UnsupportedUpload(MeshError):
 
 @dataclass
 class Upload:
-    """A received upload: the file on local disk (alone in ``folder``), its name
-    and type as the client gave them, and the other form fields."""
+    """A received upload: its files on local disk (alone in ``folder``), as
+    ``(name as the client gave it, path)`` pairs in form order, and the other
+    form fields. ``path``, ``filename`` and ``file_type`` are the first file's."""
 
-    path: Path
     folder: Path
-    filename: str
-    file_type: str
+    files: list[tuple[str, Path]] = field(default_factory=list)
     fields: dict[str, str] = field(default_factory=dict)
+
+    @property
+    def path(self) -> Path:
+        return self.files[0][1]
+
+    @property
+    def filename(self) -> str:
+        return self.files[0][0]
+
+    @property
+    def file_type(self) -> str:
+        return PurePath(self.filename).suffix.lower().lstrip(".")
 
     def discard(self) -> None:
         """Remove the folder and whatever is still in it."""
         shutil.rmtree(self.folder, ignore_errors=True)
 
 
+@dataclass(frozen=True)
+class Source:
+    """What the store keeps for an upload and how to parse it: ``path`` (a mesh
+    file, or a set's archive of :data:`SET_TYPE`) inside ``root``; ``name`` the
+    main file's name as uploaded; ``files`` every file of the set (one for a lone file)."""
+
+    path: Path
+    root: Path
+    name: str
+    file_type: str
+    files: tuple[str, ...]
+
+
 class _FormWriter:
     """The multipart parser's callbacks: fields kept in memory (bounded), the file
-    part written to ``folder``. Fed from a worker thread, one call at a time."""
+    parts written to ``folder``. Fed from a worker thread, one call at a time."""
 
-    def __init__(self, boundary: bytes, folder: Path):
+    def __init__(self, boundary: bytes, folder: Path, limits: FileSetLimits = DEFAULT_SET_LIMITS):
         self.folder = folder
+        self.limits = limits
         self.fields: dict[str, str] = {}
-        self.upload: Upload | None = None
+        self.upload = Upload(folder)
         self.ended = False
         self._headers: dict[bytes, bytes] = {}
         self._header_field = b""
@@ -93,7 +132,7 @@ class _FormWriter:
         self.close()
         if not self.ended:
             raise MeshError("the multipart body ends before its closing boundary")
-        if self.upload is None:
+        if not self.upload.files:
             raise MeshError("the form has no file in the field 'file'")
         self.upload.fields = self.fields
         return self.upload
@@ -106,8 +145,9 @@ class _FormWriter:
     # ---- callbacks ----------------------------------------------------------
     def _part_begin(self):
         self._parts += 1
-        if self._parts > MAX_FIELDS + 1:
-            raise MeshError(f"the form has more than {MAX_FIELDS} fields beside the file")
+        if self._parts > MAX_FIELDS + self.limits.max_files:
+            raise MeshError(f"the form has more than {MAX_FIELDS} fields and "
+                            f"{self.limits.max_files} files")
         self._headers, self._name = {}, None
         self._value.clear()
 
@@ -129,20 +169,25 @@ class _FormWriter:
         if b"filename" not in options:
             return
         if self._name != "file":
-            raise MeshError(f"the form's file must be in the field 'file', not {self._name!r}")
-        if self.upload is not None:
-            raise MeshError("the form holds more than one file in the field 'file'")
-        filename = PurePath(options[b"filename"].decode("utf-8", "replace")
-                            .replace("\\", "/")).name or "upload"
+            raise MeshError(f"the form's files must be in the field 'file', not {self._name!r}")
+        files = self.upload.files
+        if len(files) >= self.limits.max_files:
+            raise MeshError(f"the form holds more than {self.limits.max_files} files")
+        written = options[b"filename"].decode("utf-8", "replace")
+        filename = PurePath(written.replace("\\", "/")).name or "upload"
         file_type = PurePath(filename).suffix.lower().lstrip(".")
-        if file_type not in SUPPORTED_INPUT:
-            raise UnsupportedUpload(f"cannot read {filename!r}: the file name must end in one of "
-                                    f"{', '.join('.' + kind for kind in SUPPORTED_INPUT)}")
-        # the client's name (the loader's messages name the file by it) if it is
-        # a plain one, else a fixed one; alone in a folder of its own either way
-        plain = _PLAIN_NAME.fullmatch(filename) and len(filename.encode()) <= 200
-        path = self.folder / (filename if plain else f"upload.{file_type}")
-        self.upload = Upload(path, self.folder, filename, file_type)
+        if file_type in SUPPORTED_INPUT:
+            # nothing names a mesh file, so an unusual name is replaced (the
+            # client's is kept for messages and the catalogue)
+            plain = _PLAIN_NAME.fullmatch(filename) and len(filename.encode()) <= 200
+            disk_name = filename if plain else f"upload-{len(files)}.{file_type}"
+        else:
+            disk_name = plain_name(filename, self.limits)   # other files name it as it is
+        if any(path.name == disk_name for _, path in files):
+            raise MeshError(f"the form holds two files named {disk_name!r}; file names must "
+                            "differ")
+        path = self.folder / disk_name
+        files.append((filename, path))
         self._file = open(path, "xb")
 
     def _part_data(self, data, start, end):
@@ -167,6 +212,61 @@ class _FormWriter:
         self.ended = True
 
 
+def prepare_source(upload: Upload, *, main: str | None, unpack,
+                   limits: FileSetLimits = DEFAULT_SET_LIMITS) -> Source:
+    """What to parse and store for ``upload``: a lone mesh file as it is, a set as one archive.
+
+    Parameters
+    ----------
+    upload : Upload
+    main : str, optional
+        The form field ``main``: which file of a set is the mesh.
+    unpack : callable
+        ``unpack(zip_path, folder, limits) -> names``, ``io.fileset.unpack_zip``
+        run where a hostile archive can do no harm (a parse worker).
+    limits : FileSetLimits
+
+    Raises
+    ------
+    UnsupportedUpload
+        No file of the upload is a mesh file (415).
+    MeshError
+        A zip sent with other files, a ``main`` that names no mesh file of the
+        set, several mesh files and no ``main``, or a zip breaking the rules
+        of :mod:`lodserver.io.fileset`.
+
+    Blocking (it may copy the set): call it from a thread.
+    """
+    files = upload.files
+    kinds = [PurePath(name).suffix.lower() for name, _ in files]
+    folder, names = upload.folder, [path.name for _, path in files]
+    if ".zip" in kinds:
+        if len(files) > 1:
+            raise MeshError("send either one .zip or the files themselves, not both")
+        folder = upload.folder / _UNPACKED
+        folder.mkdir()
+        names = unpack(upload.path, folder, limits)
+    elif len(files) == 1 and main is None:
+        name, path = files[0]
+        if upload.file_type not in SUPPORTED_INPUT:
+            raise UnsupportedUpload(f"cannot read {name!r}: the file name must end in one of "
+                                    f"{', '.join('.' + kind for kind in SUPPORTED_INPUT)}, "
+                                    "or be a .zip of a mesh and its files")
+        return Source(path, upload.folder, name, upload.file_type, (name,))
+    try:
+        chosen = pick_main(names, main)
+    except NoMeshFile as exc:
+        raise UnsupportedUpload(str(exc)) from None
+    # the name the client gave the main file (a lone file may have been renamed on disk)
+    name = next((client for client, path in files if path.name == chosen),
+                PurePath(chosen).name)
+    if len(files) == 1 and ".zip" not in kinds:
+        return Source(upload.path, upload.folder, name, upload.file_type, (name,))
+    archive = upload.folder / _ARCHIVE
+    pack_set(folder, names, archive, main=chosen)
+    return Source(archive, upload.folder, name, SET_TYPE, tuple(names))
+
+
 def _boundary(content_type: str) -> bytes:
     kind, options = parse_options_header(content_type)
     if kind != b"multipart/form-data":
@@ -178,7 +278,8 @@ def _boundary(content_type: str) -> bytes:
     return boundary
 
 
-async def receive_upload(request: Request, *, limit: int, store: Store) -> Upload:
+async def receive_upload(request: Request, *, limit: int, store: Store,
+                         limits: FileSetLimits = DEFAULT_SET_LIMITS) -> Upload:
     """Stream the multipart body of ``request`` into a new folder of ``store.scratch``.
 
     Parameters
@@ -188,6 +289,8 @@ async def receive_upload(request: Request, *, limit: int, store: Store) -> Uploa
         Largest body accepted, in bytes.
     store : Store
         Where the folder is made (``<data_dir>/tmp/``).
+    limits : FileSetLimits
+        How many files the form may hold, and their names.
 
     Returns
     -------
@@ -199,10 +302,11 @@ async def receive_upload(request: Request, *, limit: int, store: Store) -> Uploa
     LimitError
         The body is larger than ``limit``.
     UnsupportedUpload
-        Not multipart/form-data, or the file's extension is not supported.
+        Not multipart/form-data.
     MeshError
-        The form is malformed, has too many or too long fields, or has no
-        ``file`` field.
+        The form is malformed, has too many or too long fields or too many
+        files, two files of one name, a file name that is not plain (see
+        ``io.fileset.plain_name``), or no ``file`` field.
     StorageFullError
         The disk ran out of space while writing the file.
     """
@@ -212,7 +316,7 @@ async def receive_upload(request: Request, *, limit: int, store: Store) -> Uploa
         raise LimitError(f"the upload is {int(declared)} bytes; this server accepts at most "
                          f"{limit}")
     folder = await anyio.to_thread.run_sync(lambda: store.scratch(prefix="upload-"))
-    writer = _FormWriter(boundary, folder)
+    writer = _FormWriter(boundary, folder, limits)
     try:
         total, batch, batched = 0, [], 0
         async for chunk in request.stream():

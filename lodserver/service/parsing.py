@@ -14,6 +14,8 @@ from __future__ import annotations
 
 import multiprocessing
 import os
+import shutil
+import tempfile
 import threading
 import time
 import traceback
@@ -23,6 +25,7 @@ from contextlib import contextmanager
 from pathlib import Path
 
 from ..io import LoadReport, load_mesh
+from ..io.fileset import DEFAULT_SET_LIMITS, FileSetLimits, open_set
 from ..io.limits import LimitError, LoadLimits
 from ..mesh import Mesh, MeshError
 
@@ -48,20 +51,32 @@ class ParserClosed(ParserBusy):
     """The parse pool was shut down (the server is stopping)."""
 
 
+# The type of a stored set of files (io.fileset): one zip holding the mesh file
+# and what it names, unpacked at parse time.
+SET_TYPE = "zip"
+
+
 def check_mesh_file(path, *, file_type: str, max_triangles: int, root=None,
-                    limits: LoadLimits | None = None) -> tuple[Mesh, LoadReport]:
-    """Load a mesh file and check it against the triangle limit.
+                    limits: LoadLimits | None = None,
+                    set_limits: FileSetLimits | None = None) -> tuple[Mesh, LoadReport]:
+    """Load a mesh file (or a set of files) and check it against the triangle limit.
 
     Parameters
     ----------
-    path : path of the file; file_type : one of ``io.SUPPORTED_INPUT``.
+    path : path of the file; file_type : one of ``io.SUPPORTED_INPUT``, or
+        :data:`SET_TYPE` for a set's archive (``io.fileset.pack_set``).
     max_triangles : int
         Most triangles accepted after cleaning.
     root : path, optional
         The folder every file the mesh names must resolve inside (an upload's
         own folder, holding only it); None: relative to the file, unchecked.
+        A set is unpacked into a new folder inside ``root`` (else beside the
+        archive), which is then the root of its main file's references:
+        they resolve only inside the set. The folder is removed afterwards.
     limits : LoadLimits, optional
         What the file may declare (checked before allocating for it).
+    set_limits : FileSetLimits, optional
+        What a set's archive may hold (default ``FileSetLimits()``).
 
     Returns
     -------
@@ -74,6 +89,14 @@ def check_mesh_file(path, *, file_type: str, max_triangles: int, root=None,
     LimitError
         It has more than ``max_triangles`` triangles.
     """
+    if file_type == SET_TYPE:
+        unpacked = Path(tempfile.mkdtemp(prefix="set-", dir=root or Path(path).parent))
+        try:
+            main = open_set(path, unpacked, set_limits or DEFAULT_SET_LIMITS)
+            return check_mesh_file(main, file_type=main.suffix.lower().lstrip("."),
+                                   max_triangles=max_triangles, root=unpacked, limits=limits)
+        finally:
+            shutil.rmtree(unpacked, ignore_errors=True)
     mesh, report = load_mesh(path, file_type=file_type, root=root, limits=limits)
     if mesh.face_count > max_triangles:
         raise LimitError(f"the mesh has {mesh.face_count} triangles; this server builds at most "

@@ -8,9 +8,12 @@ from fastapi import APIRouter, Query, Response
 from fastapi.concurrency import run_in_threadpool
 from pydantic import ValidationError
 
+from ...io.fileset import load_warnings, unpack_zip
 from ...mesh import MeshError
+from ...service.store import Status
 from ..deps import JobsDep, MeshId, StoreDep, TokenDep, UploadDep
 from ..models import MeshCreate, MeshCreated, MeshList, MeshPublic, Message
+from ..upload import prepare_source
 
 router = APIRouter(prefix="/meshes", tags=["meshes"])
 
@@ -19,8 +22,13 @@ _UPLOAD_BODY = {
     "content": {"multipart/form-data": {"schema": {
         "type": "object", "required": ["file"],
         "properties": {
-            "file": {"type": "string", "format": "binary",
-                     "description": "OBJ, PLY, STL, OFF, glTF (self-contained) or GLB file."},
+            "file": {"type": "array", "items": {"type": "string", "format": "binary"},
+                     "description": "One mesh file (OBJ, PLY, STL, OFF, glTF or GLB); or "
+                     "a mesh file and the files it names (an OBJ's .mtl and textures, a "
+                     ".gltf's .bin and images), one part each; or one .zip of them. "
+                     "References resolve only inside the upload."},
+            "main": {"type": "string", "description": "Which file of a set is the mesh to "
+                     "build, when it holds more than one mesh file."},
             **{name: {k: v for k, v in field.items() if k != "title"}
                for name, field in MeshCreate.model_json_schema()["properties"].items()},
         }}}},
@@ -28,42 +36,66 @@ _UPLOAD_BODY = {
 _ERRORS = {code: {"model": Message} for code in (401, 404, 409, 413, 415, 422, 503, 507)}
 
 
+def _unpack_in(parser):
+    """``io.fileset.unpack_zip`` in a parse worker (a hostile archive's memory and
+    time are the worker's), or here when the server parses in-process."""
+    if parser is None:
+        return unpack_zip
+    return lambda archive, folder, limits: parser.call(unpack_zip, str(archive), str(folder),
+                                                        limits)
+
+
 @router.post("", status_code=202, response_model=MeshCreated,
              openapi_extra={"requestBody": _UPLOAD_BODY},
              responses={code: _ERRORS[code] for code in (401, 413, 415, 422, 503, 507)})
 async def create_mesh(upload: UploadDep, jobs: JobsDep, response: Response) -> MeshCreated:
-    """Upload a mesh; its progressive mesh is built in the background (poll the href).
+    """Upload a mesh (or a set of files, or a zip); its progressive mesh is built in
+    the background (poll the href).
 
     The file is parsed and checked before the answer (a parse worker process,
     a few at a time): 503 with Retry-After when that queue is full, 507 when
-    the server has no disk space for it.
+    the server has no disk space for it. ``warnings`` says what the load left
+    out (a material library named but not uploaded, data not kept).
     """
+    fields = dict(upload.fields)
+    main = fields.pop("main", None)
     try:
-        form = MeshCreate.model_validate(upload.fields)
+        form = MeshCreate.model_validate(fields)
     except ValidationError as exc:
         raise MeshError("; ".join(f"form field {'.'.join(map(str, e['loc']))!r}: {e['msg']}"
                                   for e in exc.errors())) from None
-    # a thread waits for the parse worker (and the store's rename and row)
-    record = await run_in_threadpool(jobs.accept, source=upload.path, root=upload.folder,
-                                     name=form.name or upload.filename,
-                                     file_type=upload.file_type, options=form.build_options())
+    # threads: a set is copied into one archive, a zip unpacked in a parse worker,
+    # and the parse worker waited for (with the store's rename and row)
+    source = await run_in_threadpool(prepare_source, upload, main=main,
+                                     unpack=_unpack_in(jobs.parser))
+    record, report = await run_in_threadpool(
+        jobs.accept, source=source.path, root=source.root, name=form.name or source.name,
+        file_type=source.file_type, options=form.build_options(), with_report=True)
     href = f"/meshes/{record.id}"
     response.headers["Location"] = href
-    return MeshCreated(id=record.id, status=record.status, href=href)
+    return MeshCreated(id=record.id, status=record.status, href=href, main=source.name,
+                       files=list(source.files), warnings=load_warnings(report.as_dict()))
+
+
+def _public(store, record) -> MeshPublic:
+    """The record as clients see it, with its place in the build queue."""
+    public = MeshPublic.from_record(record)
+    if record.status is Status.QUEUED:
+        public.queue_position = store.queue_position(mesh_id=record.id)
+    return public
 
 
 @router.get("", response_model=MeshList)
 def list_meshes(store: StoreDep, limit: Annotated[int, Query(ge=1, le=1000)] = 100,
                 offset: Annotated[int, Query(ge=0, le=2**31)] = 0) -> MeshList:
     """Meshes, newest first."""
-    return MeshList(meshes=[MeshPublic.from_record(r)
-                            for r in store.list(limit=limit, offset=offset)])
+    return MeshList(meshes=[_public(store, r) for r in store.list(limit=limit, offset=offset)])
 
 
 @router.get("/{mesh_id}", response_model=MeshPublic, responses={404: _ERRORS[404]})
 def get_mesh(mesh_id: MeshId, store: StoreDep) -> MeshPublic:
     """Status, build progress, counts and error curve of one mesh."""
-    return MeshPublic.from_record(store.get(mesh_id=mesh_id))
+    return _public(store, store.get(mesh_id=mesh_id))
 
 
 @router.delete("/{mesh_id}", status_code=204, response_class=Response,
