@@ -28,6 +28,7 @@ function applyCollapses(start, stop, readers) {
     if (!(s >= 0 && s < t)) {
       throw new PacketError(`collapse of ${t} names vertex ${s}, which is not below it`);
     }
+    this.parent[t] = s;
     const removed = count.varint();
     if (removed > this.faceCount) {
       throw new PacketError(`collapse of ${t} removes more faces than the state holds`);

@@ -97,6 +97,10 @@ export class LodState {
     this.vertexCount = 0;
     this.faceCount = 0;
     this.head = new Int32Array(vertexCapacity).fill(NONE); // a corner of each vertex
+    // The vertex each vertex t was split from (its parent s, the same in both
+    // directions), once a split or a collapse of t named it: what geomorphs
+    // glide a new vertex out of, and a vanishing one into.
+    this.parent = new Int32Array(vertexCapacity).fill(NONE);
     this.next = new Int32Array(3 * faceCapacity);          // next corner of the same vertex
     // Scratch for one record (fans.js): corners of a vertex with their next and prev vertices.
     this.aroundCorners = new Int32Array(64);

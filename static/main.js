@@ -2,10 +2,14 @@
 // Each part (scene, stream, ui, plot) listens to and emits named signals
 // instead of reaching into the others.
 
+import { firstLevel, guessUpAxis } from './framing.js';
+import { createGeomorph } from './geomorph.js';
 import { createErrorPlot } from './plot.js';
 import { createScene } from './scene.js';
 import { createStream } from './stream.js';
+import { createTools, readUrl, storedUp } from './tools.js';
 import { createUi } from './ui.js';
+import { createUpload } from './upload.js';
 
 const settings = {
   chunkSplits: 4096,          // records per packet request: detail arrives in steps this big
@@ -13,6 +17,12 @@ const settings = {
   autoByDistance: false,      // choose the level from the camera distance ...
   errorBudgetPx: 1,           // ... so that the error covers at most this many CSS pixels
   shading: 'smooth',          // 'smooth' (vertex normals) or 'flat' (face normals)
+  wireframe: false,
+  up: 'Y',                    // the up axis: 'Y' or 'Z' (per mesh: tools.js, framing.js)
+  // The first level is fetched whole, as JSON: about 50 bytes a vertex (120
+  // with attributes) against 8-12 in packets, so a view that wants more than
+  // this many vertices at first gets this many, and packets refine it.
+  firstLevelMaxVertices: 4096,
   fov: 40,                    // vertical field of view, degrees
   background: 0x1d2026,
 };
@@ -74,15 +84,46 @@ async function hashLevel(state) {
 
 const viewer = createViewer();
 const stream = createStream(viewer);
+const panel = document.getElementById('panel');
 let scene = null;
 try {
-  scene = createScene(viewer, document.getElementById('viewport'));
+  scene = createScene(viewer, document.getElementById('viewport'), panel);
+  stream.attachGeomorph(createGeomorph(viewer, scene));   // after the scene: it draws over it
 } catch (error) {
   document.getElementById('viewport').textContent = `cannot draw: ${error.message}`;
 }
 createErrorPlot(viewer, document.getElementById('plot'));
 followDistance(viewer);
-createUi(viewer, document.getElementById('panel'));
+
+// The view the page was opened with (?level=&camera=&auto=), for its first mesh.
+let linked = readUrl();
+if (linked.auto !== null) settings.autoByDistance = linked.auto;
+
+// The level to fetch first, as the stream opens a mesh (summary: GET /meshes/{id}):
+// the coarsest whose error covers at most the pixel budget at the initial
+// framing (the auto mode's rule), so the first frame is no shard of the base;
+// a level the URL names, if coarser; at most firstLevelMaxVertices. The up axis is chosen here too, before
+// the framing: the one kept for this mesh, else a guess from its box.
+function chooseFirstLevel(summary) {
+  settings.up = storedUp(summary.id) ?? guessUpAxis(summary);
+  const view = scene ? scene.view() : { fov: settings.fov, width: innerWidth, height: innerHeight };
+  let level = firstLevel(summary, { ...view, up: settings.up }, settings.errorBudgetPx);
+  const wanted = linked.mesh === summary.id ? linked : null;
+  // the stream then refines to initialRatio of the vertices: the URL's level instead
+  settings.initialRatio = wanted?.level ? Math.min(1, wanted.level / summary.vertices) : 1;
+  if (wanted?.level) level = Math.min(level, wanted.level);
+  return Math.min(level, settings.firstLevelMaxVertices);   // the stream keeps it >= the base
+}
+
+createUi(viewer, panel, { firstLevel: chooseFirstLevel });
+createTools(viewer, panel);
+createUpload(viewer, { panel, viewport: document.getElementById('viewport'),
+                       note: document.getElementById('view-note') });
+// the camera the URL names is the first mesh's, set once it is framed
+viewer.on('mesh', ({ info }) => {
+  if (linked.camera && linked.mesh === info.id) viewer.emit('camera-set', linked.camera);
+  linked = { mesh: null, level: null, camera: null, auto: null };
+});
 
 // A small debug API for tests and benchmarks.
 window.lodViewer = {
@@ -91,13 +132,18 @@ window.lodViewer = {
     const state = stream.state;
     return { mesh: stream.info?.id ?? null, level: state?.level ?? null,
              faces: state?.faceCount ?? null, target: stream.target, bytes: stream.bytes,
+             textureBytes: scene?.textureBytes ?? 0, up: settings.up,
              busy: stream.busy, error: stream.failed?.message ?? null };
   },
   // Resolves once the level reached its target and the frame showing it is drawn.
   async settled() {
     await stream.settled();
+    await scene?.texturesReady();
     await scene?.rendered();
     return this.status();
   },
   hash: () => hashLevel(stream.state),
+  // for tests: the scene's three.js objects and a pixel read-back
+  scene,
+  firstLevel,
 };

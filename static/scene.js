@@ -1,5 +1,7 @@
 // The three.js scene: one mesh drawn from the decoder's arrays, rendered on
-// demand (when the camera, the level or a setting changes; nothing animates).
+// demand (when the camera, the level, a texture or a setting changes; nothing
+// animates), lit by an image-based environment and a headlight, tone-mapped
+// (materials.js), framed by framing.js.
 //
 // The buffers are allocated at full detail once per mesh. A level is a prefix
 // of the vertices and of the faces (the prefix layout), so showing one is a
@@ -12,123 +14,135 @@
 // hard edge has a vertex per side): its position is its vertex's, its normal,
 // UVs and colour its own, and the index buffer is the decoder's wedge-per-corner
 // array. Normals come from the stream when it has them, else they are computed
-// per vertex and shared by the vertex's wedges. Materials come from the mesh's
-// /materials (glTF records: base colour, its texture, metalness, roughness,
-// alpha); faces are drawn in one group per material, each group a prefix of a
-// range of the index buffer (a level's faces of one material are a prefix of
-// that material's faces, in slot order).
+// per vertex and shared by the vertex's wedges. Faces are drawn in one group
+// per material, each group a prefix of a range of the index buffer (a level's
+// faces of one material are a prefix of that material's faces, in slot order).
 //
-// Signals in: 'mesh', 'level', 'settings'. Out: 'view' (pixels per mesh unit
-// at the mesh's nearest point, for choosing a level by distance).
+// Signals in: 'mesh', 'level', 'settings', 'reset-view', 'camera-set'.
+// Out: 'view' (pixels per mesh unit at the mesh's nearest point, for choosing
+// a level by distance), 'camera' ({ position, target }, after the user moves
+// it), 'frame' ({ ms, calls, triangles } after each draw), 'textures' (bytes).
 
 import * as THREE from 'three';
 import { OrbitControls } from 'three/addons/controls/OrbitControls.js';
 import { dequantize } from './vsplit.js';
+import { configureRenderer, createEnvironment, defaultMaterial, LOOK, makeMaterial,
+         TextureSet } from './materials.js';
+import { fitBox, freeArea, pixelsPerUnit } from './framing.js';
 
-// glTF sampler codes -> three.js constants.
-const WRAP = { 33071: THREE.ClampToEdgeWrapping, 33648: THREE.MirroredRepeatWrapping,
-               10497: THREE.RepeatWrapping };
-const FILTER = { 9728: THREE.NearestFilter, 9729: THREE.LinearFilter,
-                 9984: THREE.NearestMipmapNearestFilter, 9985: THREE.LinearMipmapNearestFilter,
-                 9986: THREE.NearestMipmapLinearFilter, 9987: THREE.LinearMipmapLinearFilter };
 // three.js attribute names of glTF's.
-const ATTRIBUTE_NAMES = { NORMAL: 'normal', TEXCOORD_0: 'uv', TEXCOORD_1: 'uv1', COLOR_0: 'color' };
+const ATTRIBUTE_NAMES = { NORMAL: 'normal', TANGENT: 'tangent', TEXCOORD_0: 'uv',
+                          TEXCOORD_1: 'uv1', COLOR_0: 'color' };
 
-// The three.js material of a glTF material record (metallic-roughness; textures:
-// base colour only), its texture loaded from the record's image uri.
-function makeMaterial(record, document, baseUrl, loadTexture, hasColors) {
-  const pbr = record.pbrMetallicRoughness || {};
-  const [r, g, b, a] = pbr.baseColorFactor || [1, 1, 1, 1];
-  const material = new THREE.MeshStandardMaterial({
-    color: new THREE.Color().setRGB(r, g, b, THREE.LinearSRGBColorSpace),
-    metalness: pbr.metallicFactor ?? 1, roughness: pbr.roughnessFactor ?? 1,
-    side: THREE.DoubleSide, vertexColors: hasColors, name: record.name || '' });
-  if (record.alphaMode === 'BLEND') {
-    material.transparent = true;
-    material.opacity = a;
-    material.depthWrite = false;
-  } else if (record.alphaMode === 'MASK') {
-    material.alphaTest = record.alphaCutoff ?? 0.5;
-  }
-  const reference = pbr.baseColorTexture;
-  const texture = reference && document.textures?.[reference.index];
-  const image = texture && document.images?.[texture.source];
-  if (image?.uri) {
-    const map = loadTexture(new URL(image.uri, baseUrl).href);
-    map.flipY = false;                 // glTF UVs: origin at the top left
-    map.colorSpace = THREE.SRGBColorSpace;
-    const sampler = document.samplers?.[texture.sampler] || {};
-    map.wrapS = WRAP[sampler.wrapS] ?? THREE.RepeatWrapping;
-    map.wrapT = WRAP[sampler.wrapT] ?? THREE.RepeatWrapping;
-    map.magFilter = FILTER[sampler.magFilter] ?? THREE.LinearFilter;
-    map.minFilter = FILTER[sampler.minFilter] ?? THREE.LinearMipmapLinearFilter;
-    map.channel = reference.texCoord === 1 ? 1 : 0;
-    material.map = map;
-  }
-  return material;
-}
-
-export function createScene(viewer, container) {
+// panel: the element whose box the framing keeps the mesh clear of (or null).
+export function createScene(viewer, container, panel = null) {
   const { settings } = viewer;
   const renderer = new THREE.WebGLRenderer({ antialias: true });
   renderer.setPixelRatio(window.devicePixelRatio);
   renderer.setClearColor(settings.background);
+  configureRenderer(renderer);
   container.append(renderer.domElement);
 
   const scene = new THREE.Scene();
+  scene.environment = createEnvironment(renderer);
+  scene.environmentIntensity = LOOK.environmentIntensity;
   const camera = new THREE.PerspectiveCamera(settings.fov, 1, 0.01, 100);
-  // A light that follows the camera keeps the side facing the viewer lit.
-  const headlight = new THREE.DirectionalLight(0xffffff, 2.2);
+  // A light that follows the camera keeps the side facing the viewer lit; the
+  // environment does the rest (and is what metal reflects).
+  const headlight = new THREE.DirectionalLight(0xffffff, LOOK.headlight);
   headlight.position.set(0.4, 0.6, 0);
   headlight.target.position.set(0, 0, -1);
   camera.add(headlight, headlight.target);
-  scene.add(camera, new THREE.HemisphereLight(0xf0f4ff, 0x40382c, 0.9));
-  const controls = new OrbitControls(camera, renderer.domElement);
+  scene.add(camera);
+  let controls = makeControls(), controlsUp = 'Y';
 
-  // Open meshes (scans) show their inside through holes: light both sides.
-  const material = new THREE.MeshStandardMaterial({ color: 0xd9cfbf, roughness: 0.75,
-                                                    side: THREE.DoubleSide });
-  const textureLoader = new THREE.TextureLoader();
-  let mesh = null, state = null;
-  let materials = [material];     // per draw group: the mesh's materials, then the default
+  const fallback = defaultMaterial();
+  let mesh = null, state = null, info = null, textures = null;
+  let materials = [fallback];     // per draw group: the mesh's materials, then the default
   let groups = null;              // per-material index ranges, when there are several
   let vertexNormals = null;       // computed normals per vertex (wedge meshes without NORMAL)
-  let bounds = null;          // { center (world), radius }
-  let userMoved = false;      // until the user moves the camera, the view follows the mesh
-  let frame = null;           // the pending animation frame's promise
+  let bounds = null;              // { center (world, THREE.Vector3), radius }
+  let userMoved = false;          // until the user moves the camera, the view follows the mesh
+  let frame = null;               // the pending animation frame's promise
+
+  function makeControls() {
+    // OrbitControls fixes its up axis when made: a new one per up axis
+    const made = new OrbitControls(camera, renderer.domElement);
+    made.addEventListener('start', () => { userMoved = true; });
+    made.addEventListener('change', () => {
+      emitView();
+      render();
+      if (userMoved) viewer.emit('camera', cameraState());
+    });
+    return made;
+  }
+
+  function draw() {
+    const started = performance.now();
+    renderer.render(scene, camera);
+    const { calls, triangles } = renderer.info.render;
+    viewer.emit('frame', { ms: performance.now() - started, calls, triangles });
+  }
 
   function render() {
     if (!frame) {
       frame = new Promise((resolve) => requestAnimationFrame(() => {
         frame = null;
-        renderer.render(scene, camera);
+        draw();
         resolve();
       }));
     }
     return frame;
   }
 
+  // The free part of the canvas, and the camera's principal point moved to its
+  // centre (setViewOffset), so the mesh is centred where the panel is not.
+  function viewOffset() {
+    const { clientWidth: width, clientHeight: height } = container;
+    const box = panel?.getBoundingClientRect();
+    const canvasBox = container.getBoundingClientRect();
+    const rect = box && { left: box.left - canvasBox.left, top: box.top - canvasBox.top,
+                          right: box.right - canvasBox.left, width: box.width, height: box.height };
+    const free = freeArea(width, height, rect);
+    const shiftX = free.x + free.width / 2 - width / 2, shiftY = free.y + free.height / 2 - height / 2;
+    if (width > 0 && height > 0) camera.setViewOffset(width, height, -shiftX, -shiftY, width, height);
+    return { width, height, free };
+  }
+
+  // After the window or the panel changed size. The panel's height changes
+  // with its text (stats, status) while streaming: only a change of the space
+  // it leaves free, or of the canvas, is any work.
+  let lastLayout = '';
   function resize() {
     const { clientWidth: width, clientHeight: height } = container;
-    renderer.setSize(width, height);
+    const sized = renderer.getSize(new THREE.Vector2());
+    if (sized.x !== width || sized.y !== height) renderer.setSize(width, height);
     camera.aspect = width / Math.max(1, height);
+    const { free } = viewOffset();
+    const layout = JSON.stringify([width, height, free]);
+    if (layout === lastLayout) return;
+    lastLayout = layout;
     camera.updateProjectionMatrix();
+    if (mesh && !userMoved) frameMesh();
     emitView();
     render();
   }
 
-  // How many CSS pixels one mesh unit covers at the mesh's nearest point.
   function emitView() {
     if (!bounds) return;
-    const distance = Math.max(camera.position.distanceTo(bounds.center) - bounds.radius,
-                              camera.near);
-    const height = renderer.domElement.clientHeight;
-    const halfFov = THREE.MathUtils.degToRad(camera.fov) / 2;
-    viewer.emit('view', height / (2 * Math.tan(halfFov) * distance));
+    const distance = camera.position.distanceTo(bounds.center);
+    viewer.emit('view', pixelsPerUnit(distance, bounds.radius,
+      { fov: camera.fov, height: renderer.domElement.clientHeight, near: camera.near }));
   }
 
-  // Looks at the box of the current level from the front, a little above and right.
-  function frameLevel() {
+  function cameraState() {
+    return { position: camera.position.toArray(), target: controls.target.toArray() };
+  }
+
+  // The box to frame: the mesh's full-detail box from its summary, else the
+  // current level's (the level's grid coordinates, in world units).
+  function boxToFrame() {
+    if (info?.bounds) return info.bounds;
     const { positions, vertexCount } = state;
     const lo = [Infinity, Infinity, Infinity], hi = [-Infinity, -Infinity, -Infinity];
     for (let i = 0; i < 3 * vertexCount; i++) {
@@ -137,31 +151,42 @@ export function createScene(viewer, container) {
       if (positions[i] > hi[k]) hi[k] = positions[i];
     }
     const { origin, step } = state.grid;
-    const center = new THREE.Vector3(...lo.map((q, k) => origin[k] + step * (q + hi[k]) / 2));
-    const radius = Math.max(step, step * Math.hypot(...hi.map((q, k) => q - lo[k])) / 2);
-    bounds = { center, radius };
-    const distance = 1.15 * radius / Math.sin(THREE.MathUtils.degToRad(camera.fov) / 2);
-    const direction = new THREE.Vector3(0.35, 0.25, 1).normalize();
-    camera.position.copy(center).addScaledVector(direction, distance);
-    camera.near = radius / 100;
-    camera.far = radius * 100;
+    return { min: lo.map((q, k) => origin[k] + step * q), max: hi.map((q, k) => origin[k] + step * q) };
+  }
+
+  // Fits the box into the free part of the view, from the front of the up axis.
+  function frameMesh() {
+    const { width, height, free } = viewOffset();
+    const fit = fitBox(boxToFrame(), { fov: camera.fov, width, height, free, up: settings.up });
+    bounds = { center: new THREE.Vector3(...fit.target), radius: fit.radius };
+    if (controlsUp !== settings.up) {
+      camera.up.set(...fit.up);
+      controls.dispose();
+      controls = makeControls();
+      controlsUp = settings.up;
+    }
+    camera.position.set(...fit.position);
+    camera.near = fit.near;
+    camera.far = fit.far;
     camera.updateProjectionMatrix();
-    controls.maxDistance = radius * 50;   // well inside the far plane
-    controls.target.copy(center);
+    controls.maxDistance = fit.radius * 50;   // well inside the far plane
+    controls.target.copy(bounds.center);
     controls.update();
   }
 
-  function showMesh({ state: opened, appearance }) {
-    if (mesh) {
-      scene.remove(mesh);
-      mesh.geometry.dispose();
-      for (const old of materials) {
-        if (old === material) continue;
-        old.map?.dispose();
-        old.dispose();
-      }
-    }
+  function disposeMesh() {
+    if (!mesh) return;
+    scene.remove(mesh);
+    mesh.geometry.dispose();
+    for (const old of materials) if (old !== fallback) old.dispose();
+    textures?.dispose();
+    textures = null;
+  }
+
+  function showMesh({ state: opened, appearance, info: summary }) {
+    disposeMesh();
     state = opened;
+    info = summary || null;
     const geometry = new THREE.BufferGeometry();
     const dynamic = (array, size) => new THREE.BufferAttribute(array, size)
       .setUsage(THREE.DynamicDrawUsage);
@@ -170,28 +195,31 @@ export function createScene(viewer, container) {
     geometry.setAttribute('position', dynamic(new Float32Array(3 * capacity), 3));
     geometry.setAttribute('normal', dynamic(new Float32Array(3 * capacity), 3));
     for (const a of state.attributes) {
-      if (a.name === 'NORMAL') continue;
+      if (a.name === 'NORMAL' || !ATTRIBUTE_NAMES[a.name]) continue;
       geometry.setAttribute(ATTRIBUTE_NAMES[a.name],
                             dynamic(new Float32Array(a.width * capacity), a.width));
     }
     vertexNormals = wedged && !state.attributes.some((a) => a.name === 'NORMAL')
       ? new Float32Array(3 * state.vertexCapacity) : null;
-    materials = [material];
+    materials = [fallback];
     groups = null;
-    let drawn = material;
+    let drawn = fallback;
     if (appearance?.materials) {
       const { document, url } = appearance.materials;
-      const hasColors = state.attributes.some((a) => a.name === 'COLOR_0');
-      const loadTexture = (href) => textureLoader.load(href, () => render());
-      materials = [...document.materials.map(
-        (record) => makeMaterial(record, document, url, loadTexture, hasColors)), material];
+      textures = new TextureSet(document, url, () => {
+        viewer.emit('textures', textures?.textureBytes ?? 0);
+        render();
+      });
+      const has = (name) => state.attributes.some((a) => a.name === name);
+      const options = { textures, vertexColors: has('COLOR_0'), tangents: has('TANGENT') };
+      materials = [...document.materials.map((record) => makeMaterial(record, options)), fallback];
       // one group per material that has faces (the last: faces without a material)
       const counts = appearance.materialFaces || [];
       const used = counts.map((n, g) => (n > 0 ? g : -1)).filter((g) => g >= 0);
       if (used.length === 1) drawn = materials[used[0]];
       else if (used.length > 1) groups = makeGroups(counts);
     }
-    for (const each of materials) each.flatShading = settings.shading === 'flat';
+    applyLook();
     const index = groups ? groups.index : wedged ? state.corners : state.faces;
     geometry.setIndex(dynamic(index, 1));
     mesh = new THREE.Mesh(geometry, groups ? materials : drawn);
@@ -201,6 +229,7 @@ export function createScene(viewer, container) {
     scene.add(mesh);
     userMoved = false;
     bounds = null;
+    if (info?.bounds) frameMesh();
   }
 
   // Index ranges per material: material g's faces in slot order fill
@@ -261,13 +290,14 @@ export function createScene(viewer, container) {
         if (w > high) high = w;
       }
     }
-    const buffers = state.attributes.map((a) => geometry.getAttribute(ATTRIBUTE_NAMES[a.name]));
+    const streamed = state.attributes.filter((a) => ATTRIBUTE_NAMES[a.name]);
+    const buffers = streamed.map((a) => geometry.getAttribute(ATTRIBUTE_NAMES[a.name]));
     for (const w of dirty.wedges) {
       const v = wedgeVertex[w];
       p[3 * w] = positions[3 * v] * step;
       p[3 * w + 1] = positions[3 * v + 1] * step;
       p[3 * w + 2] = positions[3 * v + 2] * step;
-      state.attributes.forEach((a, i) => {
+      streamed.forEach((a, i) => {
         dequantize(a, wedges, components * w + a.offset, buffers[i].array, a.width * w);
       });
       if (w < low) low = w;
@@ -276,7 +306,7 @@ export function createScene(viewer, container) {
     if (high >= low) {
       position.addUpdateRange(3 * low, 3 * (high - low + 1));
       position.needsUpdate = true;
-      state.attributes.forEach((a, i) => {
+      streamed.forEach((a, i) => {
         buffers[i].addUpdateRange(a.width * low, a.width * (high - low + 1));
         buffers[i].needsUpdate = true;
       });
@@ -289,17 +319,8 @@ export function createScene(viewer, container) {
     }
   }
 
-  function showLevel({ dirty }) {
+  function showVertices(dirty) {
     const { geometry } = mesh;
-    if (state.attributes.length) {
-      showWedges(dirty);
-      if (vertexNormals && settings.shading === 'smooth') updateNormals();
-      geometry.setDrawRange(0, groups ? Infinity : 3 * state.faceCount);
-      if (!bounds || (!userMoved && !settings.autoByDistance)) frameLevel();
-      emitView();
-      render();
-      return;
-    }
     const position = geometry.getAttribute('position');
     const { vertexStart, vertexEnd, cornerStart, cornerEnd } = dirty;
     if (groups) updateGroups(dirty);
@@ -315,10 +336,17 @@ export function createScene(viewer, container) {
       geometry.index.addUpdateRange(cornerStart, cornerEnd - cornerStart);
       geometry.index.needsUpdate = true;
     }
+  }
+
+  function showLevel({ dirty }) {
+    if (!mesh) return;
+    if (state.attributes.length) showWedges(dirty);
+    else showVertices(dirty);
     if (settings.shading === 'smooth') updateNormals();
-    geometry.setDrawRange(0, groups ? Infinity : 3 * state.faceCount);
-    // In auto mode the camera distance picks the level: framing each level would feed back.
-    if (!bounds || (!userMoved && !settings.autoByDistance)) frameLevel();
+    mesh.geometry.setDrawRange(0, groups ? Infinity : 3 * state.faceCount);
+    // Without the mesh's box the view follows the level's, until the user moves
+    // it; in auto mode the camera distance picks the level: framing would feed back.
+    if (!bounds || (!info?.bounds && !userMoved && !settings.autoByDistance)) frameMesh();
     emitView();
     render();
   }
@@ -361,32 +389,72 @@ export function createScene(viewer, container) {
     normal.needsUpdate = true;
   }
 
+  // Shading and wireframe on every material of the mesh.
+  function applyLook() {
+    for (const each of materials) {
+      each.flatShading = settings.shading === 'flat';
+      each.wireframe = settings.wireframe;
+      each.needsUpdate = true;
+    }
+  }
+
   function applySettings(key) {
-    if (key === 'shading' && mesh) {
-      for (const each of materials) {
-        each.flatShading = settings.shading === 'flat';
-        each.needsUpdate = true;
-      }
-      if (!material.flatShading) updateNormals();
+    if ((key === 'shading' || key === 'wireframe') && mesh) {
+      applyLook();
+      if (settings.shading === 'smooth') updateNormals();
+      render();
+    } else if (key === 'up' && mesh) {
+      userMoved = false;
+      frameMesh();
+      emitView();
       render();
     }
   }
 
-  controls.addEventListener('start', () => { userMoved = true; });
-  controls.addEventListener('change', () => {
-    emitView();
-    render();
-  });
   window.addEventListener('resize', resize);
+  if (panel && window.ResizeObserver) new ResizeObserver(() => resize()).observe(panel);
   viewer.on('mesh', showMesh);
   viewer.on('level', showLevel);
   viewer.on('settings', applySettings);
-  material.flatShading = settings.shading === 'flat';
+  viewer.on('reset-view', () => {
+    if (!mesh) return;
+    userMoved = false;
+    frameMesh();
+    emitView();
+    render();
+  });
+  viewer.on('camera-set', ({ position, target }) => {
+    if (!mesh) return;
+    userMoved = true;
+    camera.position.fromArray(position);
+    controls.target.fromArray(target);
+    controls.update();
+    emitView();
+    render();
+  });
   resize();
 
   return {
     canvas: renderer.domElement,
+    // What framing.js needs to frame a box here: { fov, width, height, free, up }.
+    view: () => ({ fov: camera.fov, ...viewOffset(), up: settings.up }),
     // Resolves after the next frame is drawn.
     rendered: render,
+    // Resolves once every texture asked for so far has arrived.
+    texturesReady: () => textures?.ready ?? Promise.resolve(),
+    get textureBytes() { return textures?.textureBytes ?? 0; },
+    // For tests: the three.js objects, and the canvas pixels drawn now
+    // (RGBA, bottom row first; read in the same task as the draw, so the
+    // drawing buffer still holds them).
+    three: { THREE, renderer, scene, camera, get mesh() { return mesh; },
+             get materials() { return materials; } },
+    pixels() {
+      draw();
+      const gl = renderer.getContext();
+      const { drawingBufferWidth: width, drawingBufferHeight: height } = gl;
+      const out = new Uint8Array(4 * width * height);
+      gl.readPixels(0, 0, width, height, gl.RGBA, gl.UNSIGNED_BYTE, out);
+      return { width, height, data: out };
+    },
   };
 }

@@ -29,6 +29,7 @@ function applySplits(start, stop, readers) {
   for (let t = start; t < stop; t++) {
     const s = t - 1 - vertex.varint();
     if (s < 0) throw new PacketError(`split ${t} names a vertex below 0`);
+    this.parent[t] = s;
     // held(s) and neighbours(s) are taken before the record changes anything.
     this.gatherCorners(s);
     const k = count.varint();

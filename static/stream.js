@@ -1,38 +1,139 @@
-// Fetching a mesh: its summary, its base level (and its materials, if any),
-// then packets between levels.
+// Fetching a mesh: its summary, a first level (the base unless the opener
+// names another), its materials if any, then packets between levels.
 //
 // The client never refetches a level: it holds one LodState and moves it to
 // the target level packet by packet, forward (splits) or backward (collapses).
-// Packets are cut at multiples of settings.chunkSplits, so the detail arrives
-// in steps the viewer can show, and moving back and forth asks for the same
-// packets again, which the browser cache answers (the server marks them
-// immutable).
 //
-// Signals out: 'mesh' (a new mesh is shown), 'level' (the state moved),
-// 'target' (the level being moved to), 'status' (text for the user).
-// Signals in: 'open' (a mesh id), 'goto' (a level).
+// Fast streaming (issue 13):
+// * Pipelined: up to settings.packetsAhead packets are requested ahead along
+//   the way to the target, each fetched and inflated as it arrives, and
+//   applied strictly in order. A packet that no longer leads to the target
+//   (the target moved back) is aborted.
+// * Adaptive packets: a packet is `size` records, cut at multiples of `size`
+//   (so moving back and forth asks for the same packets again, which the
+//   browser cache answers: the server marks them immutable). `size` starts at
+//   settings.chunkSplits; after each packet it is set to the largest size
+//   that both decodes+applies within settings.frameBudgetMs (or half a drawn
+//   frame's cost, when that is longer) at the rate lately measured, and crosses the link within settings.packetPaceMs (latency plus
+//   bytes over the bandwidth, both from the packet's Resource Timing entry,
+//   which main-thread stalls do not distort), growing at most 4x a packet.
+//   Sizes are powers of two times chunkSplits (up to MAX_SPLITS), so the cuts
+//   of every size line up.
+// * At most one 'level' signal per animation frame: packets applied between
+//   two reports are reported together (their dirty ranges merged by the
+//   state), so the scene updates its buffers and draws once. Reports are also
+//   spaced by settings.reportGap times what a frame costs the main thread
+//   (measured: from the frame's first callback to a task posted from it). Under software GL (headless Chromium) a frame blocks the main
+//   thread for 100-500 ms (the canvas is read back for the compositor), so
+//   drawing every packet's level would leave the decoder a fraction of the
+//   time; spaced, at least reportGap / (reportGap + 1) of it goes to
+//   streaming. The work between two yields is cut at frameBudgetMs. No
+//   packet is applied between a report and the frame drawing it: three.js
+//   uploads the reported ranges at the draw, from the arrays the decoder
+//   changes, so a packet applied meanwhile would show half-uploaded.
+// * Retries: a failed request (network error, 408, 429, 5xx, a body cut
+//   short) is retried with exponential backoff (RETRY_BASE_MS doubling, up to
+//   RETRY_MAX_MS, settings.retries times), the status saying so. When the
+//   retries run out the stream stalls with the error shown, and the next
+//   'goto' (any move of the level) tries again. A packet the server refuses
+//   (another 4xx) or that does not decode stops the mesh: reopen it.
+// * Geomorphs: with a geomorph attached (attachGeomorph, see geomorph.js),
+//   a collapse batch is applied to the state first, then the vanishing
+//   vertices glide into their parents on screen, and only then is the level
+//   reported (the scene drops their faces); splits are reported at once and
+//   the geomorph glides the new vertices out of their parents.
+//
+// Signals out: 'mesh' (a new mesh is shown), 'level' (the state moved: { state, bytes,
+// records, applyMs, morph (glide it: geomorph.js), dirty }),
+// 'target' (the level being moved to), 'status' (text for the user),
+// 'stream' (the stream's state: { state: 'moving'|'retrying'|'stalled'|'idle'|'failed', ... }).
+// Signals in: 'open' (a mesh id, or { id, level }: see open()), 'goto' (a level).
 
 import { ErrorCurve } from './curve.js';
-import { LodState } from './vsplit.js';
+import { LodState, PacketError } from './vsplit.js';
 
 const POLL_MS = 500;
+const MAX_SPLITS = 1 << 18;        // the largest packet asked for (records)
+const RETRY_BASE_MS = 250;
+const RETRY_MAX_MS = 8000;
+// Defaults of the settings this module reads (main.js may set them).
+const DEFAULTS = { chunkSplits: 4096, packetsAhead: 2, frameBudgetMs: 12, packetPaceMs: 250,
+                   retries: 6, reportGap: 3, initialRatio: 1 };
+
+// An HTTP failure: `transient` when asking again may help.
+class FetchError extends Error {
+  constructor(message, transient) {
+    super(message);
+    this.transient = transient;
+  }
+}
+
+function sleep(ms, signal) {
+  return new Promise((resolve, reject) => {
+    const timer = setTimeout(resolve, ms);
+    signal?.addEventListener('abort', () => {
+      clearTimeout(timer);
+      reject(signal.reason);
+    }, { once: true });
+  });
+}
+
+// Yields to the event loop (so a due frame is drawn), without the >= 4 ms
+// clamp of nested setTimeout.
+function yieldTask() {
+  return new Promise((resolve) => {
+    const channel = new MessageChannel();
+    channel.port1.onmessage = () => resolve();
+    channel.port2.postMessage(null);
+  });
+}
 
 export function createStream(viewer) {
   const { settings } = viewer;
+  const option = (key) => settings[key] ?? DEFAULTS[key];
   let info = null;            // GET /meshes/{id}
   let state = null;           // the level held
   let target = null;
-  let bytes = 0;              // geometry bytes received: the base level and packets
+  let bytes = 0;              // geometry bytes received: the first level and packets
   let opened = 0;             // counts opens, so work for a mesh closed meanwhile stops
   let opening = null;         // the running open(), if any
   let moving = null;          // the running move() of this mesh: { ticket, done }
   let failed = null;          // the error that stopped the mesh, if any
+  let stalled = null;         // the transient error the retries ran out on, if any
+  let size = option('chunkSplits');
+  let queue = [];             // packets requested ahead, in order: see request()
+  let planned = null;         // the level the last queued packet ends at
+  let shown = null;           // the level last reported by 'level'
+  let pending = null;         // applied, not yet reported: { records, applyMs }
+  let frame = 0;              // a requestAnimationFrame since the last report, pending
+  let timer = 0;              // the timeout of a report waiting for its gap
+  let framed = true;          // an animation frame has run since the last report
+  let reportedAt = -Infinity; // performance.now() of the last report
+  let frameCostMs = 16;       // what a drawn frame costs the main thread (moving average)
+  let rate = 0;               // records applied per ms (see adapt)
+  // The next packet waits for the last report's frame: three.js uploads the
+  // reported ranges when it draws, from the very arrays the decoder changes.
+  const waiting = [];
+  let geomorph = null;
+  const stats = { packets: 0, retries: 0, aborted: 0, largest: 0 };
+
+  function emitStream(name, extra = {}) {
+    viewer.emit('stream', { state: name, level: state?.level ?? null, target, size, ...extra });
+  }
 
   async function fetchOk(url, options) {
-    const response = await fetch(url, options);
+    let response;
+    try {
+      response = await fetch(url, options);
+    } catch (error) {
+      if (error.name === 'AbortError') throw error;
+      throw new FetchError(`the request failed (${error.message})`, true);
+    }
     if (!response.ok) {
       const body = await response.json().catch(() => ({}));
-      throw new Error(body.message || `${url} answered ${response.status}`);
+      const status = response.status;
+      throw new FetchError(body.message || `the server answered ${status}`,
+                           status >= 500 || status === 408 || status === 429);
     }
     return response;
   }
@@ -46,42 +147,55 @@ export function createStream(viewer) {
   // The summary of a mesh once it is built, reporting the build's progress.
   async function waitUntilReady(id, ticket) {
     for (;;) {
-      const summary = await (await fetchOk(`../meshes/${id}`)).json();
+      const summary = await (await fetchOk(`../meshes/${encodeURIComponent(id)}`)).json();
       if (ticket !== opened) return null;
       if (summary.status === 'ready') return summary;
       if (summary.status === 'failed') throw new Error(`the build failed: ${summary.failure}`);
       const percent = Math.round(100 * summary.progress);
       viewer.emit('status', `${summary.name}: ${summary.status} ${percent}%`);
-      await new Promise((resolve) => setTimeout(resolve, POLL_MS));
+      await sleep(POLL_MS);
     }
   }
 
-  async function open(id) {
+  // Opens mesh `id` at `level`: a number of vertices, or a function of the
+  // mesh's summary returning one (or a promise of one), e.g. the level a
+  // first-frame chooser picks for the view; the base level by default. That
+  // level is fetched whole (json), then packets refine it to
+  // settings.initialRatio of the vertices.
+  async function open(id, { level } = {}) {
     const ticket = ++opened;
-    [info, state, target, bytes, failed] = [null, null, null, 0, null];
+    stopMoving();
+    [info, state, target, bytes, failed, stalled, shown] = [null, null, null, 0, null, null, null];
+    size = option('chunkSplits');
+    rate = 0;
     try {
       const summary = await waitUntilReady(id, ticket);
       if (!summary) return;
-      viewer.emit('status', `${summary.name}: loading the base level`);
+      let first = typeof level === 'function' ? await level(summary) : level;
+      if (ticket !== opened) return;
       const base = summary.base_vertices;
+      first = Number.isFinite(first)
+        ? Math.min(summary.vertices, Math.max(base, Math.round(first))) : base;
+      viewer.emit('status', `${summary.name}: loading level ${first}`);
+      const path = `../meshes/${encodeURIComponent(summary.id)}`;
       const document = JSON.parse(new TextDecoder().decode(
-        await fetchGeometry(`../meshes/${id}/lod?vertices=${base}&format=json`, ticket)));
+        await fetchGeometry(`${path}/lod?vertices=${first}&format=json`, ticket)));
       if (ticket !== opened) return;
       const appearance = { materialFaces: document.material_faces, materials: null };
       if (document.materials) {
         // the glTF records; their image uris are relative to this document
-        const url = new URL(`../meshes/${id}/materials`, window.location.href).href;
+        const url = new URL(`${path}/materials`, window.location.href).href;
         appearance.materials = { document: await (await fetchOk(url)).json(), url };
         if (ticket !== opened) return;
       }
       info = summary;
       state = LodState.fromJson(document, { vertexCapacity: info.vertices,
                                             faceCapacity: info.faces });
-      target = state.level;
+      target = planned = shown = state.level;
       viewer.emit('mesh', { info, state, appearance,
                             curve: new ErrorCurve(info, document.error) });
       viewer.emit('level', { state, bytes, dirty: state.takeDirty() });
-      goto(Math.round(settings.initialRatio * info.vertices));
+      goto(Math.round(option('initialRatio') * info.vertices), { opening: true });
     } catch (error) {
       if (ticket === opened) stop(error);
     }
@@ -89,51 +203,277 @@ export function createStream(viewer) {
 
   function stop(error) {
     failed = error;
+    abortQueue(0);
     viewer.emit('status', `error: ${error.message}`);
+    emitStream('failed', { error: error.message });
   }
 
-  function goto(level) {
+  function goto(level, { opening: first = false } = {}) {
     if (!state || failed || !Number.isFinite(level)) return;
     target = Math.min(info.vertices, Math.max(info.base_vertices, Math.round(level)));
     viewer.emit('target', target);
-    // A loop left from a mesh opened before ends by itself; this mesh needs its own.
+    if (stalled) {
+      stalled = null;           // a move of the level retries a stalled stream
+      planned = state.level;
+    }
+    trimQueue();
+    refill(opened);
     if (!moving || moving.ticket !== opened) {
-      const run = { ticket: opened };
-      run.done = move(opened).finally(() => { if (moving === run) moving = null; });
+      const run = { ticket: opened, opening: first };
+      run.done = move(run).finally(() => { if (moving === run) moving = null; });
       moving = run;
-    }
+    } else if (!first) moving.opening = false;
   }
 
-  // The next level on the way from `from` to `to`: the nearest chunk boundary.
+  // ---- packets ahead ---------------------------------------------------------------
+
+  // The next level on the way from `from` to `to`: the nearest multiple of the
+  // packet size.
   function nextStop(from, to) {
-    const chunk = settings.chunkSplits;
-    return to > from ? Math.min(to, (Math.floor(from / chunk) + 1) * chunk)
-                     : Math.max(to, (Math.ceil(from / chunk) - 1) * chunk);
+    return to > from ? Math.min(to, (Math.floor(from / size) + 1) * size)
+                     : Math.max(to, (Math.ceil(from / size) - 1) * size);
   }
 
-  // Follows `target` (which may change meanwhile) one packet at a time.
-  async function move(ticket) {
-    try {
-      while (ticket === opened && state.level !== target) {
-        const from = state.level, to = nextStop(from, target);
-        const verb = to > from ? 'refining' : 'coarsening';
-        viewer.emit('status', `${info.name}: ${verb} to ${target}`);
-        const packet = await LodState.readPacket(
-          await fetchGeometry(`../meshes/${info.id}/splits?from=${from}&to=${to}`, ticket));
-        if (ticket !== opened) return;
-        const started = performance.now();
-        const records = state.apply(packet);
-        const applyMs = performance.now() - started;
-        viewer.emit('level', { state, bytes, records, applyMs, dirty: state.takeDirty() });
+  // Request the packet from -> to: { from, to, controller, ready, result (a
+  // promise of { packet, bytes, url }) }.
+  function request(from, to, ticket) {
+    const controller = new AbortController();
+    const entry = { from, to, controller, ready: false };
+    entry.result = fetchPacket(from, to, controller.signal, ticket).then((value) => {
+      entry.ready = true;
+      return value;
+    });
+    entry.result.catch(() => {});    // awaited (or dropped) by move()
+    return entry;
+  }
+
+  // One packet, retried with backoff while the failure is transient.
+  async function fetchPacket(from, to, signal, ticket) {
+    const url = `../meshes/${encodeURIComponent(info.id)}/splits?from=${from}&to=${to}`;
+    for (let attempt = 0; ; attempt++) {
+      try {
+        const response = await fetchOk(url, { signal });
+        let buffer;
+        try {
+          buffer = await response.arrayBuffer();
+        } catch (error) {
+          if (error.name === 'AbortError') throw error;
+          throw new FetchError(`the packet was cut short (${error.message})`, true);
+        }
+        const packet = await LodState.readPacket(buffer);
+        return { packet, bytes: buffer.byteLength, url };
+      } catch (error) {
+        if (signal.aborted || ticket !== opened) throw error;
+        if (!(error instanceof FetchError && error.transient) || attempt >= option('retries')) {
+          throw error;
+        }
+        const delay = Math.min(RETRY_MAX_MS, RETRY_BASE_MS * 2 ** attempt);
+        stats.retries++;
+        viewer.emit('status', `${info.name}: a packet failed (${error.message}); retrying in ` +
+                    `${(delay / 1000).toFixed(1)} s (attempt ${attempt + 2} of ` +
+                    `${option('retries') + 1})`);
+        emitStream('retrying', { attempt: attempt + 1, delayMs: delay, error: error.message });
+        await sleep(delay, signal);
       }
-      if (ticket === opened) viewer.emit('status', `${info.name}`);
-    } catch (error) {
-      if (ticket === opened) stop(error);
     }
   }
 
-  viewer.on('open', (id) => { opening = open(id); });
-  viewer.on('goto', goto);
+  // Drops the queued packets from index `keep` on.
+  function abortQueue(keep) {
+    for (const entry of queue.splice(keep)) {
+      stats.aborted++;
+      entry.controller.abort();
+    }
+    planned = queue.length ? queue[queue.length - 1].to : state?.level ?? null;
+  }
+
+  // Keeps the queued packets that still lead from the state toward the target.
+  function trimQueue() {
+    if (!state) return;
+    const forward = target > state.level;
+    let keep = 0;
+    for (const { from, to } of queue) {
+      const toward = forward ? to > from && to <= target : to < from && to >= target;
+      if (!toward || target === state.level) break;
+      keep++;
+    }
+    abortQueue(keep);
+  }
+
+  function refill(ticket) {
+    if (!state || failed || stalled) return;
+    const ahead = Math.max(1, option('packetsAhead'));
+    while (queue.length < ahead && planned !== target) {
+      const to = nextStop(planned, target);
+      queue.push(request(planned, to, ticket));
+      planned = to;
+    }
+  }
+
+  // ---- applying ----------------------------------------------------------------------
+
+  // Reports the packets applied since the last report, now.
+  function report() {
+    if (timer) clearTimeout(timer);
+    timer = 0;
+    if (!pending || !state) return;
+    const { records, applyMs, morph = false } = pending;
+    pending = null;
+    shown = state.level;
+    reportedAt = performance.now();
+    framed = false;
+    // The next frame draws this level; a message posted from its first
+    // callback runs once the frame is done: the delay is what it cost.
+    if (!frame) frame = requestAnimationFrame(() => {
+      const drawn = performance.now();
+      const channel = new MessageChannel();
+      channel.port1.onmessage = () => {
+        frame = 0;
+        frameCostMs = 0.5 * frameCostMs + 0.5 * (performance.now() - drawn);
+        framed = true;
+        for (const resolve of waiting.splice(0)) resolve();
+        reportSoon();
+      };
+      channel.port2.postMessage(null);
+    });
+    viewer.emit('level', { state, bytes, records, applyMs, morph, dirty: state.takeDirty() });
+  }
+
+  // Reports once a frame has run since the last report and the gap has passed.
+  function reportSoon() {
+    if (!pending || timer || !framed) return;
+    const wait = reportedAt + option('reportGap') * frameCostMs - performance.now();
+    if (wait <= 0) report();
+    else timer = setTimeout(() => {
+      timer = 0;
+      reportSoon();
+    }, wait);
+  }
+
+  // The link's figures for a fetched URL: { latencyMs, bytesPerMs } from its
+  // Resource Timing entry (null when there is none, e.g. the buffer is full).
+  function linkOf(url, bytes) {
+    const entries = performance.getEntriesByName(new URL(url, window.location.href).href,
+                                                 'resource');
+    const entry = entries[entries.length - 1];
+    if (!entry || !(entry.responseEnd > 0)) return null;
+    const latencyMs = Math.max(0, entry.responseStart - entry.requestStart);
+    const bodyMs = Math.max(0.1, entry.responseEnd - entry.responseStart);
+    return { latencyMs, bytesPerMs: bytes / bodyMs };
+  }
+
+  // The packet size after a packet of `records` records, `bytes` bytes,
+  // applied in applyMs, over `link` (see linkOf).
+  function adapt(records, bytes, applyMs, link) {
+    const chunk = option('chunkSplits');
+    // records per ms: the fastest lately (a cold JIT or a GC pause makes one
+    // packet slow; the rate decays so a lasting slowdown still shrinks packets)
+    rate = Math.max(records / Math.max(applyMs, 0.05), 0.7 * rate);
+    // where a drawn frame blocks the main thread longer than the budget (software
+    // GL), a packet as long as half a frame costs no responsiveness
+    const budget = Math.max(option('frameBudgetMs'), 0.5 * frameCostMs);
+    let want = budget * rate;
+    if (link) {
+      const pace = option('packetPaceMs') - link.latencyMs;
+      want = Math.min(want, Math.max(0, pace) * link.bytesPerMs * records / Math.max(bytes, 1));
+    }
+    want = Math.min(want, 4 * size, MAX_SPLITS);
+    let next = chunk;
+    while (next * 2 <= want) next *= 2;
+    size = next;
+  }
+
+  // Follows `target` (which may change meanwhile), the queued packets in order.
+  async function move(run) {
+    const { ticket } = run;
+    let sliceStart = performance.now();
+    try {
+      while (ticket === opened && !failed && !stalled) {
+        refill(ticket);
+        const head = queue[0];
+        if (!head) break;
+        const verb = head.to > head.from ? 'refining' : 'coarsening';
+        viewer.emit('status', `${info.name}: ${verb} to ${target}`);
+        emitStream('moving');
+        let got;
+        try {
+          got = await head.result;
+        } catch (error) {
+          if (ticket !== opened) return;
+          if (head.controller.signal.aborted) continue;     // dropped by a new target
+          throw error;
+        }
+        if (ticket !== opened) return;
+        if (queue[0] !== head) continue;                    // dropped while arriving
+        if (!framed) {
+          await new Promise((resolve) => waiting.push(resolve));
+          if (ticket !== opened) return;
+          if (queue[0] !== head) continue;
+        }
+        queue.shift();
+        const started = performance.now();
+        const records = state.apply(got.packet);
+        const applyMs = performance.now() - started;
+        bytes += got.bytes;
+        stats.packets++;
+        stats.largest = Math.max(stats.largest, records);
+        pending = { records: (pending?.records ?? 0) + records,
+                    applyMs: (pending?.applyMs ?? 0) + applyMs, morph: pending?.morph ?? false };
+        adapt(records, got.bytes, applyMs, linkOf(got.url, got.bytes));
+        const backward = head.to < head.from;
+        const morphing = geomorph && !run.opening && geomorph.enabled();
+        if (backward && morphing) {
+          // apply what has already arrived in the same direction, then glide
+          // the vanishing vertices into their parents, then drop them
+          if (queue[0]?.ready && queue[0].to < queue[0].from) continue;
+          await geomorph.coarsen(state, shown);
+          if (ticket !== opened) return;
+          report();
+        } else {
+          pending.morph = morphing;             // the geomorph glides the new vertices out
+          reportSoon();
+        }
+        if (performance.now() - sliceStart > option('frameBudgetMs')) {
+          await yieldTask();
+          sliceStart = performance.now();
+        }
+      }
+      if (ticket !== opened) return;
+      report();
+      if (!failed && !stalled) {
+        viewer.emit('status', `${info.name}`);
+        emitStream('idle', { ...stats });
+      }
+    } catch (error) {
+      if (ticket !== opened) return;
+      report();
+      if (error instanceof FetchError && error.transient) {
+        stalled = error;
+        abortQueue(0);
+        viewer.emit('status', `error: ${error.message} (move the level to try again)`);
+        emitStream('stalled', { error: error.message });
+      } else {
+        stop(error instanceof PacketError || error instanceof FetchError ? error
+          : new Error(`the packet could not be applied (${error.message})`));
+      }
+    }
+  }
+
+  function stopMoving() {
+    for (const entry of queue) entry.controller.abort();
+    queue = [];
+    pending = null;
+    if (timer) clearTimeout(timer);
+    timer = 0;
+    framed = true;
+    for (const resolve of waiting.splice(0)) resolve();
+  }
+
+  viewer.on('open', (detail) => {
+    const { id, ...options } = typeof detail === 'object' && detail ? detail : { id: detail };
+    opening = open(id, options);
+  });
+  viewer.on('goto', (level) => goto(level));
 
   return {
     get info() { return info; },
@@ -142,10 +482,24 @@ export function createStream(viewer) {
     get bytes() { return bytes; },
     get busy() { return moving !== null; },
     get failed() { return failed; },
-    // Resolves once the mesh is open, its level reached the target and nothing is in flight.
+    get stalled() { return stalled; },
+    get packetSize() { return size; },
+    get stats() { return { ...stats }; },
+    // Opens a mesh at a first level: open(id, { level }) (see open() above).
+    open(id, options = {}) {
+      opening = open(id, options);
+      return opening;
+    },
+    // The geomorph (geomorph.js) that coarsening waits for.
+    attachGeomorph(morph) {
+      geomorph = morph;
+    },
+    // Resolves once the mesh is open, its level reached the target, nothing is
+    // in flight and no geomorph is running.
     async settled() {
       await opening;
       while (moving) await moving.done;
+      await geomorph?.idle();
     },
   };
 }

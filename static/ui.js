@@ -4,10 +4,17 @@
 // The slider is logarithmic in the level: a mesh's interesting coarse levels
 // span a few hundred vertices, its fine ones hundreds of thousands.
 //
-// Signals out: 'open' (a mesh id), 'goto' (a level), 'settings' (a key).
-// In: 'mesh', 'level', 'target', 'status', 'settings'.
+// The mesh list refreshes itself while a mesh in it is queued or building.
+// An id that the server does not know (a link to a deleted mesh, a typo, a
+// path) is named in the status and never opened or listed.
+//
+// Signals out: 'open' ({ id, level: the first-level chooser }), 'goto' (a
+// level), 'settings' (a key). In: 'mesh', 'level', 'target', 'status',
+// 'settings', 'textures' (image bytes received).
 
 const SLIDER_STEPS = 1000;
+const LIST_REFRESH_MS = 2000;        // while a listed mesh is queued or building
+const PENDING = new Set(['queued', 'building']);
 const KEY_STEPS = { ArrowUp: 10, ArrowRight: 10, ArrowDown: -10, ArrowLeft: -10,
                     PageUp: 100, PageDown: -100 };
 // The settings the panel edits: which key, how it is shown.
@@ -15,16 +22,20 @@ const CONTROLS = [
   { key: 'autoByDistance', label: 'auto level by distance', type: 'checkbox' },
   { key: 'errorBudgetPx', label: 'error budget (px)', type: 'number', min: 0.05, step: 0.05 },
   { key: 'shading', label: 'shading', options: ['smooth', 'flat'] },
+  { key: 'wireframe', label: 'wireframe', type: 'checkbox' },
+  { key: 'up', label: 'up axis (kept per mesh)', options: ['Y', 'Z'] },
   { key: 'chunkSplits', label: 'splits per packet', type: 'number', min: 16, step: 256 },
 ];
 
-export function createUi(viewer, root) {
+// options: { firstLevel(summary) -> the level to fetch first, as stream.js's open() takes }.
+export function createUi(viewer, root, { firstLevel = null } = {}) {
   const { settings } = viewer;
   const $ = (selector) => root.querySelector(selector);
-  const select = $('#mesh-select'), upload = $('#upload'), status = $('#status');
+  const select = $('#mesh-select'), status = $('#status');
   const slider = $('#level-slider'), number = $('#level-input'), stats = $('#stats');
   let info = null, curve = null, state = null, target = null;
-  let bytes = 0, lastPacket = '';
+  let bytes = 0, textureBytes = 0, lastPacket = '';
+  let listTimer = 0, opening = null;
 
   // ---- meshes ----------------------------------------------------------------
 
@@ -34,7 +45,10 @@ export function createUi(viewer, root) {
     return (await response.json()).meshes;
   }
 
-  async function refreshList(selected) {
+  // Lists the server's meshes (keeping `selected`, or the current choice,
+  // selected); polls again while one is queued or building.
+  async function refreshList(selected = select.value) {
+    clearTimeout(listTimer);
     const meshes = await listMeshes();
     const prompt = meshes.length ? 'choose a mesh' : 'no meshes: upload one';
     select.replaceChildren(new Option(prompt, ''));
@@ -42,30 +56,48 @@ export function createUi(viewer, root) {
       const size = mesh.vertices ? ` · ${mesh.vertices.toLocaleString()} vertices` : '';
       select.append(new Option(`${mesh.name} · ${mesh.status}${size}`, mesh.id));
     }
-    if (selected && ![...select.options].some((option) => option.value === selected)) {
-      select.append(new Option(selected, selected));
+    select.value = meshes.some((mesh) => mesh.id === selected) ? selected : '';
+    if (meshes.some((mesh) => PENDING.has(mesh.status))) {
+      listTimer = setTimeout(() => refreshList().catch(() => {}), LIST_REFRESH_MS);
     }
-    select.value = selected || '';
     return meshes;
   }
 
-  function open(id) {
+  // Whether the server knows mesh `id` (a 404 or 422: it does not).
+  async function known(id) {
+    const response = await fetch(`../meshes/${encodeURIComponent(id)}`);
+    if (response.ok) return true;
+    if (response.status === 404 || response.status === 422) return false;
+    throw new Error(`looking the mesh up failed (${response.status})`);
+  }
+
+  async function open(id, { listed = false } = {}) {
+    const ticket = opening = {};
+    setLevelEnabled(false);
+    if (!listed && !(await known(id))) {
+      if (opening !== ticket) return;
+      const url = new URL(window.location.href);
+      url.searchParams.delete('mesh');
+      window.history.replaceState(null, '', url);
+      select.value = '';
+      // (an id is letters, digits, - and _: anything else is not repeated back)
+      status.textContent = /^[\w-]{1,64}$/.test(id)
+        ? `there is no mesh with the id "${id}"; choose one from the list`
+        : 'the link names no mesh id; choose a mesh from the list';
+      return;
+    }
+    if (opening !== ticket) return;
     const url = new URL(window.location.href);
+    if (url.searchParams.get('mesh') !== id) {
+      // another mesh: the level and camera kept in the URL were that mesh's
+      for (const key of ['level', 'camera']) url.searchParams.delete(key);
+    }
     url.searchParams.set('mesh', id);
     window.history.replaceState(null, '', url);
     select.value = id;
-    viewer.emit('open', id);
-  }
-
-  async function uploadFile(file) {
-    const form = new FormData();
-    form.append('file', file);
-    status.textContent = `uploading ${file.name}`;
-    const response = await fetch('../meshes', { method: 'POST', body: form });
-    const body = await response.json().catch(() => ({}));
-    if (!response.ok) throw new Error(body.message || `the upload failed (${response.status})`);
-    await refreshList(body.id);
-    open(body.id);
+    [info, state, textureBytes] = [null, null, 0];
+    stats.replaceChildren();
+    viewer.emit('open', { id, level: firstLevel });
   }
 
   // ---- the level ---------------------------------------------------------------
@@ -89,8 +121,14 @@ export function createUi(viewer, root) {
 
   function onKey(event) {
     const focus = event.target;
-    const typing = focus.matches?.('input:not([type=range]), select, textarea');
-    if (!info || typing || event.ctrlKey || event.metaKey || event.altKey) return;
+    // Level keys over the closed mesh dropdown move the level, not the choice of
+    // mesh (the browser would open each mesh in turn); Alt+Down or Space opens it.
+    const onSelect = focus === select;
+    const typing = !onSelect && focus.matches?.('input:not([type=range]), select, textarea');
+    if (typing || event.ctrlKey || event.metaKey || event.altKey) return;
+    const levelKey = event.key in KEY_STEPS || event.key === 'Home' || event.key === 'End';
+    if (onSelect && levelKey) event.preventDefault();
+    if (!info) return;
     let level = null;
     if (event.key === 'Home') level = info.base_vertices;
     else if (event.key === 'End') level = info.vertices;
@@ -111,9 +149,15 @@ export function createUi(viewer, root) {
   function change(key, value) {
     settings[key] = value;
     const input = root.querySelector(`[data-key="${key}"]`);
-    if (input.type === 'checkbox') input.checked = value;
-    else input.value = value;
+    if (input) {
+      if (input.type === 'checkbox') input.checked = value;
+      else input.value = value;
+    }
     viewer.emit('settings', key);
+  }
+
+  function setLevelEnabled(enabled) {
+    slider.disabled = number.disabled = !enabled;
   }
 
   function makeControl({ key, label, type, options, min, step }) {
@@ -154,7 +198,9 @@ export function createUi(viewer, root) {
       ['faces', `${state.faceCount.toLocaleString()} / ${info.faces.toLocaleString()}`],
       ['error', error === 0 ? '0'
         : `${curve.isExact(state.level) ? '' : '≈ '}${error.toPrecision(3)} mesh units`],
-      ['received', formatBytes(bytes)],
+      ['received', textureBytes
+        ? `${formatBytes(bytes + textureBytes)} (textures ${formatBytes(textureBytes)})`
+        : formatBytes(bytes)],
       ['last packet', lastPacket],
     ];
     if (target !== state.level) rows[0][1] += ` → ${target.toLocaleString()}`;
@@ -171,7 +217,12 @@ export function createUi(viewer, root) {
   viewer.on('mesh', (detail) => {
     ({ info, curve, state } = detail);
     target = state.level;
-    slider.disabled = number.disabled = info.vertices === info.base_vertices;
+    setLevelEnabled(info.vertices !== info.base_vertices);
+    const up = root.querySelector('[data-key="up"]');
+    if (up) up.value = settings.up;       // chosen for this mesh as it opened
+    // the list may still say "queued" or "building" for the mesh now shown
+    const option = [...select.options].find((each) => each.value === info.id);
+    if (option && !option.textContent.includes(' · ready')) refreshList(info.id).catch(() => {});
     Object.assign(number, { min: info.base_vertices, max: info.vertices });
     showStats();
   });
@@ -190,23 +241,44 @@ export function createUi(viewer, root) {
     showStats();
   });
   viewer.on('status', (text) => { status.textContent = text; });
+  viewer.on('textures', (received) => {
+    textureBytes = received;
+    showStats();
+  });
+  // settings changed elsewhere (the up axis chosen for a mesh): show them
+  viewer.on('settings', (key) => {
+    const input = root.querySelector(`[data-key="${key}"]`);
+    if (!input) return;
+    if (input.type === 'checkbox') input.checked = settings[key];
+    else input.value = settings[key];
+  });
 
-  select.addEventListener('change', () => select.value && open(select.value));
-  upload.addEventListener('change', () => {
-    if (upload.files.length) uploadFile(upload.files[0]).catch((error) => {
+  select.addEventListener('change', () => select.value && open(select.value, { listed: true }));
+  // opening the dropdown shows fresh statuses
+  select.addEventListener('pointerdown', () => { refreshList().catch(() => {}); });
+  // an upload (upload.js) the server accepted: list it and open it
+  viewer.on('uploaded', (id) => {
+    refreshList(id).then(() => open(id, { listed: true })).catch((error) => {
       status.textContent = `error: ${error.message}`;
     });
-    upload.value = '';
   });
   slider.max = SLIDER_STEPS;
   slider.addEventListener('input', () => request(levelOf(Number(slider.value))));
-  number.addEventListener('change', () => request(Number(number.value)));
+  number.addEventListener('change', () => {
+    // an emptied or unreadable box means no new level: show the current one again
+    const value = number.value.trim() === '' ? NaN : Number(number.value);
+    if (Number.isFinite(value)) request(value);
+    else number.value = target ?? '';
+  });
   window.addEventListener('keydown', onKey);
   $('#settings').append(...CONTROLS.map(makeControl));
 
+  setLevelEnabled(false);
   const wanted = new URL(window.location.href).searchParams.get('mesh');
   refreshList(wanted).then((meshes) => {
+    const listed = meshes.some((mesh) => mesh.id === wanted);
     const first = wanted || meshes.find((mesh) => mesh.status === 'ready')?.id;
-    if (first) open(first);
+    if (first) return open(first, { listed: listed || !wanted });
+    return null;
   }).catch((error) => { status.textContent = `error: ${error.message}`; });
 }

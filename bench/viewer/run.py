@@ -12,9 +12,26 @@ directory, uploads the meshes, and in headless Chromium (Debian's
    collapses back, and the same splits cut into the viewer's 4096-split
    packets; each on a fresh state, ``--repeats`` times after one cold run;
 2. opens ``/viewer?mesh=ID`` and times it from the page load to full detail;
-3. screenshots the viewer at about 1%, 10% and 100% of each mesh's vertices.
+3. screenshots the viewer at about 1%, 10% and 100% of each mesh's vertices;
+4. with ``--streaming``: time to the first frame and to full detail, and bytes,
+   for the Stanford bunny and the 1.1M-face bunny (``--large``, an .npz of
+   ``positions``/``faces`` as ``bench/simplify.py`` writes it, uploaded as PLY),
+   with default settings, plain and throttled (50 ms, 20 Mbit/s), beside
+   fetching the full-detail GLB (``streaming.py``); ``--static DIR`` serves
+   another copy of the viewer (e.g. ``git archive HEAD static`` unpacked), so
+   two versions are measured side by side in one run (``--static`` twice with
+   ``--label`` twice).
 
-Writes ``result.json`` and the PNGs to ``bench/out/viewer/`` (gitignored).
+    python bench/viewer/run.py --streaming --only-streaming \
+        --static /tmp/before/static --label before --static static --label after
+
+``--geomorph`` alone: the largest per-frame pixel change while the bunny's
+level moves to 3% and back, geomorphs of 0, 250 and 1000 ms
+(``tests/viewer/test_geomorph.py`` measures it).
+
+Writes ``result.json`` (``result-LABELS.json`` with ``--streaming``,
+``result-geomorph.json`` with ``--geomorph``) and the PNGs
+to ``bench/out/viewer/`` (gitignored).
 """
 
 from __future__ import annotations
@@ -35,6 +52,8 @@ from playwright.sync_api import sync_playwright
 ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT))
 from tests.server import serve
+
+from streaming import measure_streaming
 
 SHARED = ROOT.parent / "shared" / "meshes"
 CHROMIUM_ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
@@ -158,6 +177,76 @@ def screenshots(browser, client, mesh: dict, name: str, out: Path) -> list[str]:
     return written
 
 
+def write_ply(npz: Path, out: Path) -> Path:
+    """The .npz's mesh as a binary PLY (float32 positions, int32 faces)."""
+    import numpy as np
+
+    data = np.load(npz)
+    positions = np.ascontiguousarray(data["positions"], dtype="<f4")
+    faces = np.ascontiguousarray(data["faces"], dtype="<i4")
+    header = (f"ply\nformat binary_little_endian 1.0\nelement vertex {len(positions)}\n"
+              "property float x\nproperty float y\nproperty float z\n"
+              f"element face {len(faces)}\nproperty list uchar int vertex_indices\nend_header\n")
+    rows = np.empty(len(faces), dtype=[("n", "u1"), ("v", "<i4", (3,))])
+    rows["n"], rows["v"] = 3, faces
+    with open(out, "wb") as file:
+        file.write(header.encode("ascii"))
+        file.write(positions.tobytes())
+        file.write(rows.tobytes())
+    return out
+
+
+def run_streaming(args, browser_factory, out: Path) -> dict:
+    """--streaming: one server per viewer copy (``--static``), the same meshes."""
+    labels = args.label or [f"static{i}" for i in range(len(args.static))]
+    results = {}
+    with tempfile.TemporaryDirectory(prefix="lodserver-stream-") as work:
+        sources = {"bunny": args.mesh}
+        if args.large and args.large.is_file():
+            sources["bunny_1.1M"] = write_ply(args.large, Path(work) / "bunny_loop2.ply")
+        for label, static in zip(labels, args.static or [ROOT / "static"]):
+            data = Path(work) / f"data-{label}"
+            env = {"LODSERVER_STATIC_DIR": str(Path(static).resolve())}
+            with serve(data, warm_kernels=True, timeout=300, env=env) as client:
+                meshes = {name: upload(client, path) for name, path in sources.items()}
+                browser = browser_factory()
+                try:
+                    results[label] = measure_streaming(
+                        browser, client, meshes, viewport=VIEWPORT, timeout_s=args.timeout,
+                        out=out, label=label)
+                finally:
+                    browser.close()
+    return results
+
+
+def run_geomorph(args, browser_factory, out: Path) -> dict:
+    """--geomorph: the largest per-frame pixel change while the bunny's level moves
+    to 3% and back, geomorphs off and on (tests/viewer/test_geomorph.py)."""
+    from tests.viewer.test_geomorph import measure_level_change, open_still
+
+    result = {}
+    with tempfile.TemporaryDirectory(prefix="lodserver-geomorph-") as data, \
+            serve(Path(data), warm_kernels=True, timeout=300) as client:
+        mesh = upload(client, args.mesh)
+        browser = browser_factory()
+        try:
+            page = open_still(browser, str(client.base_url), mesh)
+            coarse = round(0.03 * mesh["vertices"])
+            for glide_ms in (0, 250, 1000):
+                for level in (coarse, mesh["vertices"]):
+                    m = measure_level_change(page, level, glide_ms)
+                    result[f"{glide_ms}ms->{level}"] = {
+                        "largest_changed_pixels": m["largest"],
+                        "largest_energy": m["largestEnergy"], "frames_changed": len(m["changes"]),
+                        "pixels": m["pixels"], "took_ms": round(m["tookMs"])}
+                    print(f"geomorph {glide_ms} ms -> {level}: {result[f'{glide_ms}ms->{level}']}",
+                          flush=True)
+            page.screenshot(path=str(out / "geomorph-bunny.png"))
+        finally:
+            browser.close()
+    return result
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--mesh", type=Path, default=SHARED / "stanford-bunny.obj",
@@ -170,11 +259,43 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=10)
     parser.add_argument("--chunk", type=int, default=4096, help="splits per packet, as the viewer")
     parser.add_argument("--out", type=Path, default=ROOT / "bench" / "out" / "viewer")
+    parser.add_argument("--streaming", action="store_true",
+                        help="also time streaming against the full GLB (see streaming.py)")
+    parser.add_argument("--only-streaming", action="store_true",
+                        help="skip the decoder rates and the screenshots")
+    parser.add_argument("--large", type=Path, default=ROOT / "bench" / "out" / "bunny_loop2.npz",
+                        help="the 1.1M-face bunny (.npz of positions, faces)")
+    parser.add_argument("--static", type=Path, action="append",
+                        help="a copy of static/ to serve (repeatable; default: the checkout's)")
+    parser.add_argument("--label", action="append", help="a name per --static")
+    parser.add_argument("--geomorph", action="store_true",
+                        help="only: per-frame pixel change of a level change, geomorphs off/on")
+    parser.add_argument("--timeout", type=float, default=600,
+                        help="seconds a streaming run may take before it counts as failed")
     args = parser.parse_args()
     executable = shutil.which("chromium") or shutil.which("chromium-browser")
     if executable is None:
         raise SystemExit("no chromium binary on PATH (Debian: apt-get install chromium)")
     args.out.mkdir(parents=True, exist_ok=True)
+    if args.geomorph:
+        with sync_playwright() as playwright:
+            figures = run_geomorph(args, lambda: playwright.chromium.launch(
+                executable_path=executable, args=CHROMIUM_ARGS), args.out)
+        (args.out / "result-geomorph.json").write_text(json.dumps(figures, indent=2) + "\n")
+        return
+    if args.streaming:
+        with sync_playwright() as playwright:
+            def launch():
+                return playwright.chromium.launch(executable_path=executable,
+                                                  args=CHROMIUM_ARGS)
+            streaming = {"machine": {"cpus": os.cpu_count(), "load_average": os.getloadavg()},
+                         "streaming": run_streaming(args, launch, args.out)}
+        streaming["machine"]["load_average_after"] = os.getloadavg()
+        name = "-".join(args.label or ["streaming"])
+        (args.out / f"result-{name}.json").write_text(json.dumps(streaming, indent=2) + "\n")
+        print(json.dumps(streaming, indent=2))
+        if args.only_streaming:
+            return
 
     result = {"machine": {"cpus": os.cpu_count(), "load_average": os.getloadavg()}}
     with tempfile.TemporaryDirectory(prefix="lodserver-viewer-") as data, \

@@ -87,23 +87,34 @@ def inline_hashes(html: str) -> tuple[list[str], list[str]]:
 
 
 class ViewerPolicy:
-    """The viewer's CSP, from ``index.html`` in ``folder``, re-read when it changes."""
+    """The viewer's CSP, from ``index.html`` in ``folder``, re-read when it changes;
+    or from the page as served, when ``page`` gives it: ``page()`` -> (html or
+    None, a key that changes with it) (routes/viewer_files.py rewrites the
+    page's URLs into its versioned path, the import map's included)."""
 
-    def __init__(self, folder: Path):
+    def __init__(self, folder: Path, page=None):
         self.index = Path(folder) / "index.html"
+        self.page = page
         self._lock = threading.Lock()
         self._seen, self._policy = None, VIEWER_CSP.format(scripts="", styles="")
 
     def policy(self) -> str:
-        try:
-            stat = os.stat(self.index)
-            seen = (stat.st_mtime_ns, stat.st_size)
-        except OSError:
-            return self._policy
+        html = None
+        if self.page is not None:
+            html, seen = self.page()
+            if html is None:
+                return self._policy
+        else:
+            try:
+                stat = os.stat(self.index)
+                seen = (stat.st_mtime_ns, stat.st_size)
+            except OSError:
+                return self._policy
         with self._lock:
             if seen != self._seen:
                 try:
-                    scripts, styles = inline_hashes(self.index.read_text(encoding="utf-8"))
+                    scripts, styles = inline_hashes(
+                        html if html is not None else self.index.read_text(encoding="utf-8"))
                 except (OSError, UnicodeDecodeError):
                     scripts, styles = [], []
                 self._policy = VIEWER_CSP.format(scripts="".join(f" {s}" for s in scripts),
@@ -145,7 +156,8 @@ class SecurityHeaders:
 def add_security_headers(app: FastAPI, settings) -> None:
     """Wrap ``app``'s whole middleware stack (built on its first request) in
     :class:`SecurityHeaders`."""
-    viewer = ViewerPolicy(settings.static_dir)
+    files = getattr(app.state, "viewer_files", None)     # routes/viewer.py mount_static
+    viewer = ViewerPolicy(settings.static_dir, page=files.page if files else None)
     build = app.build_middleware_stack
 
     def build_with_headers():

@@ -9,6 +9,7 @@ relative URIs), and fetches the images it needs (:func:`image_of`).
 
 from __future__ import annotations
 
+from ..io.gltf import extension_names
 from ..io.images import image_type
 from ..progressive.mesh import ProgressiveMesh
 
@@ -19,8 +20,12 @@ class AbsentError(LookupError):
 
 def materials_document(pm: ProgressiveMesh, *, image_uri=lambda i: f"images/{i}") -> dict:
     """The glTF ``materials``, ``textures``, ``samplers`` and ``images`` records of
-    ``pm`` (and ``extensionsRequired`` when the source had it), every image with
-    its ``uri`` and ``mimeType``.
+    ``pm``, every image with its ``uri`` and ``mimeType``; ``extensionsUsed``
+    naming the extensions these records use (``KHR_texture_transform``,
+    ``KHR_materials_emissive_strength``, ...), and ``extensionsRequired`` when
+    the source required some of them. Every channel the records hold is kept
+    as the source wrote it (base colour, metallic-roughness, normal,
+    occlusion, emissive, alpha mode and cutoff, double-sided, extensions).
 
     Raises
     ------
@@ -37,6 +42,9 @@ def materials_document(pm: ProgressiveMesh, *, image_uri=lambda i: f"images/{i}"
         {**record, "uri": image_uri(i),
          "mimeType": image_type(data) or "application/octet-stream"}
         for i, (record, data) in enumerate(zip(gltf.get("images", ()), pm.materials.images))]
+    used = sorted(extension_names([document[key] for key in ("materials", "textures", "images")]))
+    if used:
+        document["extensionsUsed"] = used
     if gltf.get("extensionsRequired"):
         document["extensionsRequired"] = list(gltf["extensionsRequired"])
     return document

@@ -102,7 +102,7 @@ def test_a_large_chain_is_encoded_once_written_to_a_file_and_streamed_from_it(se
     assert len(encodes) == 1
     for response in (first, again):
         assert response.headers["etag"] == first.headers["etag"]
-        assert "immutable" in response.headers["cache-control"]
+        assert "max-age=60" in response.headers["cache-control"]   # unversioned (test_cdn.py)
         assert response.headers["content-type"] == "model/gltf-binary"
         assert response.headers["content-length"] == str(len(first.content))
         assert response.headers["content-disposition"] == f'inline; filename="{mesh_id}-lods.glb"'
@@ -341,14 +341,18 @@ def test_the_policy_follows_the_import_map_of_the_served_page(serve, tmp_path):
             '"./three.js"}}\r\n</script><style>body { margin: 0 }</style></head></html>')
     (static / "index.html").write_text(html, newline="")
     client, _, _ = serve(static_dir=static)
-    policy = client.get("/viewer/").headers["content-security-policy"]
-    assert _importmap_source(html) in policy
+    # the page as served: its URLs moved into its versioned path (routes/viewer_files.py)
+    page = client.get("/viewer/")
+    policy = page.headers["content-security-policy"]
+    assert "./v/" in page.text and _importmap_source(page.text) in policy
     style = hashlib.sha256(b"body { margin: 0 }").digest()
     assert f"style-src 'self' 'sha256-{base64.b64encode(style).decode()}'" in policy
     changed = html.replace("three.js", "three.module.js")
     (static / "index.html").write_text(changed + " ", newline="")
-    policy = client.get("/viewer/").headers["content-security-policy"]
-    assert _importmap_source(changed) in policy and _importmap_source(html) not in policy
+    again = client.get("/viewer/")
+    policy = again.headers["content-security-policy"]
+    assert "three.module.js" in again.text
+    assert _importmap_source(again.text) in policy and _importmap_source(page.text) not in policy
 
 
 def test_the_viewer_runs_under_its_policy_in_chromium(tmp_path):
