@@ -24,19 +24,16 @@ writes each output as one whole object.
 
 from __future__ import annotations
 
-import hashlib
 import json
-import posixpath
-import re
 import tempfile
 import time
 import uuid
-from concurrent.futures import ThreadPoolExecutor
-from contextlib import contextmanager, nullcontext
+from contextlib import nullcontext
 from dataclasses import dataclass, field, replace
 from pathlib import Path, PurePosixPath
-from urllib.parse import unquote
 
+from .folders import (MANIFEST, MANIFEST_VERSION, Folder, fetch_with_references, filesystem,
+                      is_url, listing)
 from .io.glb import coverage_from_ratios, encode_lod_chain
 from .io import SUPPORTED_INPUT, encode_mesh, write_atomic
 from .mesh import Mesh, MeshError
@@ -45,10 +42,7 @@ from .progressive.mesh import ProgressiveMesh
 
 DEFAULT_LODS = (1.0, 0.5, 0.2, 0.05)
 SOURCE_SUFFIXES = tuple(f".{kind}" for kind in SUPPORTED_INPUT) + (".pm",)
-MANIFEST = "lodserver-export.json"
 # objects of an object-store source hashed at once (each GET is mostly waiting)
-STORE_READERS = 16
-_MANIFEST_VERSION = 1
 
 
 def parse_lods(text: str) -> tuple[float, ...]:
@@ -199,14 +193,6 @@ class FolderReport:
         return len(self.written) + len(self.up_to_date) + len(self.failed)
 
 
-def is_url(location) -> bool:
-    """Whether ``location`` names an object-store folder (``s3://bucket/prefix``), not a path."""
-    return isinstance(location, str) and _URL.match(location) is not None
-
-
-_URL = re.compile(r"^[A-Za-z][A-Za-z0-9+.\-]+://")
-
-
 def find_sources(folder) -> list[Path]:
     """Mesh files (and ``.pm`` artefacts) under ``folder``, sorted, as relative paths.
 
@@ -216,8 +202,8 @@ def find_sources(folder) -> list[Path]:
     :func:`export_folder`); the paths are then ``PurePosixPath``.
     """
     if is_url(folder):
-        fs, root = _filesystem(folder)
-        return _keep_sources([PurePosixPath(key[len(root) + 1:]) for key in _listing(fs, root)])
+        fs, root = filesystem(folder)
+        return _keep_sources([PurePosixPath(key[len(root) + 1:]) for key in listing(fs, root)])
     folder = Path(folder)
     return _keep_sources([path.relative_to(folder) for path in sorted(folder.rglob("*"))
                           if path.is_file()])
@@ -285,7 +271,7 @@ def export_folder(source, output, *, lods=DEFAULT_LODS, separate: bool = False,
     check_scheduler(scheduler)
     if jobs < 1:
         raise MeshError(f"jobs must be at least 1, got {jobs}")
-    inputs, outputs = _Folder(source), _Folder(output)
+    inputs, outputs = Folder(source), Folder(output)
     if not inputs.is_folder():
         raise MeshError(f"{source} is not a folder")
     sources = find_sources(source)
@@ -370,7 +356,7 @@ def export_folder(source, output, *, lods=DEFAULT_LODS, separate: bool = False,
         # the manifest: a task retried on another worker cannot race it.
         present = {_key(relative) for relative in sources}
         kept = {name: entry for name, entry in manifest.items() if name in present}
-        document = {"version": _MANIFEST_VERSION, "sources": dict(sorted(kept.items()))}
+        document = {"version": MANIFEST_VERSION, "sources": dict(sorted(kept.items()))}
         outputs.write(MANIFEST, (json.dumps(document, indent=1) + "\n").encode())
     report.written.sort(key=lambda e: PurePosixPath(str(e.source)))
     return report
@@ -419,8 +405,8 @@ def _export_asset(job: AssetJob) -> Exported:
     target = relative.with_suffix(".glb")
     with tempfile.TemporaryDirectory(prefix="lodserver-export-") as scratch:
         if is_url(job.source):
-            fs, root = _filesystem(job.source)
-            source = _fetch_with_references(fs, root, relative, Path(scratch, "in"))
+            fs, root = filesystem(job.source)
+            source = fetch_with_references(fs, root, relative, Path(scratch, "in"))
         else:
             source = Path(job.source, *relative.parts)
         written_to = Path(scratch, "out") if is_url(job.output) else Path(job.output)
@@ -430,241 +416,9 @@ def _export_asset(job: AssetJob) -> Exported:
         names = [PurePosixPath(path.relative_to(written_to).as_posix())
                  for path in exported.outputs]
         if is_url(job.output):
-            fs, root = _filesystem(job.output)
+            fs, root = filesystem(job.output)
             for path, name in zip(exported.outputs, names):
                 # one PUT of the whole object (or a multipart upload, completed at
                 # once): a reader sees the old object or the new one
                 fs.put_file(str(path), f"{root}/{name}")
     return replace(exported, source=relative, outputs=names)
-
-
-class _Folder:
-    """A folder of the pipeline: a local path, or an object-store prefix through fsspec."""
-
-    def __init__(self, location):
-        self.remote = is_url(location)
-        if self.remote:
-            self.url = location.rstrip("/")
-            self.fs, self.root = _filesystem(self.url)
-        else:
-            self.path = Path(location)
-
-    def shared(self, absolute: bool) -> str:
-        """The folder as a task gets it: the URL, or the path (absolute if asked)."""
-        if self.remote:
-            return self.url
-        return str(self.path.absolute() if absolute else self.path)
-
-    def is_folder(self) -> bool:
-        return self.fs.isdir(self.root) if self.remote else self.path.is_dir()
-
-    def create(self) -> None:
-        # an object store has no folders: a key's prefix exists once a key does
-        if not self.remote:
-            self.path.mkdir(parents=True, exist_ok=True)
-
-    def location(self, relative):
-        """Where ``relative`` is, as the caller named the folder (a Path or a URL)."""
-        if self.remote:
-            return f"{self.url}/{PurePosixPath(relative)}"
-        return self.path.joinpath(*PurePosixPath(relative).parts)
-
-    def existing(self):
-        """An object answering ``name in existing``: is ``output/name`` a file."""
-        if not self.remote:
-            return _LocalFiles(self.path)
-        return {key[len(self.root) + 1:] for key in _listing(self.fs, self.root)}
-
-    def sha256_all(self, relatives: list) -> dict:
-        """``{relative: SHA-256 hex digest, or the OSError reading it raised}``.
-
-        Local files are read one after the other, as ever; objects
-        ``STORE_READERS`` at once, since each GET waits mostly on the store's
-        latency, and this pass runs before any task starts.
-        """
-        def digest(relative):
-            try:
-                return self.sha256(relative)
-            except OSError as exc:
-                return exc
-
-        if not self.remote:
-            return {relative: digest(relative) for relative in relatives}
-        with ThreadPoolExecutor(max_workers=STORE_READERS) as pool:
-            return dict(zip(relatives, pool.map(digest, relatives)))
-
-    def sha256(self, relative) -> str:
-        if not self.remote:
-            return _sha256(self.path / relative)
-        with _store_errors(), self.fs.open(f"{self.root}/{PurePosixPath(relative)}",
-                                           "rb") as file:
-            return _sha256_of(file)
-
-    def read_manifest(self) -> dict:
-        """The sources recorded by an earlier run; empty when there is none or it is
-        unreadable (then everything is rebuilt, which is always safe)."""
-        try:
-            if self.remote:
-                text = self.fs.cat_file(f"{self.root}/{MANIFEST}")
-            else:
-                text = (self.path / MANIFEST).read_bytes()
-            document = json.loads(text)
-        except (OSError, ValueError):
-            return {}
-        if not isinstance(document, dict) or document.get("version") != _MANIFEST_VERSION:
-            return {}
-        sources = document.get("sources")
-        return dict(sources) if isinstance(sources, dict) else {}
-
-    def write(self, name: str, data: bytes) -> None:
-        if self.remote:
-            self.fs.pipe_file(f"{self.root}/{name}", data)     # one PUT: whole or not at all
-        else:
-            write_atomic(self.path / name, data)
-
-
-class _LocalFiles:
-    def __init__(self, folder: Path):
-        self.folder = folder
-
-    def __contains__(self, name) -> bool:
-        return (self.folder / name).is_file()
-
-
-def _filesystem(url: str):
-    """``(filesystem, root)`` for an object-store URL; root without the scheme or a
-    trailing slash. A fresh instance: fsspec's cache would keep a client made for
-    other AWS_* settings."""
-    try:
-        import fsspec
-        fs, root = fsspec.core.url_to_fs(url, skip_instance_cache=True)
-    except ImportError as exc:
-        raise MeshError(f"object-store folders such as {url} need the distributed extra "
-                        f"(pip install 'lodserver[distributed]'): {exc}") from None
-    except ValueError as exc:
-        raise MeshError(f"cannot use {url}: {exc}") from None
-    return _Store(fs), root.rstrip("/")
-
-
-class _Store:
-    """An fsspec filesystem whose calls raise OSError for the object store's own errors
-    (botocore's: no credentials, no endpoint, ...), which name no Python type the
-    callers know; ``OSError`` is what a folder that cannot be read raises here."""
-
-    def __init__(self, fs):
-        self._fs = fs
-
-    def __getattr__(self, name):
-        attribute = getattr(self._fs, name)
-        if not callable(attribute):
-            return attribute
-
-        def call(*args, **kwargs):
-            with _store_errors():
-                return attribute(*args, **kwargs)
-        return call
-
-
-@contextmanager
-def _store_errors():
-    try:
-        yield
-    except OSError:
-        raise
-    except Exception as exc:
-        if not type(exc).__module__.startswith(("botocore", "aiobotocore", "s3fs", "fsspec")):
-            raise
-        raise OSError(f"the object store failed: {exc}") from None
-
-
-def _listing(fs, root: str) -> list[str]:
-    """Every key under ``root`` (none when it does not exist)."""
-    try:
-        return sorted(fs.find(root))
-    except FileNotFoundError:
-        return []
-
-
-# The keywords of MTL lines that name a texture file (the name is the line's tail,
-# after options whose count varies, so every tail is tried).
-_MTL_MAPS = re.compile(rb"(?m)^[ \t]*(?:map_\w+|bump|disp|decal|refl|norm)[ \t]+(.+?)[ \t]*\r?$")
-_MTLLIB = re.compile(rb"(?m)^[ \t]*mtllib[ \t]+(.+?)[ \t]*\r?$")
-# a file naming more than this many files is not fetched past them
-_MAX_REFERENCES = 256
-
-
-def _fetch_with_references(fs, root: str, relative: PurePosixPath, into: Path) -> Path:
-    """Copy ``root/relative`` and the files it names into ``into`` (same layout).
-
-    What is named: a ``.gltf``'s buffer and image URIs, an OBJ's ``mtllib``
-    files and their texture maps. Only names that resolve inside ``root`` and
-    exist there are fetched; the loader then judges the copy exactly as it would
-    the original (a missing texture is its error, not ours). Returns the local
-    copy of the source.
-    """
-    fetched: set[PurePosixPath] = set()
-    pending = [relative]
-    while pending and len(fetched) <= _MAX_REFERENCES:
-        name = pending.pop()
-        if name in fetched:
-            continue
-        key = f"{root}/{name}"
-        if name != relative and not fs.isfile(key):
-            continue
-        local = into.joinpath(*name.parts)
-        local.parent.mkdir(parents=True, exist_ok=True)
-        fs.get_file(key, str(local))
-        fetched.add(name)
-        for reference in _named_files(local.read_bytes(), name.suffix.lower()):
-            resolved = _inside(name.parent, reference)
-            if resolved is not None:
-                pending.append(resolved)
-    return into.joinpath(*relative.parts)
-
-
-def _named_files(data: bytes, suffix: str) -> list[str]:
-    """The file names a ``.gltf``, ``.obj`` or ``.mtl`` file's bytes may refer to
-    (candidates: an MTL line's every tail, an ``mtllib`` line whole and word by word)."""
-    if suffix == ".gltf":
-        try:
-            document = json.loads(data)
-        except ValueError:
-            return []
-        records = [record for kind in ("buffers", "images")
-                   for record in (document.get(kind) or []) if isinstance(record, dict)]
-        return [unquote(record["uri"]) for record in records
-                if isinstance(record.get("uri"), str) and not record["uri"].startswith("data:")]
-    pattern = {".obj": _MTLLIB, ".mtl": _MTL_MAPS}.get(suffix)
-    if pattern is None:
-        return []
-    names = []
-    for match in pattern.finditer(data):
-        words = match.group(1).decode("utf-8", errors="replace").split()
-        if suffix == ".obj":
-            names += [" ".join(words)] + words
-        else:
-            names += [" ".join(words[at:]) for at in range(len(words))]
-    return names
-
-
-def _inside(folder: PurePosixPath, name: str) -> PurePosixPath | None:
-    """``name`` relative to ``folder``, normalised; None if absolute or above the root."""
-    name = name.replace("\\", "/")
-    if not name or name.startswith("/") or _URL.match(name):
-        return None
-    joined = posixpath.normpath(posixpath.join(str(folder), name))
-    if joined == ".." or joined.startswith("../") or joined.startswith("/"):
-        return None
-    return PurePosixPath(joined)
-
-
-def _sha256(path: Path) -> str:
-    with open(path, "rb") as file:
-        return _sha256_of(file)
-
-
-def _sha256_of(file) -> str:
-    digest = hashlib.sha256()
-    for block in iter(lambda: file.read(1 << 20), b""):
-        digest.update(block)
-    return digest.hexdigest()

@@ -196,24 +196,24 @@ def test_cli_says_which_levels_were_clustered(tmp_path, capsys):
 
 
 def test_an_unreadable_source_fails_alone(tmp_path, monkeypatch):
-    from lodserver import pipeline
+    from lodserver import folders
 
     source, out = _assets(tmp_path / "assets"), tmp_path / "lods"
-    real = pipeline._sha256
+    real = folders._sha256
 
     def refuse(path):
         if path.name == "ball.ply":
             raise PermissionError(13, "Permission denied")
         return real(path)
 
-    monkeypatch.setattr(pipeline, "_sha256", refuse)
+    monkeypatch.setattr(folders, "_sha256", refuse)
     report = export_folder(source, out)
     assert report.failed[next(p for p in report.failed if p.name == "ball.ply")] == (
         "cannot read it: Permission denied")
     assert [str(e.source.relative_to(source)) for e in report.written] == ["spot.obj"]
     # a source that is gone is dropped from the manifest, its output left alone
     (source / "spot.obj").unlink()
-    monkeypatch.setattr(pipeline, "_sha256", real)
+    monkeypatch.setattr(folders, "_sha256", real)
     export_folder(source, out)
     assert sorted(json.loads((out / MANIFEST).read_text())["sources"]) == ["props/ball.ply"]
     assert (out / "spot.glb").is_file()
