@@ -9,5 +9,6 @@
 - ``legality``: the check step, one rule after another;
 - ``perform``: the collapse on the corner lists and its record;
 - ``pairs``: close pairs (Garland & Heckbert's pairs that share no edge);
+- ``parts``: partitioned runs (parts decimated at once, logs merged by key);
 - ``log``: the collapse log, one row per collapse (``CollapseLog``).
 """

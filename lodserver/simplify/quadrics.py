@@ -46,6 +46,8 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
+from .state import NO_REFCOUNT
+
 QUADRIC_SIZE = 11
 
 
@@ -387,7 +389,10 @@ def _scatter_add(out, rows, values):
             out[r, j] += values[i, j]
 
 
-@njit(cache=True, nogil=True)
+# The solves and evaluations below run millions of times a build and
+# allocate nothing: compiled without reference counting (``state.NO_REFCOUNT``),
+# as every array argument otherwise costs a count taken and dropped per call.
+@njit(**NO_REFCOUNT)
 def quadric_error(q, x, y, z):
     """Q(p) for the quadric row ``q`` at ``p = (x, y, z)``; squared length x area."""
     return (q[0] * x * x + 2.0 * q[1] * x * y + 2.0 * q[2] * x * z
@@ -395,7 +400,7 @@ def quadric_error(q, x, y, z):
             + 2.0 * (q[6] * x + q[7] * y + q[8] * z) + q[9])
 
 
-@njit(cache=True, nogil=True)
+@njit(**NO_REFCOUNT)
 def optimal_position(q, pa, pb, out):
     """Write into ``out`` the point minimising ``q`` for collapsing edge (pa, pb).
 
@@ -435,7 +440,7 @@ def _regularized_cofactors(q):
                                              q[5] + eps))
 
 
-@njit(cache=True, nogil=True)
+@njit(**NO_REFCOUNT)
 def solve_regularized(q, mx, my, mz, out):
     """The one 3x3 solve: write into ``out`` the minimiser of quadric row
     ``q`` regularised towards ``m = (mx, my, mz)``, i.e. the solution of
@@ -456,7 +461,7 @@ def solve_regularized(q, mx, my, mz, out):
     return True
 
 
-@njit(cache=True, nogil=True)
+@njit(**NO_REFCOUNT)
 def optimal_position_xyz(q, ax, ay, az, bx, by, bz, out):
     """``optimal_position`` with the endpoints as scalars: the kernel calls it
     millions of times, and slicing rows into array views costs more than the solve."""
@@ -499,7 +504,7 @@ def cell_representatives(q, mean, out):
             out[c, 0] = mean[c, 0]; out[c, 1] = mean[c, 1]; out[c, 2] = mean[c, 2]
 
 
-@njit(cache=True, nogil=True)
+@njit(**NO_REFCOUNT)
 def constrain_to_plane(q, nx, ny, nz, h, out):
     """Move the minimiser ``out`` of ``q`` onto the plane ``N . p = h`` along
     the quadric's own metric (Lagrange: ``p += A^-1 N (h - N . p) / (N . A^-1 N)``).

@@ -274,6 +274,29 @@ def next_key(queue):
 
 
 @njit(cache=True, nogil=True, inline="always")
+def pop_fresh_from(hk, hab, hvs, size, queue, version, vertex_alive, rejected, stale):
+    """``pop_fresh`` on the heap's arrays ``hk, hab, hvs`` and ``size`` of
+    ``queue``, as the pass loop holds them: inlined, every read of a field of
+    ``queue`` would count a reference, and this runs once per candidate;
+    ``queue`` itself is only read at a refill."""
+    while True:
+        if size[HEAP] == 0:
+            rsize = size[RESERVOIR]
+            if rsize == 0:
+                return EMPTY, EMPTY, EMPTY
+            if hk.shape[0] < rsize:
+                return NEEDS_ROOM, NEEDS_ROOM, NEEDS_ROOM
+            rejected[stale] += _refill(queue, version, vertex_alive)
+            continue
+        e_ab = hab[0]
+        e_vs = hvs[0]
+        size[HEAP] = _heap_pop(hk, hab, hvs, size[HEAP])
+        if _fresh(e_ab, e_vs, version, vertex_alive):
+            return e_ab >> 32, e_ab & 0xFFFFFFFF, e_vs
+        rejected[stale] += 1
+
+
+@njit(cache=True, nogil=True, inline="always")
 def pop_fresh(queue, version, vertex_alive, rejected, stale):
     """Take the cheapest entry whose endpoints are as queued.
 

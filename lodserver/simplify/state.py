@@ -66,7 +66,19 @@ def new_state(faces, n):
     face_count = np.zeros(n, np.int64)
     link_corners(faces, vhead, cnext, face_count)
     topo = Topology(faces, vhead, cnext, np.ones(m, np.bool_), face_count, face_count > 0)
-    scratch = Scratch(np.empty(11), np.empty(3), np.full((2, 2), -1, np.int64),
-                      np.empty(2, np.int64), np.empty(11, np.float64), np.empty(4, np.float64),
-                      np.zeros(n, np.int64), np.zeros(n, np.int64))
-    return topo, scratch
+    return topo, new_scratch(n)
+
+
+@njit(cache=True, nogil=True)
+def new_topology(faces, n):
+    """The ``Topology`` of ``faces`` (m, 3) int64 over ``n`` vertices (shared
+    by the threads of a partitioned run, ``simplify.parts``)."""
+    return new_state(faces, n)[0]
+
+
+@njit(cache=True, nogil=True, inline="always")
+def new_scratch(n):
+    """An empty ``Scratch`` for ``n`` vertices (one per thread)."""
+    return Scratch(np.empty(11), np.empty(3), np.full((2, 2), -1, np.int64),
+                   np.empty(2, np.int64), np.empty(11, np.float64), np.empty(4, np.float64),
+                   np.zeros(n, np.int64), np.zeros(n, np.int64))

@@ -20,6 +20,7 @@ import numpy as np
 from numba import njit
 
 from .quadrics import add_fixed, add_reduced, best_attributes, seam_edges, wedge_quadrics
+from .state import NO_REFCOUNT
 
 # Default weight of each attribute's squared error against squared distance in
 # the unit box (positions are scaled so the longest box side is 1): with 0.3, a
@@ -40,6 +41,10 @@ DEFAULT_ATTRIBUTE_WEIGHTS = {"NORMAL": 0.003, "TEXCOORD_0": 0.3, "TEXCOORD_1": 0
 # clamped to [0, color_max] after a merge (-1: absent).
 Wedges = namedtuple("Wedges", "corner quadric value fixed mark stamp merged "
                               "normal_col normal_len color_col color_max")
+
+# The steps below run per candidate or per collapse and allocate nothing:
+# they are compiled without reference counting (``state.NO_REFCOUNT``), as a
+# namedtuple argument otherwise costs a count per array on every call.
 
 
 def attribute_scales(layout, weights: dict | None) -> np.ndarray:
@@ -106,7 +111,7 @@ def wedge_inputs(attributes, unit, faces, weights, n):
     return wedges, scales
 
 
-@njit(cache=True, nogil=True)
+@njit(**NO_REFCOUNT)
 def vertex_fixed(v, topo, wedges):
     """fixed[v, :10] = the sum of the fixed-value quadrics of v's wedges,
     fixed[v, 10] their number."""
@@ -136,7 +141,7 @@ def fill_fixed(topo, wedges):
             vertex_fixed(v, topo, wedges)
 
 
-@njit(cache=True, nogil=True)
+@njit(**NO_REFCOUNT)
 def add_wedge_terms(a, b, q, topo, wedges, pairs):
     """Add the attribute terms of collapsing (a, b) to ``q``.
 
@@ -192,7 +197,7 @@ def add_wedge_terms(a, b, q, topo, wedges, pairs):
     return True, n, seams_meet
 
 
-@njit(cache=True, nogil=True)
+@njit(**NO_REFCOUNT)
 def merge_wedges(p, n_pairs, pairs, wedges, log_value, log_survivor, log_removed, at):
     """Merge each pair ``(survivor's wedge, removed's wedge)`` of ``pairs``:
     sum their quadrics and solve the attributes at ``p`` (the average where
