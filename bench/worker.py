@@ -3,13 +3,15 @@
 Usage (run by ``simplify.py``, not by hand)::
 
     worker.py peer METHOD INPUT.npz OUTPUT.npz --targets N --repeats R
-    worker.py lodserver INPUT.npz OUTPUT.npz --targets N1,N2,... --repeats R
+    worker.py lodserver INPUT.npz OUTPUT.npz --targets N1,N2,... --repeats R [--levels K]
     worker.py warmup OUTPUT.npz
 
 INPUT.npz holds the welded ``positions`` and ``faces``. OUTPUT.npz gets
 ``positions_i`` / ``faces_i`` for the i-th target and ``report``, a JSON
 string with the timings. Each call is timed and memory-measured by
-:func:`measure`; loading the input and saving the output are not.
+:func:`measure`; loading the input and saving the output are not. The report
+also holds ``process_max_rss_mib``, the whole process's peak RSS (input,
+imports and all; ``process_peak_mib``).
 """
 
 from __future__ import annotations
@@ -19,6 +21,7 @@ import ctypes
 import gc
 import hashlib
 import json
+import resource
 import time
 from pathlib import Path
 
@@ -43,8 +46,24 @@ def _release_free_memory() -> None:
         pass  # not glibc: peaks of later repeats may read low
 
 
+# the process's peak RSS before the last VmHWM reset (KiB): a reset also lowers
+# what getrusage reports, so the whole process's peak is kept here
+_process_peak_kib = 0
+
+
+def process_peak_mib() -> float:
+    """Peak RSS of this whole process so far (input, imports and all), MiB."""
+    current = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss  # KiB on Linux
+    return max(_process_peak_kib, current) / 1024
+
+
 def _reset_peak() -> bool:
     """Reset VmHWM to the current RSS (Linux); False where that is unsupported."""
+    global _process_peak_kib
+    try:
+        _process_peak_kib = max(_process_peak_kib, _status_kib("VmHWM"))
+    except (OSError, KeyError):
+        pass
     try:
         with open("/proc/self/clear_refs", "w") as clear_refs:
             clear_refs.write("5")
@@ -124,8 +143,20 @@ def run_peer(method, positions, faces, targets, repeats):
     return arrays, {"runs": runs}
 
 
-def run_lodserver(positions, faces, targets, repeats):
-    """Time ``build`` (once per repeat) and, per target, ``arrays_at`` of its level."""
+def _timed(call, *args):
+    """(wall, thread CPU) seconds of ``call(*args)``, in the steady state of a
+    process that keeps serving: unlike :func:`measure`, no collection and no
+    heap returned to the OS first. CPU time tells the call apart from a busy
+    machine (it excludes time spent waiting for a core)."""
+    cpu = time.thread_time()
+    start = time.perf_counter()
+    call(*args)
+    return time.perf_counter() - start, time.thread_time() - cpu
+
+
+def run_lodserver(positions, faces, targets, repeats, levels=0):
+    """Time ``build`` (once per repeat), per target ``arrays_at`` of its level,
+    and ``arrays_at`` and ``at`` of ``levels`` random levels (seed 0), once each."""
     from lodserver import Mesh, build
 
     mesh = Mesh(positions, faces)
@@ -149,6 +180,9 @@ def run_lodserver(positions, faces, targets, repeats):
             times.append(elapsed)
         arrays[f"positions_{i}"], arrays[f"faces_{i}"] = extracted
         runs.append({"target": target, "level": level, "extract_times_s": times})
+    drawn = np.random.default_rng(0).integers(pm.base_vertices, pm.vertex_count + 1, levels)
+    arrays_at_times = [_timed(pm.arrays_at, level) for level in drawn]
+    at_times = [_timed(pm.at, level) for level in drawn]
     report = {
         "build_times_s": build_times,
         "build_cpu_times_s": build_cpu_times,
@@ -158,6 +192,11 @@ def run_lodserver(positions, faces, targets, repeats):
         "passes": pm.metadata["decimation"]["passes"],
         "source_digest": digest,
         "runs": runs,
+        "random_levels": {"levels": drawn.tolist(),
+                          "arrays_at_s": [wall for wall, _ in arrays_at_times],
+                          "arrays_at_cpu_s": [cpu for _, cpu in arrays_at_times],
+                          "at_s": [wall for wall, _ in at_times],
+                          "at_cpu_s": [cpu for _, cpu in at_times]},
     }
     return arrays, report
 
@@ -184,6 +223,8 @@ def main(argv=None):
         mode.add_argument("output")
         mode.add_argument("--targets", required=True, help="comma-separated face counts")
         mode.add_argument("--repeats", type=int, default=1)
+    lodserver.add_argument("--levels", type=int, default=0,
+                           help="random levels to extract, timed once each")
     modes.add_parser("warmup").add_argument("output")
     args = parser.parse_args(argv)
 
@@ -197,7 +238,8 @@ def main(argv=None):
                                       targets, args.repeats)
         else:
             arrays, report = run_lodserver(data["positions"], data["faces"], targets,
-                                           args.repeats)
+                                           args.repeats, args.levels)
+    report["process_max_rss_mib"] = process_peak_mib()
     np.savez(args.output, report=np.array(json.dumps(report)), **arrays)
 
 

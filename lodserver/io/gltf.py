@@ -242,6 +242,31 @@ def _check_declared(document: dict, limits: LoadLimits) -> None:
                  "triangles after placing every mesh instance")
     limits.check("max_vertices", sum(per_mesh[m][1] for m in instances),
                  "vertices after placing every mesh instance")
+    for m, records in enumerate(primitives):
+        for n, primitive in enumerate(records):
+            if isinstance(primitive, dict):
+                _check_geometry_has_data(document, primitive, f"primitive {n} of mesh {m}")
+
+
+def _check_geometry_has_data(document: dict, primitive: dict, label: str) -> None:
+    """Refuse positions or indices that no bytes of the file give values to.
+
+    An accessor without a bufferView reads as zeros (bar its sparse values), so
+    a few hundred bytes of JSON could declare millions of vertices all at the
+    origin: within the limits, yet minutes of parsing and welding for a mesh of
+    nothing but degenerate faces. Geometry must come from the file's bytes.
+    """
+    attributes = primitive.get("attributes") or {}
+    named = [("POSITION", attributes.get("POSITION")), ("indices", primitive.get("indices"))]
+    for what, index in named:
+        if index is None:
+            continue
+        accessor = _record(document, "accessors", index, f"{label} {what}")
+        count = accessor.get("count") or 0
+        sparse = accessor.get("sparse") if isinstance(accessor.get("sparse"), dict) else {}
+        if "bufferView" not in accessor and count and sparse.get("count") != count:
+            raise MeshError(f"its {label} has {what} (accessor {index}) without a bufferView, "
+                            f"so most of its {count} values would be zeros")
 
 
 def _scene_meshes(document: dict, limits: LoadLimits) -> list[int]:
@@ -471,17 +496,94 @@ def _primitive_triangles(mode: int, indices: np.ndarray) -> np.ndarray:
     return np.stack([indices[i + 1], indices[i + 2], np.full_like(i, indices[0])], axis=1)
 
 
-def _flatten_scene(document: dict, views: list, files: _ReferencedFiles) -> dict:
-    """Arrays of every placed triangle primitive (see :func:`read_gltf`)."""
-    cache = {}
+def read_gltf_meshes(path: Path, kind: str, *, root: Path | None = None,
+                     limits: LoadLimits | None = None, honoured=()) -> dict:
+    """Each glTF mesh of a .gltf or .glb file on its own, in its local space.
 
-    def accessor(index):
-        if index not in cache:
-            cache[index] = _read_accessor(document, views, index)
-        return cache[index]
+    The same reading, checks and primitive decoding as :func:`read_gltf`, but
+    mesh by mesh with the identity transform instead of the default scene
+    flattened, for :mod:`lodserver.io.scene`, which keeps the document.
+
+    Returns
+    -------
+    dict
+        ``document`` (the parsed JSON), ``meshes`` ({mesh index: the arrays
+        :func:`read_gltf` returns, or a MeshError's message for a mesh without
+        triangles}) for every mesh some node uses, ``materials`` (Materials
+        or None, shared by every mesh: face_material indexes it) and
+        ``accessor(index) -> (count, width) array`` of the accessor's own dtype
+        (sparse applied), for data carried as it is (animations).
+
+    An ``extensionsRequired`` entry not in ``honoured`` is a MeshError.
+    """
+    limits = limits or LoadLimits.unbounded()
+    data = read_reference(path, path.name, "file", limit=limits.max_file_bytes)
+    try:
+        document, binary = _parse_container(data, limits)
+        required = [name for name in document.get("extensionsRequired", ())
+                    if name not in honoured]
+        if required:
+            raise MeshError(f"it requires the glTF extension {required[0]}, which lodserver "
+                            "cannot honour")
+        _check_declared(document, limits)
+        files = _ReferencedFiles(path.parent, root, limits)
+        buffers = _load_buffers(document, binary, files)
+        views = [_view_bytes(buffers, view, i)
+                 for i, view in enumerate(document.get("bufferViews", ()))]
+        cache = {}
+
+        def accessor(index):
+            if index not in cache:
+                cache[index] = _read_accessor(document, views, index)
+            return cache[index]
+
+        materials = _read_materials(document, views, files)
+        used = sorted({node["mesh"] for node in document.get("nodes", ())
+                       if isinstance(node, dict) and "mesh" in node})
+        meshes = {}
+        for index in used:
+            _record(document, "meshes", index, "a node")
+            try:
+                meshes[index] = _flatten_scene(document, views, files,
+                                               instances=[(index, np.eye(4))],
+                                               materials=materials, accessor=accessor)
+            except MeshError as exc:
+                if not str(exc).startswith("it has no faces"):
+                    raise
+                meshes[index] = f"mesh {index} has no triangles (only points or lines)"
+        return {"document": document, "meshes": meshes, "materials": materials,
+                "accessor": accessor}
+    except MeshError:
+        raise
+    except (KeyError, IndexError, TypeError, ValueError, OverflowError, struct.error) as exc:
+        raise MeshError(
+            f"it could not be parsed as {kind.upper()} ({type(exc).__name__}: {exc})"
+        ) from exc
+
+
+_READ = object()  # materials not given: read them
+
+
+def _flatten_scene(document: dict, views: list, files: _ReferencedFiles, *,
+                   instances=None, materials=_READ, accessor=None) -> dict:
+    """Arrays of every placed triangle primitive (see :func:`read_gltf`).
+
+    ``instances`` ((mesh index, (4, 4) transform) pairs) defaults to the
+    default scene's; ``materials`` and ``accessor`` may be given when the
+    caller reads several meshes of one document.
+    """
+    if accessor is None:
+        cache = {}
+
+        def accessor(index):
+            if index not in cache:
+                cache[index] = _read_accessor(document, views, index)
+            return cache[index]
 
     placed = []  # (primitive, linear (3, 3), triangles, world positions)
-    for mesh_index, world in _mesh_instances(document):
+    if instances is None:
+        instances = _mesh_instances(document)
+    for mesh_index, world in instances:
         for number, primitive in enumerate(document["meshes"][mesh_index]["primitives"]):
             mode = primitive.get("mode", TRIANGLES)
             if mode not in (TRIANGLES, _TRIANGLE_STRIP, _TRIANGLE_FAN):
@@ -521,7 +623,8 @@ def _flatten_scene(document: dict, views: list, files: _ReferencedFiles) -> dict
             _primitive_corners(primitive, linear, triangles, world, layout, accessor, document)
             for primitive, linear, triangles, world in placed])
 
-    materials = _read_materials(document, views, files)
+    if materials is _READ:
+        materials = _read_materials(document, views, files)
     face_material = None
     count = materials.count if materials is not None else 0
     if materials is not None or any("material" in primitive for primitive, *_ in placed):

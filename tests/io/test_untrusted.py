@@ -41,6 +41,11 @@ JPEG_HEAD = b"\xff\xd8\xff\xe0\x00\x10JFIF\x00"
 # --- helpers ------------------------------------------------------------------------------
 
 
+# The triangle limit these tests' files were sized for (the default was 2M before
+# issue 15 raised it to 10M): files past it stay small enough to write quickly.
+SMALL_LIMITS = LoadLimits(max_triangles=2_000_000)
+
+
 @pytest.fixture
 def upload(tmp_path) -> Path:
     """An upload folder, and beside it (outside) a secret folder with a usable buffer,
@@ -322,18 +327,34 @@ def assert_fast_and_small(call, *, seconds=1.0, peak=8 << 20) -> str:
 
 def test_gltf_accessor_without_buffer_view_declaring_millions_is_refused_at_once(upload):
     document = gltf_document()
-    document["accessors"] = [{"componentType": 5126, "count": 30_000_000, "type": "VEC3"}]
+    # 45M vertices: 15M triangles, past the default limit (10M)
+    document["accessors"] = [{"componentType": 5126, "count": 45_000_000, "type": "VEC3"}]
     del document["meshes"][0]["primitives"][0]["indices"]
     path = write_gltf(upload, document)
     assert path.stat().st_size < 600
     message = assert_fast_and_small(lambda: load_mesh(path, root=upload))
-    assert "10000000 triangles in mesh 0" in message
-    document["meshes"][0]["primitives"][0]["mode"] = 5  # a strip: 29999998 triangles
+    assert "15000000 triangles in mesh 0" in message
+    document["meshes"][0]["primitives"][0]["mode"] = 5  # a strip: 44999998 triangles
     message = assert_fast_and_small(lambda: load_mesh(write_gltf(upload, document), root=upload))
-    assert "29999998 triangles" in message
+    assert "44999998 triangles" in message
     limits = LoadLimits(max_triangles=None, max_vertices=1000)
     message = assert_fast_and_small(lambda: load_mesh(path, root=upload, limits=limits))
-    assert "30000000 vertices" in message
+    assert "45000000 vertices" in message
+
+
+def test_gltf_geometry_without_bytes_within_the_limits_is_refused_at_once(upload):
+    """Zeros by the million from a few hundred bytes: positions or indices no bufferView
+    gives values to are refused before any array is made, however few they are."""
+    for what in ("POSITION", "indices"):
+        document = gltf_document()
+        # 27M vertices, 9M triangles: within the default limit
+        index = 0 if what == "POSITION" else document["meshes"][0]["primitives"][0]["indices"]
+        document["accessors"][index]["count"] = 27_000_000 if what == "POSITION" else 9_000_000
+        del document["accessors"][index]["bufferView"]
+        path = write_gltf(upload, document)
+        assert path.stat().st_size < 800
+        message = assert_fast_and_small(lambda: load_mesh(path, root=upload))
+        assert f"{what} (accessor {index}) without a bufferView" in message
 
 
 def test_gltf_accessor_count_past_its_buffer_view_is_refused_at_once(upload):
@@ -354,13 +375,15 @@ def test_gltf_primitives_sharing_one_buffer_are_counted_after_instancing(upload)
     document["accessors"][1]["count"] = 21_000
     document["meshes"] = [{"primitives": [{"attributes": {"POSITION": 0}, "indices": 1}] * 300}]
     path = write_gltf(upload, document)
-    message = assert_fast_and_small(lambda: load_mesh(path, root=upload), peak=16 << 20)
+    message = assert_fast_and_small(lambda: load_mesh(path, root=upload, limits=SMALL_LIMITS),
+                                    peak=16 << 20)
     assert "2100000 triangles in mesh 0" in message
     # the same mesh once, placed by 300 nodes: each mesh is small, the scene is not
     document["meshes"] = [{"primitives": [{"attributes": {"POSITION": 0}, "indices": 1}]}]
     document["nodes"] = [{"children": list(range(1, 301))}] + [{"mesh": 0}] * 300
     path = write_gltf(upload, document)
-    message = assert_fast_and_small(lambda: load_mesh(path, root=upload), peak=16 << 20)
+    message = assert_fast_and_small(lambda: load_mesh(path, root=upload, limits=SMALL_LIMITS),
+                                    peak=16 << 20)
     assert "2100000 triangles after placing every mesh instance" in message
 
 
@@ -432,7 +455,9 @@ def test_ply_with_millions_of_empty_strips_is_refused_at_once(upload):
     header = ply_header("binary_little_endian", f"element vertex 3\n{VERTEX}element tristrips "
                         "4000000\nproperty list int int vertex_indices\n")
     path.write_bytes(header + TRIANGLE_POSITIONS.tobytes() + b"\0" * 16_000_000)
-    message = assert_fast_and_small(lambda: load_mesh(path, root=upload), peak=4 << 20)
+    # a limit below the rows (the default, 10M, would need a 40 MB file to pass)
+    message = assert_fast_and_small(lambda: load_mesh(path, root=upload, limits=SMALL_LIMITS),
+                                    peak=4 << 20)
     assert "4000000 PLY tristrips rows" in message
 
 
@@ -442,7 +467,8 @@ def test_obj_of_millions_of_vertices_is_refused_before_parsing(upload):
     path.write_bytes(b"v 0 0 0\n" * vertices + b"f 1 2 3\n")
     size = path.stat().st_size
     # the file itself is read (its size is what the upload limit allows); nothing more
-    message = assert_fast_and_small(lambda: load_mesh(path, root=upload), peak=size + (8 << 20))
+    message = assert_fast_and_small(lambda: load_mesh(path, root=upload, limits=SMALL_LIMITS),
+                                    peak=size + (8 << 20))
     assert f"{vertices} vertices" in message
 
 
@@ -495,7 +521,7 @@ def test_off_count_lie_is_refused(upload):
 
 
 def test_limits_default_to_the_server_defaults_only_with_a_root(upload):
-    assert LoadLimits().max_vertices == 6_000_000
+    assert LoadLimits().max_vertices == 30_000_000     # 3 x the default triangle limit
     assert LoadLimits(max_triangles=10).max_triangles_total == 10
     path = upload / "fan.obj"
     path.write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nv 1 1 0\nf 1 2 3\nf 2 4 3\n")

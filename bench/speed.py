@@ -1,0 +1,318 @@
+"""Build speed and memory: lodserver's whole progressive mesh against one
+simplification by each peer, at 1.1M, 4.4M and 9.4M triangles.
+
+For every size, in one run and each in its own child process
+(``worker.py``): lodserver ``build`` with ``NUMBA_NUM_THREADS=1`` and with
+every core, then meshoptimizer ``simplify`` and ``simplify_sloppy``,
+pymeshlab and fast-simplification (settings of ``methods.py``) asked for 10%
+of the triangles. Each gets its wall and CPU time, its peak memory (the RSS
+growth during the call, and the child's whole peak RSS) and the ratio of both
+to meshoptimizer ``simplify``'s. lodserver's child also times ``arrays_at``
+and ``at`` of 100 random levels (worst and median).
+
+    python bench/speed.py                  # every size (about 25 min on 2 busy cores)
+    python bench/speed.py --quick          # 1.1M only, 1 repeat (about 3 min)
+    python bench/speed.py --sizes 1m,4m --methods lodserver,meshoptimizer --repeats 3
+
+Inputs are Loop-subdivided scans from ``../shared/meshes``, made on first use
+and cached in ``bench/out/`` (``bunny_loop2.npz`` is the same file
+``simplify.py`` makes). See the "Speed benchmark" section of bench/README.md.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import json
+import os
+import re
+import shutil
+import statistics
+import sys
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+# simplify.py sets NUMBA_CACHE_DIR to the benchmarks' own cache on import
+from simplify import (
+    NUMBA_CACHE,
+    WorkerFailed,
+    _g,
+    _largest_peak,
+    markdown_table,
+    run_worker,
+)
+
+BENCH = Path(__file__).resolve().parent
+ROOT = BENCH.parent
+
+# size key -> (cache name, shared mesh, Loop iterations): triangles x 4 per iteration
+SIZES = {
+    "1m": ("bunny_loop2", "stanford-bunny.obj", 2),   # 1,111,216 triangles
+    "4m": ("bunny_loop3", "stanford-bunny.obj", 3),   # 4,444,864
+    "10m": ("brain_loop4", "brain.ply", 4),           # 9,408,512 (the bunny's next is 17.8M)
+}
+# the slowest last, so a run cut short by a timeout has the rest
+METHODS = ("lodserver", "meshoptimizer", "meshoptimizer-sloppy", "fast-simplification",
+           "lodserver-1t", "pymeshlab")
+REFERENCE = "meshoptimizer"   # ratios are to its time and memory
+RATIO = 0.1                   # peers are asked for 10% of the triangles
+LEVELS = 100                  # random levels extracted by lodserver's child
+PACKAGES = ("lodserver", "numpy", "numba", "meshoptimizer", "pymeshlab", "fast-simplification",
+            "trimesh")
+
+
+def prepare_input(size: str, mesh_dir: Path, out: Path) -> tuple[Path, int]:
+    """The cached .npz (welded ``positions``, ``faces``) of ``size`` and its face count,
+    made by Loop subdivision of a shared scan the first time."""
+    name, source, iterations = SIZES[size]
+    path = out / f"{name}.npz"
+    if not path.exists():
+        import trimesh
+
+        from lodserver.io import clean_mesh, load_mesh
+
+        _log(f"making {name} ({iterations} Loop subdivisions of {source}) ...")
+        mesh, _ = load_mesh(mesh_dir / source)
+        positions, faces = trimesh.remesh.subdivide_loop(mesh.positions, mesh.faces,
+                                                         iterations=iterations)
+        mesh, _ = clean_mesh(positions, faces)
+        partial = path.with_suffix(".partial.npz")
+        np.savez(partial, positions=mesh.positions, faces=mesh.faces)
+        os.replace(partial, path)   # an interrupted run leaves no truncated cache
+    with np.load(path) as data:
+        return path, len(data["faces"])
+
+
+@contextlib.contextmanager
+def environment(**values):
+    """``os.environ`` with ``values`` set for the children started inside."""
+    saved = {key: os.environ.get(key) for key in values}
+    os.environ.update(values)
+    try:
+        yield
+    finally:
+        for key, value in saved.items():
+            if value is None:
+                os.environ.pop(key, None)
+            else:
+                os.environ[key] = value
+
+
+def fresh_numba_cache() -> None:
+    """Empty the benchmarks' numba cache if it was filled by other lodserver sources.
+
+    numba only notices a change to a kernel's own file, not to one it calls in
+    another module, so a cache from older sources could run stale code.
+    """
+    from worker import lodserver_digest
+
+    stamp = NUMBA_CACHE / "lodserver-digest"
+    digest = lodserver_digest()
+    if not stamp.exists() or stamp.read_text() != digest:
+        shutil.rmtree(NUMBA_CACHE, ignore_errors=True)
+        NUMBA_CACHE.mkdir(parents=True)
+        stamp.write_text(digest)
+
+
+def run_method(method, input_path, faces, repeats, levels, timeout, work) -> dict:
+    """One method on one input in a child process: its timings and peaks, or why it failed."""
+    target = max(1, round(RATIO * faces))
+    output = work / f"{method}.npz"
+    if method.startswith("lodserver"):
+        args = ["lodserver", str(input_path), str(output), "--targets", str(target),
+                "--repeats", str(repeats), "--levels", str(levels)]
+    else:
+        args = ["peer", method, str(input_path), str(output), "--targets", str(target),
+                "--repeats", str(repeats)]
+    # one numba thread for the single-thread run; the others get numba's default (every core)
+    threads = {"NUMBA_NUM_THREADS": "1"} if method == "lodserver-1t" else {}
+    try:
+        with environment(**threads):
+            report, arrays = run_worker(args, output, timeout)
+    except WorkerFailed as exc:
+        # numba's errors are coloured: keep the text only
+        return {"method": method, "status": "failed",
+                "reason": re.sub(r"\x1b\[[0-9;]*m", "", str(exc))}
+    row = {"method": method, "status": "ok", "target": target,
+           "process_max_rss_mib": report["process_max_rss_mib"]}
+    if method.startswith("lodserver"):
+        row.update(times_s=report["build_times_s"], cpu_times_s=report["build_cpu_times_s"],
+                   peak_mib=_largest_peak(report["build_peaks_mib"]),
+                   faces=int(len(arrays["faces_0"])), splits=report["splits"],
+                   source_digest=report["source_digest"])
+        drawn = report["random_levels"]
+        for key in ("arrays_at_s", "arrays_at_cpu_s", "at_s", "at_cpu_s"):
+            if drawn[key]:
+                row[f"{key[:-2]}_worst_s"] = max(drawn[key])
+                row[f"{key[:-2]}_median_s"] = statistics.median(drawn[key])
+        row["random_levels"] = drawn
+    else:
+        run = report["runs"][0]
+        row.update(times_s=run["times_s"], cpu_times_s=run["cpu_times_s"],
+                   peak_mib=_largest_peak(run["peaks_mib"]), faces=int(len(arrays["faces_0"])))
+    row["time_s"] = statistics.median(row["times_s"])
+    row["cpu_s"] = statistics.median(row["cpu_times_s"])
+    return row
+
+
+def with_ratios(rows) -> None:
+    """Add each row's time and peak over the reference's (same size), in place."""
+    reference = next((r for r in rows if r["method"] == REFERENCE and r["status"] == "ok"), None)
+    for row in rows:
+        if reference is None or row["status"] != "ok":
+            continue
+        row["time_over_reference"] = row["time_s"] / reference["time_s"]
+        row["cpu_over_reference"] = row["cpu_s"] / reference["cpu_s"]
+        if row["peak_mib"] and reference["peak_mib"]:
+            row["peak_over_reference"] = row["peak_mib"] / reference["peak_mib"]
+
+
+def speed_table(results) -> str:
+    header = ["size", "faces", "method", "time s", "cpu s", f"time / {REFERENCE}",
+              f"cpu / {REFERENCE}", "peak MiB", "B / face", f"peak / {REFERENCE}", "process MiB",
+              "result faces"]
+    lines = []
+    for size, entry in results["sizes"].items():
+        for r in entry["rows"]:
+            head = [size, entry["faces"], r["method"]]
+            if r["status"] != "ok":
+                lines.append(head + [f"FAILED: {r['reason']}"] + [""] * 8)
+                continue
+            per_face = None if r["peak_mib"] is None else r["peak_mib"] * 2**20 / entry["faces"]
+            lines.append(head + [_g(r["time_s"]), _g(r["cpu_s"]),
+                                 _g(r.get("time_over_reference")),
+                                 _g(r.get("cpu_over_reference")), _g(r["peak_mib"], 4),
+                                 _g(per_face), _g(r.get("peak_over_reference")),
+                                 _g(r["process_max_rss_mib"], 4), r["faces"]])
+    return markdown_table(header, lines)
+
+
+def scaling_table(results) -> str:
+    """Time and peak memory per input face, and each relative to the smallest size."""
+    sizes = results["sizes"]
+    header = ["method", *(f"{size}: us / face" for size in sizes),
+              *(f"{size}: cpu us / face" for size in sizes),
+              *(f"{size}: B / face" for size in sizes), "time/face growth",
+              "cpu/face growth", "memory/face growth"]
+    lines = []
+    for method in results["settings"]["methods"]:
+        per_time, per_cpu, per_peak = [], [], []
+        for entry in sizes.values():
+            row = next((r for r in entry["rows"] if r["method"] == method), None)
+            ok = row is not None and row["status"] == "ok"
+            per_time.append(row["time_s"] * 1e6 / entry["faces"] if ok else None)
+            per_cpu.append(row["cpu_s"] * 1e6 / entry["faces"] if ok else None)
+            per_peak.append(row["peak_mib"] * 2**20 / entry["faces"]
+                            if ok and row["peak_mib"] else None)
+
+        def growth(values):
+            """Last known size's value over the first's (1 = linear cost)."""
+            known = [v for v in values if v is not None]
+            return _g(known[-1] / known[0]) if len(known) > 1 else "-"
+
+        lines.append([method, *map(_g, per_time), *map(_g, per_cpu), *map(_g, per_peak),
+                      growth(per_time), growth(per_cpu), growth(per_peak)])
+    return markdown_table(header, lines)
+
+
+def levels_table(results) -> str:
+    keys = ("arrays_at_worst_s", "arrays_at_median_s", "arrays_at_cpu_worst_s",
+            "arrays_at_cpu_median_s", "at_worst_s", "at_median_s", "at_cpu_worst_s",
+            "at_cpu_median_s")
+    header = ["size", "faces", "method", "arrays_at worst ms", "median ms", "cpu worst ms",
+              "cpu median ms", "at worst ms", "median ms", "cpu worst ms", "cpu median ms",
+              "levels"]
+    lines = []
+    for size, entry in results["sizes"].items():
+        for r in entry["rows"]:
+            if r["method"].startswith("lodserver") and r["status"] == "ok" \
+                    and "arrays_at_worst_s" in r:
+                lines.append([size, entry["faces"], r["method"],
+                              *(_g(r[k] * 1e3) for k in keys),
+                              len(r["random_levels"]["levels"])])
+    return markdown_table(header, lines)
+
+
+def _log(*parts):
+    """Progress, on stderr, so stdout holds only the final tables."""
+    print(*parts, file=sys.stderr, flush=True)
+
+
+def parse_args(argv=None):
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0].replace("\n", " "))
+    parser.add_argument("--sizes", help=f"comma-separated, from: {', '.join(SIZES)} (default: all)")
+    parser.add_argument("--methods", default=",".join(METHODS),
+                        help="comma-separated; lodserver-1t is the NUMBA_NUM_THREADS=1 build")
+    parser.add_argument("--repeats", type=int, help="timed calls per method at 1m (median); 3")
+    parser.add_argument("--repeats-large", type=int, default=1,
+                        help="timed calls per method at the larger sizes; 1")
+    parser.add_argument("--levels", type=int, default=LEVELS,
+                        help=f"random levels extracted by lodserver; {LEVELS}")
+    parser.add_argument("--timeout", type=float, default=900.0,
+                        help="seconds per child process before it counts as failed; 900")
+    parser.add_argument("--quick", action="store_true", help="1m only, 1 repeat")
+    parser.add_argument("--mesh-dir", type=Path, default=ROOT.parent / "shared" / "meshes")
+    parser.add_argument("--out", type=Path, default=BENCH / "out",
+                        help="output directory (speed.json, or speed-quick.json)")
+    args = parser.parse_args(argv)
+    args.sizes = (args.sizes or ("1m" if args.quick else ",".join(SIZES))).split(",")
+    args.methods = args.methods.split(",")
+    for given, known, what in ((args.sizes, SIZES, "size"), (args.methods, METHODS, "method")):
+        unknown = [x for x in given if x not in known]
+        if unknown:
+            parser.error(f"unknown {what} {unknown[0]!r}; choose from {', '.join(known)}")
+    args.repeats = args.repeats or (1 if args.quick else 3)
+    if args.repeats < 1 or args.repeats_large < 1 or args.levels < 0 or args.timeout <= 0:
+        parser.error("repeats must be at least 1, levels at least 0 and the timeout positive")
+    if not args.mesh_dir.is_dir():
+        parser.error(f"no mesh folder at {args.mesh_dir}; give --mesh-dir")
+    return args
+
+
+def main(argv=None):
+    args = parse_args(argv)
+    from machine import cpu_busy, machine_info
+
+    args.out.mkdir(parents=True, exist_ok=True)
+    result_path = args.out / ("speed-quick.json" if args.quick else "speed.json")
+    fresh_numba_cache()
+    results = {"machine": {**machine_info(PACKAGES), "cpu_busy_before": cpu_busy()},
+               "settings": {"ratio": RATIO, "repeats": args.repeats,
+                            "repeats_large": args.repeats_large, "levels": args.levels,
+                            "timeout_s": args.timeout, "methods": args.methods,
+                            "reference": REFERENCE},
+               "sizes": {}}
+    work = Path(tempfile.mkdtemp(prefix="speed-", dir=args.out))
+    try:
+        inputs = {size: prepare_input(size, args.mesh_dir, args.out) for size in args.sizes}
+        for size, (input_path, faces) in inputs.items():
+            results["sizes"][size] = {"input": input_path.name, "faces": faces, "rows": [],
+                                      "repeats": args.repeats if size == "1m"
+                                      else args.repeats_large}
+        # method by method over the sizes, so a run cut short still has the first
+        # methods (lodserver and meshoptimizer) at every size
+        for method in args.methods:
+            for size, (input_path, faces) in inputs.items():
+                entry = results["sizes"][size]
+                _log(f"{size} ({faces:,} faces): {method} ...")
+                row = run_method(method, input_path, faces, entry["repeats"], args.levels,
+                                 args.timeout, work)
+                _log(f"  {row.get('time_s', row.get('reason'))}")
+                entry["rows"].append(row)
+                with_ratios(entry["rows"])
+                # rewritten after every child, so an interrupted run keeps what it measured
+                result_path.write_text(json.dumps(results, indent=1))
+    finally:
+        shutil.rmtree(work, ignore_errors=True)
+    results["machine"]["cpu_busy_after"] = cpu_busy()
+    result_path.write_text(json.dumps(results, indent=1))
+    print(speed_table(results), "\n")
+    print(scaling_table(results), "\n")
+    print(levels_table(results))
+    _log(f"\nwrote {result_path}")
+
+
+if __name__ == "__main__":
+    main()
