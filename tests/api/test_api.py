@@ -231,6 +231,7 @@ def test_chain_is_one_glb_of_linked_levels(served):
     ("chain", {"lods": "0.2,0.5"}, 422, "strictly decreasing"),
     ("chain", {"lods": "1,half"}, 422, "comma-separated"),
     ("chain", {"lods": ",".join(str(1 - i / 20) for i in range(17))}, 422, "at most 16"),
+    ("chain", {"lods": "1,0.9,0.8,0.7,0.6,0.5"}, 422, "at most 4 times the mesh's faces"),
     ("chain", {"reach": "sloppy"}, 422, "reach"),
 ])
 def test_bad_level_parameters_are_422_with_a_message(served, path, params, status, message):

@@ -115,6 +115,10 @@ def get_splits(mesh_id: MeshId, store: StoreDep, bodies: BodiesDep, request: Req
 
 
 MAX_CHAIN_LEVELS = 16
+# A chain's levels hold at most this many times the mesh's faces. The encoder
+# holds the whole chain in memory: 16 levels near full detail of a mesh at the
+# 10M-triangle limit would be ~12 GB, while the default chain is 1.75 times.
+MAX_CHAIN_FACES = 4
 
 
 @router.get("/{mesh_id}/chain", responses={**_ERRORS, 200: {"content": {
@@ -139,11 +143,15 @@ def get_chain(mesh_id: MeshId, store: StoreDep, bodies: BodiesDep, request: Requ
     ratios = parse_lods(lods)
     if len(ratios) > MAX_CHAIN_LEVELS:
         raise LevelError(f"a chain holds at most {MAX_CHAIN_LEVELS} levels, got {len(ratios)}")
+    faces = sum(pm.faces_at_level(pm.level_for(ratio=ratio)) for ratio in ratios)
+    full = pm.faces_at_level(pm.vertex_count)
+    if faces > MAX_CHAIN_FACES * full:
+        raise LevelError(f"a chain's levels hold at most {MAX_CHAIN_FACES} times the mesh's "
+                         f"faces; these ratios add up to {faces / full:.2f} times")
     etag = etag_for(digest, "chain", ",".join(map(repr, ratios)), reach)
     if is_fresh(request, etag):
         return with_cache_control(immutable(None, media_type=FORMATS["glb"], etag=etag), policy)
     # clustering (reach) works on the full mesh: never light
-    faces = sum(pm.faces_at_level(pm.level_for(ratio=ratio)) for ratio in ratios)
     return with_cache_control(bodies.respond(
         etag, lambda: encode_lod_chain(*lod_chain(pm, ratios, reach=reach)[:2]),
         media_type=FORMATS["glb"], filename=f"{mesh_id}-lods.glb",
