@@ -242,6 +242,8 @@ def _levels(done) -> str:
         # the coarser ratios were out of reach: say so rather than ship copies quietly
         text += (f"; the mesh simplifies no further than {done.base_faces} faces "
                  f"(locked, non-manifold or separate parts; --reach cluster meets the budget)")
+    for note in done.notes:     # what a glTF scene's export kept without levels
+        text += f"; {note}"
     return text
 
 

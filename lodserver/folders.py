@@ -24,7 +24,8 @@ from .io import write_atomic
 from .mesh import MeshError
 
 MANIFEST = "lodserver-export.json"
-MANIFEST_VERSION = 1
+# 2: glTF sources export their scene (io/scene_glb.py), not one flattened mesh.
+MANIFEST_VERSION = 2
 # Objects hashed at once: each GET waits mostly on the store's latency.
 STORE_READERS = 16
 

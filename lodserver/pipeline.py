@@ -3,7 +3,8 @@
 ``export_lods`` writes one source's levels, picked by face ratio, as one GLB
 whose nodes are linked by ``MSFT_lod`` (with ``MSFT_screencoverage`` hints), or
 as one GLB per level. The source is a ``.pm`` artefact or a mesh file, built
-on the way.
+on the way; a glTF scene keeps its document, each of its meshes replaced by
+its own chain.
 
 ``export_folder`` does that for every mesh file under a folder, mirroring the
 folder's layout (``ASSETS/props/chair.obj`` -> ``LODS/props/chair.glb``), with
@@ -74,6 +75,7 @@ class Exported:
     seconds: float
     base_faces: int = 0         # the coarsest edge collapse reaches: ratios below it stop there
     clustered: list[int] = field(default_factory=list)   # levels made by clustering (reach)
+    notes: list[str] = field(default_factory=list)       # what a scene's export did not keep
 
 
 # A level whose edge-collapse mesh overshoots its face budget by more than this is
@@ -124,7 +126,11 @@ def export_lods(source, output, *, lods=DEFAULT_LODS, separate: bool = False,
     Parameters
     ----------
     source : path
-        A ``.pm`` artefact, or a mesh file (built with ``options``).
+        A ``.pm`` artefact, or a mesh file (built with ``options``). A glTF or
+        GLB file keeps its scene (``io.scene``): each glTF mesh is built once
+        and the output is the input document with every mesh replaced by its
+        levels (``io.scene_glb``); skinned and morphed meshes are kept as they
+        are, one level, and ``Exported.notes`` says so.
     lods : sequence of float
         Face ratios of the levels, finest first, strictly decreasing, in (0, 1].
     separate : bool
@@ -157,6 +163,11 @@ def export_lods(source, output, *, lods=DEFAULT_LODS, separate: bool = False,
         raise MeshError(f"levels of detail are written as GLB, so the output must end in .glb, "
                         f"got {output.name}")
     start = time.perf_counter()
+    if source.suffix.lower() in (".gltf", ".glb"):
+        from .io.scene import load_scene
+        scene = load_scene(source, root=source.parent if untrusted else None)
+        return _export_scene(scene, source, output, lods, separate, reach, options,
+                             progress, start)
     if source.suffix.lower() == ".pm":
         pm = ProgressiveMesh.load(source)
     else:
@@ -178,6 +189,58 @@ def export_lods(source, output, *, lods=DEFAULT_LODS, separate: bool = False,
     return Exported(source, outputs, [mesh.face_count for mesh in meshes], coverage,
                     time.perf_counter() - start, pm.faces_at_level(pm.base_vertices),
                     clustered)
+
+
+def _export_scene(scene, source: Path, output: Path, lods, separate, reach, options,
+                  progress, start) -> Exported:
+    """:func:`export_lods` of a glTF scene kept whole: each glTF mesh built once into a
+    progressive mesh, its levels written in place of it (``io.scene_glb``).
+
+    ``Exported.faces`` counts each source mesh once per level (not per instance);
+    ``base_faces`` sums the meshes' coarsest reachable levels; ``clustered``
+    lists the levels that clustering made for at least one mesh.
+    """
+    from .build import build
+    from .io.scene_glb import encode_scene
+    if not scene.meshes and not scene.as_is:
+        raise MeshError(f"cannot load {source.name}: it has no faces (no node of it places "
+                        "a mesh)")
+    levels, coverage, clustered, base = {}, None, set(), 0
+    for index, mesh in scene.meshes.items():
+        try:
+            pm = build(mesh, options, progress=progress)
+        except ValueError as exc:       # argument checks deep in the build
+            raise MeshError(str(exc)) from exc
+        except MeshError as exc:
+            raise MeshError(f"cannot build mesh {index} of {source.name}: {exc}") from exc
+        try:
+            levels[index], coverage, made = lod_chain(pm, lods, reach=reach)
+        except MeshError:
+            if reach == "none":
+                raise
+            # clustering cannot bring a tiny part (a few faces) to its budget: the part
+            # keeps its edge-collapse levels, and the others are still clustered
+            levels[index], coverage, made = lod_chain(pm, lods)
+        clustered.update(made)
+        base += pm.faces_at_level(pm.base_vertices)
+    if coverage is None:        # every mesh is kept as it is
+        coverage = coverage_from_ratios(check_lods(lods))
+    count = len(coverage)
+    if separate:
+        outputs = [output.with_name(f"{output.stem}_lod{i}{output.suffix}") for i in range(count)]
+        blobs = [encode_scene(scene, levels, coverage, level=i) for i in range(count)]
+    else:
+        outputs, blobs = [output], [encode_scene(scene, levels, coverage)]
+    output.parent.mkdir(parents=True, exist_ok=True)
+    for path, blob in zip(outputs, blobs):
+        write_atomic(path, blob)
+    kept = sum(scene.as_is_faces.values())
+    faces = [kept + sum(chain[k].face_count for chain in levels.values()) for k in range(count)]
+    # base_faces: the coarsest the simplified meshes reach, with the kept ones beside them
+    # (0 when nothing was simplified: no "simplifies no further" for a skinned asset)
+    return Exported(source, outputs, faces, coverage, time.perf_counter() - start,
+                    base + kept if levels else 0,
+                    sorted(clustered), list(scene.notes))
 
 
 @dataclass

@@ -151,7 +151,7 @@ def test_manifest_records_sources_options_and_outputs(tmp_path):
     source, out = _assets(tmp_path / "assets"), tmp_path / "lods"
     export_folder(source, out, lods=(1, 0.5))
     manifest = json.loads((out / MANIFEST).read_text())
-    assert manifest["version"] == 1 and sorted(manifest["sources"]) == ["props/ball.ply",
+    assert manifest["version"] == 2 and sorted(manifest["sources"]) == ["props/ball.ply",
                                                                         "spot.obj"]
     entry = manifest["sources"]["spot.obj"]
     assert entry["options"] == {"lods": [1.0, 0.5], "separate": False, "reach": "none",

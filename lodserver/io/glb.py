@@ -37,7 +37,7 @@ def encode_glb(mesh: Mesh) -> bytes:
     """
     if mesh.attributes is None and mesh.face_material is None and mesh.materials is None:
         return geometry_glb(mesh.positions, mesh.faces)
-    writer = _GlbWriter(mesh.materials)
+    writer = GlbWriter(mesh.materials)
     writer.add_mesh(mesh)
     return writer.finish([{"mesh": 0}], scene_nodes=[0])
 
@@ -76,7 +76,7 @@ def encode_lod_chain(meshes: list[Mesh], screen_coverage: list[float]) -> bytes:
                         f"got {coverage}")
     materials = meshes[0].materials
     count = materials.count if materials is not None else 0
-    writer = _GlbWriter(materials)
+    writer = GlbWriter(materials)
     nodes = []
     for level, mesh in enumerate(meshes):
         used = mesh.face_material
@@ -115,7 +115,7 @@ def coverage_from_ratios(ratios) -> list[float]:
     return [*(0.5 * np.sqrt(ratios[1:] / ratios[0])).tolist(), 0.0]
 
 
-class _GlbWriter:
+class GlbWriter:
     """Accumulates the binary chunk, bufferViews, accessors and meshes of one GLB."""
 
     def __init__(self, materials: Materials | None):
@@ -170,6 +170,13 @@ class _GlbWriter:
     def finish(self, nodes: list, *, scene_nodes: list, extensions=()) -> bytes:
         document = {"asset": {"version": "2.0", "generator": "lodserver"}, "scene": 0,
                     "scenes": [{"nodes": scene_nodes}], "nodes": nodes, "meshes": self.meshes}
+        return self.finish_document(document, extensions=extensions)
+
+    def finish_document(self, document: dict, *, extensions=(), required=None) -> bytes:
+        """The GLB of ``document`` (everything but materials, textures, samplers,
+        images, accessors, bufferViews and buffers, which this adds): the
+        materials' extensions join ``extensions`` in ``extensionsUsed``;
+        ``required``, when given, is the ``extensionsRequired`` list."""
         used = list(extensions)
         if self.materials is not None:
             gltf = self.materials.gltf
@@ -186,6 +193,10 @@ class _GlbWriter:
             used += sorted(extension_names(records) - set(used))
             if gltf.get("extensionsRequired"):
                 document["extensionsRequired"] = list(gltf["extensionsRequired"])
+        if required is not None:
+            document.pop("extensionsRequired", None)
+            if required:
+                document["extensionsRequired"] = list(required)
         document.update(accessors=self.accessors, bufferViews=self.views,
                         buffers=[{"byteLength": self.size + (-self.size % 4)}])
         if used:

@@ -41,7 +41,6 @@ from __future__ import annotations
 
 import base64
 import binascii
-import json
 import struct
 from pathlib import Path, PurePosixPath
 from urllib.parse import unquote
@@ -50,7 +49,9 @@ import numpy as np
 
 from ..mesh import ATTRIBUTE_WIDTHS, Materials, MeshError
 from .images import image_type
-from .limits import LimitError, LoadLimits
+from .gltf_document import (TRIANGLE_FAN as _TRIANGLE_FAN, TRIANGLE_STRIP as _TRIANGLE_STRIP,
+                            TRIANGLES, check_declared, natural, parse_container, record)
+from .limits import LoadLimits
 from .references import read_reference, resolve_reference
 
 # glTF 2.0 accessor component types and element widths.
@@ -68,9 +69,6 @@ FLOAT, UINT = 5126, 5125
 
 
 ARRAY_BUFFER, ELEMENT_ARRAY_BUFFER = 34962, 34963
-
-
-TRIANGLES, _TRIANGLE_STRIP, _TRIANGLE_FAN = 4, 5, 6
 
 
 # Geometry compressed by these has no plain accessor data to fall back on.
@@ -117,20 +115,31 @@ def read_gltf(path: Path, kind: str, *, root: Path | None = None,
     LimitError
         If what it declares exceeds ``limits``.
     """
+    def refuse(required):
+        raise MeshError(f"it requires the glTF extension {required}, which lodserver "
+                        "cannot decode (export it without mesh compression)")
+
+    return _read(path, kind, root, limits, lambda name: name in _UNDECODABLE, refuse,
+                 lambda document, views, files: _flatten_scene(document, views, files))
+
+
+def _read(path, kind, root, limits, refused, refuse, then):
+    """``then(document, views, files)`` of a glTF file read and checked: the one preamble
+    of both readers. ``refuse(name)`` raises for the first ``extensionsRequired``
+    entry that ``refused(name)``; a malformed document is a MeshError."""
     limits = limits or LoadLimits.unbounded()
     data = read_reference(path, path.name, "file", limit=limits.max_file_bytes)
     try:
-        document, binary = _parse_container(data, limits)
-        required = [name for name in document.get("extensionsRequired", ()) if name in _UNDECODABLE]
+        document, binary = parse_container(data, limits)
+        required = [name for name in document.get("extensionsRequired", ()) if refused(name)]
         if required:
-            raise MeshError(f"it requires the glTF extension {required[0]}, which lodserver "
-                            "cannot decode (export it without mesh compression)")
-        _check_declared(document, limits)
+            refuse(required[0])
+        check_declared(document, limits)
         files = _ReferencedFiles(path.parent, root, limits)
         buffers = _load_buffers(document, binary, files)
         views = [_view_bytes(buffers, view, i)
                  for i, view in enumerate(document.get("bufferViews", ()))]
-        return _flatten_scene(document, views, files)
+        return then(document, views, files)
     except MeshError:
         raise
     except (KeyError, IndexError, TypeError, ValueError, OverflowError, struct.error) as exc:
@@ -138,162 +147,6 @@ def read_gltf(path: Path, kind: str, *, root: Path | None = None,
         raise MeshError(
             f"it could not be parsed as {kind.upper()} ({type(exc).__name__}: {exc})"
         ) from exc
-
-
-def _parse_container(data: bytes, limits: LoadLimits) -> tuple[dict, bytes | None]:
-    """The JSON document and the BIN chunk (None if absent) of GLB or .gltf bytes."""
-    if data[:4] != b"glTF":
-        return _parse_json(data, limits), None
-    version, total = struct.unpack_from("<II", data, 4)
-    if version != 2:
-        raise ValueError(f"GLB container version {version}, expected 2")
-    chunks, at = {}, 12
-    while at + 8 <= min(total, len(data)):
-        length, kind = struct.unpack_from("<I4s", data, at)
-        chunks.setdefault(kind, data[at + 8 : at + 8 + length])
-        at += 8 + length
-    if b"JSON" not in chunks:
-        raise ValueError("the GLB has no JSON chunk")
-    return _parse_json(chunks[b"JSON"], limits), chunks.get(b"BIN\x00")
-
-
-def _parse_json(data: bytes, limits: LoadLimits) -> dict:
-    """The glTF JSON document, within the size and depth limits."""
-    limits.check("max_json_bytes", len(data), "bytes of glTF JSON")
-    try:
-        text = data.decode("utf-8")
-    except UnicodeDecodeError:
-        raise MeshError("its glTF JSON is not UTF-8 text") from None
-    try:
-        document = json.loads(text)
-    except RecursionError:
-        raise MeshError("its glTF JSON is nested too deeply to read") from None
-    except ValueError as exc:
-        raise MeshError(f"its glTF JSON is malformed ({exc})") from None
-    if not isinstance(document, dict):
-        raise MeshError("its glTF JSON is not an object")
-    if limits.max_json_depth is not None:
-        # iteratively, so that the check itself cannot overflow the stack
-        stack = [(document, 1)]
-        while stack:
-            value, depth = stack.pop()
-            if depth > limits.max_json_depth:
-                raise LimitError(f"its glTF JSON is nested more than {limits.max_json_depth} "
-                                 "levels deep")
-            children = value.values() if isinstance(value, dict) else value
-            stack.extend((child, depth + 1) for child in children
-                         if isinstance(child, (dict, list)))
-    return document
-
-
-def _natural(value, what: str) -> int:
-    """``value`` as a non-negative int (JSON gives floats and strings too), or a MeshError."""
-    if isinstance(value, bool) or not isinstance(value, int) or value < 0:
-        raise MeshError(f"its {what} is {value!r}, not a non-negative integer")
-    return value
-
-
-def _record(document: dict, key: str, index, what: str) -> dict:
-    """``document[key][index]`` for a valid int index, else a MeshError naming ``what``."""
-    records = document.get(key)
-    if (isinstance(index, bool) or not isinstance(index, int) or not isinstance(records, list)
-            or not 0 <= index < len(records) or not isinstance(records[index], dict)):
-        raise MeshError(f"its {what} refers to {key} {index!r}, which does not exist")
-    return records[index]
-
-
-def _declared_triangles(document: dict, primitive: dict, label: str) -> tuple[int, int]:
-    """(triangles, vertices) a primitive declares by its accessor counts, 0 for points/lines."""
-    mode = primitive.get("mode", TRIANGLES)
-    if mode not in (TRIANGLES, _TRIANGLE_STRIP, _TRIANGLE_FAN):
-        return 0, 0
-    attributes = primitive.get("attributes")
-    if not isinstance(attributes, dict) or "POSITION" not in attributes:
-        raise MeshError(f"its {label} has no POSITION attribute")
-    position = _record(document, "accessors", attributes["POSITION"], f"{label} POSITION")
-    vertices = _natural(position.get("count"), f"{label} POSITION count")
-    corners = vertices
-    if "indices" in primitive:
-        indices = _record(document, "accessors", primitive["indices"], f"{label} indices")
-        corners = _natural(indices.get("count"), f"{label} index count")
-    triangles = corners // 3 if mode == TRIANGLES else max(corners - 2, 0)
-    return triangles, vertices
-
-
-def _check_declared(document: dict, limits: LoadLimits) -> None:
-    """Refuse a document whose declared primitives, instances, triangles or vertices
-    exceed ``limits``, from the accessor counts alone: before any data is read."""
-    meshes = document.get("meshes") or []
-    if not isinstance(meshes, list):
-        raise MeshError("its meshes are not a list")
-    primitives = [mesh.get("primitives") if isinstance(mesh, dict) else None for mesh in meshes]
-    if any(not isinstance(p, list) for p in primitives):
-        raise MeshError("a mesh of it has no list of primitives")
-    limits.check("max_primitives", sum(len(p) for p in primitives), "glTF primitives")
-    per_mesh = []
-    for m, records in enumerate(primitives):
-        counts = [_declared_triangles(document, p, f"primitive {n} of mesh {m}")
-                  if isinstance(p, dict) else (0, 0) for n, p in enumerate(records)]
-        triangles = sum(t for t, _ in counts)
-        limits.check("max_triangles", triangles, f"triangles in mesh {m}")
-        per_mesh.append((triangles, sum(v for _, v in counts)))
-    instances = _scene_meshes(document, limits)
-    limits.check("max_triangles_total", sum(per_mesh[m][0] for m in instances),
-                 "triangles after placing every mesh instance")
-    limits.check("max_vertices", sum(per_mesh[m][1] for m in instances),
-                 "vertices after placing every mesh instance")
-    for m, records in enumerate(primitives):
-        for n, primitive in enumerate(records):
-            if isinstance(primitive, dict):
-                _check_geometry_has_data(document, primitive, f"primitive {n} of mesh {m}")
-
-
-def _check_geometry_has_data(document: dict, primitive: dict, label: str) -> None:
-    """Refuse positions or indices that no bytes of the file give values to.
-
-    An accessor without a bufferView reads as zeros (bar its sparse values), so
-    a few hundred bytes of JSON could declare millions of vertices all at the
-    origin: within the limits, yet minutes of parsing and welding for a mesh of
-    nothing but degenerate faces. Geometry must come from the file's bytes.
-    """
-    attributes = primitive.get("attributes") or {}
-    named = [("POSITION", attributes.get("POSITION")), ("indices", primitive.get("indices"))]
-    for what, index in named:
-        if index is None:
-            continue
-        accessor = _record(document, "accessors", index, f"{label} {what}")
-        count = accessor.get("count") or 0
-        sparse = accessor.get("sparse") if isinstance(accessor.get("sparse"), dict) else {}
-        if "bufferView" not in accessor and count and sparse.get("count") != count:
-            raise MeshError(f"its {label} has {what} (accessor {index}) without a bufferView, "
-                            f"so most of its {count} values would be zeros")
-
-
-def _scene_meshes(document: dict, limits: LoadLimits) -> list[int]:
-    """Mesh index of every node placing one in the default scene (no transforms yet)."""
-    if not document.get("scenes"):
-        return []
-    scene = _record(document, "scenes", document.get("scene", 0), "default scene")
-    roots = scene.get("nodes", [])
-    if not isinstance(roots, list):
-        raise MeshError("its default scene has nodes that are not a list")
-    stack, seen, meshes = list(roots), set(), []
-    while stack:
-        index = stack.pop()
-        node = _record(document, "nodes", index, "scene graph")
-        if index in seen:
-            continue
-        seen.add(index)
-        # nodes without a mesh cost a transform each, so they count too
-        limits.check("max_instances", len(seen), "nodes in its default scene")
-        if "mesh" in node:
-            _record(document, "meshes", node["mesh"], f"node {index}")
-            meshes.append(node["mesh"])
-        children = node.get("children", [])
-        if not isinstance(children, list):
-            raise MeshError(f"its node {index} has children that are not a list")
-        stack.extend(children)
-    return meshes
 
 
 class _ReferencedFiles:
@@ -347,7 +200,7 @@ def _load_buffers(document: dict, binary: bytes | None, files: _ReferencedFiles)
     for i, buffer in enumerate(document.get("buffers", ())):
         if not isinstance(buffer, dict):
             raise MeshError(f"its buffer {i} is not an object")
-        length = _natural(buffer.get("byteLength"), f"buffer {i} byteLength")
+        length = natural(buffer.get("byteLength"), f"buffer {i} byteLength")
         files.limits.check("max_file_bytes", length, f"bytes in buffer {i}")
         if "uri" in buffer:
             data = files.read(buffer["uri"], f"buffer {i}", length)
@@ -365,8 +218,8 @@ def _load_buffers(document: dict, binary: bytes | None, files: _ReferencedFiles)
 def _view_bytes(buffers: list[bytes], view: dict, index: int) -> memoryview:
     if not isinstance(view, dict):
         raise MeshError(f"its bufferView {index} is not an object")
-    start = _natural(view.get("byteOffset", 0), f"bufferView {index} byteOffset")
-    end = start + _natural(view.get("byteLength"), f"bufferView {index} byteLength")
+    start = natural(view.get("byteOffset", 0), f"bufferView {index} byteOffset")
+    end = start + natural(view.get("byteLength"), f"bufferView {index} byteLength")
     buffer = view.get("buffer")
     if isinstance(buffer, bool) or not isinstance(buffer, int) or not 0 <= buffer < len(buffers):
         raise MeshError(f"its bufferView {index} refers to buffer {buffer!r}, which does not exist")
@@ -379,19 +232,19 @@ def _view_bytes(buffers: list[bytes], view: dict, index: int) -> memoryview:
 def _read_accessor(document: dict, views: list, index: int) -> np.ndarray:
     """Accessor ``index`` as a (count, width) array of its own dtype (sparse applied).
 
-    Its count was checked against the limits by :func:`_check_declared`; here
+    Its count was checked against the limits by :func:`check_declared`; here
     every byte range is checked against the data before it is touched.
     """
-    accessor = _record(document, "accessors", index, "primitive")
+    accessor = record(document, "accessors", index, "primitive")
     dtype = np.dtype(_COMPONENT_DTYPES[accessor["componentType"]])
     width = _TYPE_WIDTHS[accessor["type"]]
-    count = _natural(accessor.get("count"), f"accessor {index} count")
+    count = natural(accessor.get("count"), f"accessor {index} count")
     element = dtype.itemsize * width
     if "bufferView" in accessor and count:
-        view = _record(document, "bufferViews", accessor["bufferView"], f"accessor {index}")
+        view = record(document, "bufferViews", accessor["bufferView"], f"accessor {index}")
         data = views[accessor["bufferView"]]
-        offset = _natural(accessor.get("byteOffset", 0), f"accessor {index} byteOffset")
-        stride = _natural(view.get("byteStride", 0), f"bufferView {accessor['bufferView']} "
+        offset = natural(accessor.get("byteOffset", 0), f"accessor {index} byteOffset")
+        stride = natural(view.get("byteStride", 0), f"bufferView {accessor['bufferView']} "
                                                      "byteStride") or element
         if stride < element:
             raise MeshError(f"its accessor {index} has elements of {element} bytes in a "
@@ -405,20 +258,20 @@ def _read_accessor(document: dict, views: list, index: int) -> np.ndarray:
         values = np.zeros((count, width), dtype)  # all zeros unless sparse says otherwise
     sparse = accessor.get("sparse")
     if sparse:
-        n = _natural(sparse["count"], f"accessor {index} sparse count")
+        n = natural(sparse["count"], f"accessor {index} sparse count")
         if n > count:
             raise MeshError(f"its accessor {index} has {n} sparse values for {count} elements")
         where = sparse["indices"]
-        _record(document, "bufferViews", where["bufferView"], f"accessor {index} sparse indices")
-        _record(document, "bufferViews", sparse["values"]["bufferView"],
+        record(document, "bufferViews", where["bufferView"], f"accessor {index} sparse indices")
+        record(document, "bufferViews", sparse["values"]["bufferView"],
                 f"accessor {index} sparse values")
         at = np.frombuffer(views[where["bufferView"]], _COMPONENT_DTYPES[where["componentType"]],
-                           n, _natural(where.get("byteOffset", 0), "sparse byteOffset"))
+                           n, natural(where.get("byteOffset", 0), "sparse byteOffset"))
         if n and (at.min() < 0 or at.max() >= count):
             raise MeshError(f"its accessor {index} has sparse indices outside its {count} elements")
         what = sparse["values"]
         values[at] = np.frombuffer(views[what["bufferView"]], dtype, n * width,
-                                   _natural(what.get("byteOffset", 0), "sparse byteOffset")
+                                   natural(what.get("byteOffset", 0), "sparse byteOffset")
                                    ).reshape(n, width)
     return values
 
@@ -516,20 +369,11 @@ def read_gltf_meshes(path: Path, kind: str, *, root: Path | None = None,
 
     An ``extensionsRequired`` entry not in ``honoured`` is a MeshError.
     """
-    limits = limits or LoadLimits.unbounded()
-    data = read_reference(path, path.name, "file", limit=limits.max_file_bytes)
-    try:
-        document, binary = _parse_container(data, limits)
-        required = [name for name in document.get("extensionsRequired", ())
-                    if name not in honoured]
-        if required:
-            raise MeshError(f"it requires the glTF extension {required[0]}, which lodserver "
-                            "cannot honour")
-        _check_declared(document, limits)
-        files = _ReferencedFiles(path.parent, root, limits)
-        buffers = _load_buffers(document, binary, files)
-        views = [_view_bytes(buffers, view, i)
-                 for i, view in enumerate(document.get("bufferViews", ()))]
+    def refuse(required):
+        raise MeshError(f"it requires the glTF extension {required}, which lodserver "
+                        "cannot honour")
+
+    def meshes(document, views, files):
         cache = {}
 
         def accessor(index):
@@ -540,25 +384,21 @@ def read_gltf_meshes(path: Path, kind: str, *, root: Path | None = None,
         materials = _read_materials(document, views, files)
         used = sorted({node["mesh"] for node in document.get("nodes", ())
                        if isinstance(node, dict) and "mesh" in node})
-        meshes = {}
+        found = {}
         for index in used:
-            _record(document, "meshes", index, "a node")
+            record(document, "meshes", index, "a node")
             try:
-                meshes[index] = _flatten_scene(document, views, files,
-                                               instances=[(index, np.eye(4))],
-                                               materials=materials, accessor=accessor)
+                found[index] = _flatten_scene(document, views, files,
+                                              instances=[(index, np.eye(4))],
+                                              materials=materials, accessor=accessor)
             except MeshError as exc:
                 if not str(exc).startswith("it has no faces"):
                     raise
-                meshes[index] = f"mesh {index} has no triangles (only points or lines)"
-        return {"document": document, "meshes": meshes, "materials": materials,
+                found[index] = f"mesh {index} has no triangles (only points or lines)"
+        return {"document": document, "meshes": found, "materials": materials,
                 "accessor": accessor}
-    except MeshError:
-        raise
-    except (KeyError, IndexError, TypeError, ValueError, OverflowError, struct.error) as exc:
-        raise MeshError(
-            f"it could not be parsed as {kind.upper()} ({type(exc).__name__}: {exc})"
-        ) from exc
+
+    return _read(path, kind, root, limits, lambda name: name not in honoured, refuse, meshes)
 
 
 _READ = object()  # materials not given: read them
@@ -645,11 +485,11 @@ def _primitive_corners(primitive, linear, triangles, world, layout, accessor, do
     columns = []
     for name, width in layout:
         if name in attributes:
-            record = _record(document, "accessors", attributes[name], f"primitive {name}")
-            if record.get("count") != count:  # checked before reading: it could be huge
-                raise MeshError(f"a primitive's {name} has {record.get('count')!r} values "
+            stored = record(document, "accessors", attributes[name], f"primitive {name}")
+            if stored.get("count") != count:  # checked before reading: it could be huge
+                raise MeshError(f"a primitive's {name} has {stored.get('count')!r} values "
                                 f"for {count} vertices")
-            values = _as_float(accessor(attributes[name]), record)
+            values = _as_float(accessor(attributes[name]), stored)
             if len(values) != count:
                 raise MeshError(f"a primitive's {name} has {len(values)} values "
                                 f"for {count} vertices")
@@ -709,7 +549,7 @@ def _read_materials(document: dict, views: list, files: _ReferencedFiles) -> Mat
         name = str(name or f"image{i}")
         if "bufferView" in image:
             view = image["bufferView"]
-            _record(document, "bufferViews", view, f"image {i}")
+            record(document, "bufferViews", view, f"image {i}")
             if view not in by_view:  # many images on one view share its bytes, not copies
                 by_view[view] = bytes(views[view])
             data = by_view[view]
@@ -723,9 +563,9 @@ def _read_materials(document: dict, views: list, files: _ReferencedFiles) -> Mat
         mime = image_type(data)
         if mime is None:
             raise MeshError(f"its image {i} ({name!r}) is not a PNG, JPEG, WebP or KTX2 image")
-        record = {key: value for key, value in image.items() if key not in ("uri", "bufferView")}
-        record.update(mimeType=mime, name=name)
-        records.append(record)
+        kept = {key: value for key, value in image.items() if key not in ("uri", "bufferView")}
+        kept.update(mimeType=mime, name=name)
+        records.append(kept)
         images.append(data)
     gltf = {key: document.get(key, []) for key in ("materials", "textures", "samplers")}
     gltf["images"] = records

@@ -272,7 +272,9 @@ def _reached_chain(path: Path) -> bytes:
     with tempfile.TemporaryDirectory() as folder:
         out = Path(folder) / "chain.glb"
         done = export_lods(path, out, lods=(1, 0.1, 0.02), reach="cluster")
-        assert done.clustered == [2]
+        # the scene's parts are built one by one: the far level is clustered, and
+        # some parts need clustering at 10% already
+        assert 2 in done.clustered
         return out.read_bytes()
 
 

@@ -1,0 +1,234 @@
+"""Reading a glTF scene kept whole: the document, and each glTF mesh as one Mesh.
+
+:func:`load_scene` reads a .gltf or .glb as :func:`~lodserver.io.load_mesh`
+does (the same size checks, :class:`~.limits.LoadLimits`, ``root=`` rule and
+primitive decoding, :func:`.gltf.read_gltf_meshes`), but instead of flattening
+the default scene it keeps the JSON document (scenes, the node tree with names
+and transforms, cameras, ``KHR_lights_punctual``, materials with their
+extensions, samplers, images, animations of node transforms, ``extras``,
+unknown extensions) and turns each glTF mesh a node uses into one cleaned
+:class:`~lodserver.mesh.Mesh` in that mesh's LOCAL space (all its triangle
+primitives, one material per primitive), however many nodes instance it.
+
+What this first slice does not simplify yet: skinned meshes (``JOINTS_n``/
+``WEIGHTS_n``, or used by a node with a ``skin``), meshes with morph targets, and
+meshes without triangles. Those are kept AS THEY ARE (:attr:`Scene.as_is`): one
+level, every accessor they use carried with its values, so the skins, their
+inverse bind matrices, morph weights and the animations driving them survive.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from ..mesh import Materials, MeshError
+from .clean import clean_mesh
+from .gltf import read_gltf_meshes
+from .limits import LimitError, LoadLimits
+
+# Extensions a document may require: carried as they are (materials, textures,
+# lights, metadata) or decoded by the reader (quantized attributes).
+HONOURED_REQUIRED = frozenset({
+    "KHR_texture_transform", "KHR_texture_basisu", "EXT_texture_webp", "KHR_lights_punctual",
+    "KHR_mesh_quantization", "KHR_xmp_json_ld", "KHR_materials_emissive_strength",
+    "KHR_materials_unlit", "KHR_materials_clearcoat", "KHR_materials_transmission",
+    "KHR_materials_volume", "KHR_materials_ior", "KHR_materials_specular",
+    "KHR_materials_sheen", "KHR_materials_iridescence", "KHR_materials_anisotropy",
+    "KHR_materials_dispersion", "KHR_materials_pbrSpecularGlossiness", "EXT_mesh_gpu_instancing",
+})
+
+# Extensions that describe geometry the output writes afresh (float32 attributes,
+# uint32 indices): dropped from extensionsUsed/Required of the output.
+GEOMETRY_EXTENSIONS = frozenset({"KHR_mesh_quantization", "KHR_draco_mesh_compression",
+                                 "EXT_meshopt_compression"})
+
+
+@dataclass
+class Scene:
+    """A glTF document with each of its meshes as a lodserver Mesh.
+
+    Attributes
+    ----------
+    document : dict
+        The glTF JSON as read (not modified; the writer copies what it keeps).
+    meshes : dict of int to Mesh
+        glTF mesh index -> its triangles in the mesh's local space, welded and
+        cleaned; ``face_material`` indexes ``materials``. Every mesh some node
+        uses but those in ``as_is``.
+    reports : dict of int to LoadReport
+        What cleaning each mesh changed.
+    materials : Materials or None
+        Every material, texture, sampler and image of the document, shared.
+    carried : dict of int to (ndarray, dict, str)
+        Accessor index -> (its values (count, width) in its own dtype, its
+        record, its role: VERTEX, INDEX or OTHER) for the accessors written as
+        they are (:func:`carried_accessors`).
+    notes : list of str
+        What is not kept exactly, or kept without levels.
+    as_is : dict of int to str
+        Meshes written as they are, one level (skinned, morphed, no triangles),
+        with the reason (:func:`kept_as_is`); not in ``meshes``.
+    as_is_faces : dict of int to int
+        Their triangle counts (strips and fans unrolled).
+    """
+
+    document: dict
+    meshes: dict = field(default_factory=dict)
+    reports: dict = field(default_factory=dict)
+    materials: Materials | None = None
+    carried: dict = field(default_factory=dict)
+    notes: list = field(default_factory=list)
+    as_is: dict = field(default_factory=dict)
+    as_is_faces: dict = field(default_factory=dict)
+
+    @property
+    def mesh_nodes(self) -> dict:
+        """glTF mesh index -> the indices of the nodes that instance it, in node order."""
+        users = {}
+        for index, node in enumerate(self.document.get("nodes", ())):
+            if "mesh" in node:
+                users.setdefault(node["mesh"], []).append(index)
+        return users
+
+
+def load_scene(path, *, root=None, limits: LoadLimits | None = None) -> Scene:
+    """Read a .gltf or .glb file as a :class:`Scene`.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        The file; a ``.gltf`` finds its buffers and images relative to it.
+    root, limits
+        As for :func:`lodserver.io.load_mesh` (``root`` confines every file
+        the document names; ``limits`` default to ``LoadLimits()`` with a
+        root, unbounded without).
+
+    Raises
+    ------
+    MeshError
+        For what :func:`load_mesh` refuses, and for an ``extensionsRequired``
+        entry lodserver cannot honour (e.g. ``KHR_draco_mesh_compression``),
+        one sentence naming the file by its name only.
+    LimitError
+        If the file declares more than ``limits`` allow.
+    """
+    path = Path(path)
+    kind = path.suffix.lower().lstrip(".")
+    if kind not in ("gltf", "glb"):
+        raise MeshError(f"cannot load {path.name} as a scene: only .gltf and .glb files hold one")
+    if limits is None:
+        limits = LoadLimits() if root is not None else LoadLimits.unbounded()
+    root = Path(root) if root is not None else None
+    try:
+        if not path.is_file():
+            raise MeshError("no such file" if not path.exists() else "it is not a regular file")
+        size = path.stat().st_size
+        if size == 0:
+            raise MeshError("the file is empty")
+        limits.check("max_file_bytes", size, "bytes (the file's size)")
+        parts = read_gltf_meshes(path, kind, root=root, limits=limits,
+                                 honoured=HONOURED_REQUIRED)
+        return _scene(parts)
+    except LimitError as exc:
+        raise LimitError(f"cannot load {path.name}: {exc}") from exc
+    except MeshError as exc:
+        raise MeshError(f"cannot load {path.name}: {exc}") from exc
+    except OSError as exc:
+        raise MeshError(f"cannot load {path.name}: {exc.strerror or type(exc).__name__}") from exc
+    except (KeyError, IndexError, TypeError, ValueError) as exc:
+        # a malformed record of the parts this module reads (animations, nodes)
+        raise MeshError(f"cannot load {path.name}: it could not be parsed as "
+                        f"{kind.upper()} ({type(exc).__name__}: {exc})") from exc
+
+
+def kept_as_is(document: dict, meshes: dict) -> dict:
+    """Meshes this version writes as they are (one level, every attribute and target
+    carried byte-exact in value), each with the one-sentence reason.
+
+    ``meshes`` maps mesh index -> arrays, or the message of a mesh without
+    triangles (:func:`.gltf.read_gltf_meshes`). A mesh is kept as it is when it
+    has morph targets or weights, ``JOINTS_n``/``WEIGHTS_n``, a node with a skin
+    uses it, or it has no triangles: simplifying those with their attributes is
+    the next step (issue 12).
+    """
+    reasons = {}
+    skinned = {node["mesh"] for node in document.get("nodes", ())
+               if "mesh" in node and "skin" in node}
+    for index, arrays in meshes.items():
+        mesh = document["meshes"][index]
+        primitives = mesh.get("primitives", ())
+        if isinstance(arrays, str):
+            reasons[index] = "it has no triangles (only points or lines)"
+        elif index in skinned or any(name.startswith(("JOINTS_", "WEIGHTS_"))
+                                     for p in primitives for name in p["attributes"]):
+            reasons[index] = "it is skinned (joints and weights are not simplified yet)"
+        elif mesh.get("weights") or any(p.get("targets") for p in primitives):
+            reasons[index] = "it has morph targets (not simplified yet)"
+    return reasons
+
+
+# how a carried accessor is used, for its bufferView's target and alignment
+VERTEX, INDEX, OTHER = "vertex", "index", "other"
+
+
+def carried_accessors(document: dict, as_is=()) -> dict:
+    """Accessor index -> VERTEX, INDEX or OTHER for the accessors the output writes as
+    they are: animation sampler inputs and outputs, ``EXT_mesh_gpu_instancing``
+    attributes, skins' inverse bind matrices, and every accessor of the meshes in
+    ``as_is`` (attributes, indices, morph target attributes)."""
+    found = {}
+    for animation in document.get("animations", ()):
+        for sampler in animation.get("samplers", ()):
+            found[sampler["input"]] = found[sampler["output"]] = OTHER
+    for node in document.get("nodes", ()):
+        instancing = (node.get("extensions") or {}).get("EXT_mesh_gpu_instancing")
+        if isinstance(instancing, dict):
+            found.update(dict.fromkeys(instancing.get("attributes", {}).values(), OTHER))
+    for skin in document.get("skins", ()):
+        if "inverseBindMatrices" in skin:
+            found[skin["inverseBindMatrices"]] = OTHER
+    for index in as_is:
+        for primitive in document["meshes"][index]["primitives"]:
+            for attributes in (primitive["attributes"], *primitive.get("targets", ())):
+                found.update(dict.fromkeys(attributes.values(), VERTEX))
+            if "indices" in primitive:
+                found[primitive["indices"]] = INDEX
+    return found
+
+
+def _scene(parts: dict) -> Scene:
+    document, arrays = parts["document"], parts["meshes"]
+    scene = Scene(document, materials=parts["materials"])
+    scene.as_is = kept_as_is(document, arrays)
+    accessors = document.get("accessors", [])
+    for index, role in carried_accessors(document, scene.as_is).items():
+        if isinstance(index, bool) or not isinstance(index, int) or not 0 <= index < len(accessors):
+            raise MeshError(f"its animation, skin, mesh or instancing data refers to accessor "
+                            f"{index!r}, which does not exist")
+        scene.carried[index] = (parts["accessor"](index), accessors[index], role)
+    for index, mesh_arrays in arrays.items():
+        if index in scene.as_is:
+            scene.notes.append(f"mesh {index} is written as it is, one level: "
+                               f"{scene.as_is[index]}")
+            scene.as_is_faces[index] = (0 if isinstance(mesh_arrays, str)
+                                        else len(mesh_arrays["faces"]))
+            continue
+        arrays_in = dict(mesh_arrays)
+        dropped = arrays_in.pop("dropped_attributes", [])
+        arrays_in.pop("missing_files", None)
+        mesh, report = clean_mesh(**arrays_in)
+        report.dropped_attributes = list(dropped)
+        scene.meshes[index], scene.reports[index] = mesh, report
+    for index, mesh in enumerate(document.get("meshes", ())):
+        if index in scene.as_is:
+            continue
+        primitives = mesh.get("primitives", ())
+        if any("extras" in p or "extensions" in p for p in primitives):
+            scene.notes.append(f"mesh {index}: its primitives' extras and extensions are not "
+                               "kept (the levels have one primitive per material)")
+        if any(p.get("mode", 4) not in (4, 5, 6) for p in primitives):
+            scene.notes.append(f"mesh {index}: its points and lines are not kept")
+        if index not in arrays:
+            scene.notes.append(f"mesh {index}: no node uses it, so it is not written")
+    return scene
