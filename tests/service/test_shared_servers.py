@@ -74,8 +74,9 @@ def _node(data_dir) -> str:
 
 
 def _big_mesh(tmp_path):
-    """A height field of 124k faces, saved as binary PLY: a build of seconds."""
-    positions, faces = _grid(250, 250)
+    """A height field of 720k faces, saved as binary PLY: a build of seconds even on a
+    quiet machine, so the test sees it under way (progress written) and kills it then."""
+    positions, faces = _grid(600, 600)
     path = tmp_path / "field.ply"
     trimesh.Trimesh(positions, faces, process=False).export(path, encoding="binary")
     return path
@@ -126,7 +127,8 @@ def test_a_build_whose_server_is_killed_is_taken_over_within_the_lease(catalog_u
             nodes = {_node(tmp_path / name): name for name in servers}
             mesh_id = _upload(servers["a"][0], source)
             # in the kernel (progress written), under whichever server claimed it
-            _wait(servers["b"][0], mesh_id, until=("building",), progress=0.01)
+            body = _wait(servers["b"][0], mesh_id, until=("building", "ready"), progress=0.01)
+            assert body["status"] == "building", "the build ended before it could be killed"
             owner, _ = catalog.lease(mesh_id=mesh_id)
             holder = nodes[owner.split("/")[0]]
             survivor = "b" if holder == "a" else "a"
