@@ -19,9 +19,9 @@ const settings = {
   shading: 'smooth',          // 'smooth' (vertex normals) or 'flat' (face normals)
   wireframe: false,
   up: 'Y',                    // the up axis: 'Y' or 'Z' (per mesh: tools.js, framing.js)
-  // The first level is fetched whole, as JSON: about 50 bytes a vertex (120
-  // with attributes) against 8-12 in packets, so a view that wants more than
-  // this many vertices at first gets this many, and packets refine it.
+  // The first level arrives as the base level and one packet to it, applied
+  // before anything is drawn (stream.js): a view that wants more than this many
+  // vertices at first gets this many, drawn sooner, and packets refine it.
   firstLevelMaxVertices: 4096,
   fov: 40,                    // vertical field of view, degrees
   background: 0x1d2026,
@@ -135,10 +135,12 @@ window.lodViewer = {
              textureBytes: scene?.textureBytes ?? 0, up: settings.up,
              busy: stream.busy, error: stream.failed?.message ?? null };
   },
-  // Resolves once the level reached its target and the frame showing it is drawn.
+  // Resolves once the level reached its target and the frame showing it, with
+  // its textures and the environment, is drawn.
   async settled() {
     await stream.settled();
     await scene?.texturesReady();
+    await scene?.environmentReady();
     await scene?.rendered();
     return this.status();
   },

@@ -28,11 +28,20 @@ const FILTER = { 9728: THREE.NearestFilter, 9729: THREE.LinearFilter,
                  9986: THREE.NearestMipmapLinearFilter, 9987: THREE.LinearMipmapLinearFilter };
 
 // The look every view of a mesh shares (the viewer and the tests' GLTFLoader
-// reference render): tone mapping, exposure, the environment's blur.
+// reference render): tone mapping, exposure, the environment's blur and size.
 // The room at full strength with a headlight washes a light material out to
 // white under ACES; half of it keeps shading and texture contrast.
+// environmentSize: the PMREM's cube face, pixels. three.js makes them at least
+// 256 px, which under software GL (SwiftShader, headless Chromium) costs 2-6 s
+// of GPU time before anything can be drawn: its GGX passes sample 256 times a
+// pixel. The room is blurred by environmentSigma (0.04 rad, 2.3 degrees)
+// anyway, and a 64 px face resolves 1.4 degrees a texel, so 64 loses little
+// (a chart of spheres, roughness 0-1, metal and not: RMS 2.2 of 255 against
+// 256 px, the difference on the mirror spheres) for a tenth of the work.
+// fill: the light that stands in for the environment until it is made.
 export const LOOK = { toneMapping: THREE.ACESFilmicToneMapping, exposure: 1,
-                      environmentSigma: 0.04, environmentIntensity: 0.5, headlight: 0.8 };
+                      environmentSigma: 0.04, environmentIntensity: 0.5, environmentSize: 64,
+                      headlight: 0.8, fill: { sky: 0xffffff, ground: 0x6b6560, intensity: 1.1 } };
 
 // Tone mapping and the output colour space of a renderer.
 export function configureRenderer(renderer) {
@@ -41,10 +50,28 @@ export function configureRenderer(renderer) {
   renderer.outputColorSpace = THREE.SRGBColorSpace;
 }
 
+// three.js's PMREM generator at a cube size below its 256 px minimum. It
+// overrides _setSize, a private method of the pinned three.js (0.187, in
+// static/vendor): the rest of the generator (capture, blur, GGX and
+// integration passes, the mip chain three.js's shaders read) is three.js's own.
+class SizedPMREMGenerator extends THREE.PMREMGenerator {
+  constructor(renderer, size) {
+    super(renderer);
+    this.size = size;
+  }
+
+  _setSize() {
+    this._cubeSize = this.size;
+  }
+}
+
 // The image-based light: three.js's RoomEnvironment prefiltered by PMREM
-// (a cube texture of mip levels by roughness). Built once per renderer.
-export function createEnvironment(renderer) {
-  const generator = new THREE.PMREMGenerator(renderer);
+// (a cube texture of mip levels by roughness), faces of `size` pixels (a
+// power of two, at least 16: three.js integrates its roughest three levels
+// from a 16 px mip). Costs GPU time (see LOOK): scene.js makes it after the
+// first frame.
+export function createEnvironment(renderer, size = LOOK.environmentSize) {
+  const generator = new SizedPMREMGenerator(renderer, size);
   const room = new RoomEnvironment();
   const texture = generator.fromScene(room, LOOK.environmentSigma).texture;
   room.dispose();

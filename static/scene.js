@@ -1,7 +1,9 @@
 // The three.js scene: one mesh drawn from the decoder's arrays, rendered on
 // demand (when the camera, the level, a texture or a setting changes; nothing
 // animates), lit by an image-based environment and a headlight, tone-mapped
-// (materials.js), framed by framing.js.
+// (materials.js), framed by framing.js. The environment is made once the first
+// frame showing a mesh is drawn and the stream rests (it costs GPU time; a
+// hemisphere light stands in until then).
 //
 // The buffers are allocated at full detail once per mesh. A level is a prefix
 // of the vertices and of the faces (the prefix layout), so showing one is a
@@ -30,6 +32,9 @@ import { configureRenderer, createEnvironment, defaultMaterial, LOOK, makeMateri
          TextureSet } from './materials.js';
 import { fitBox, freeArea, pixelsPerUnit } from './framing.js';
 
+// The longest the environment waits for the stream to come to rest (see createScene).
+const ENVIRONMENT_WAIT_MS = 5000;
+
 // three.js attribute names of glTF's.
 const ATTRIBUTE_NAMES = { NORMAL: 'normal', TANGENT: 'tangent', TEXCOORD_0: 'uv',
                           TEXCOORD_1: 'uv1', COLOR_0: 'color' };
@@ -44,8 +49,19 @@ export function createScene(viewer, container, panel = null) {
   container.append(renderer.domElement);
 
   const scene = new THREE.Scene();
-  scene.environment = createEnvironment(renderer);
   scene.environmentIntensity = LOOK.environmentIntensity;
+  // The environment costs GPU time (materials.js: LOOK) and a second compile
+  // of the mesh's shaders, so it is made once the first frame showing a mesh
+  // is drawn and the stream has come to rest (or ENVIRONMENT_WAIT_MS after
+  // that frame, if it is still streaming): a frame it delays would otherwise
+  // also space the stream's reports (stream.js measures what frames cost).
+  // Until then a hemisphere light stands in for it (the same shading, without
+  // reflections).
+  const fill = new THREE.HemisphereLight(LOOK.fill.sky, LOOK.fill.ground, LOOK.fill.intensity);
+  scene.add(fill);
+  let environmentDue = false, environmentMade = null, meshDrawnAt = null, streaming = true;
+  let environmentTimer = 0;
+  const environmentReady = new Promise((resolve) => { environmentMade = resolve; });
   const camera = new THREE.PerspectiveCamera(settings.fov, 1, 0.01, 100);
   // A light that follows the camera keeps the side facing the viewer lit; the
   // environment does the rest (and is what metal reflects).
@@ -64,6 +80,7 @@ export function createScene(viewer, container, panel = null) {
   let bounds = null;              // { center (world, THREE.Vector3), radius }
   let userMoved = false;          // until the user moves the camera, the view follows the mesh
   let frame = null;               // the pending animation frame's promise
+  let draws = 0;                  // frames drawn (renderer.info also counts the PMREM's renders)
 
   function makeControls() {
     // OrbitControls fixes its up axis when made: a new one per up axis
@@ -79,9 +96,38 @@ export function createScene(viewer, container, panel = null) {
 
   function draw() {
     const started = performance.now();
+    draws++;
     renderer.render(scene, camera);
     const { calls, triangles } = renderer.info.render;
     viewer.emit('frame', { ms: performance.now() - started, calls, triangles });
+    if (mesh && meshDrawnAt === null) {
+      meshDrawnAt = performance.now();
+      // a message posted from the frame's callback runs once the frame is
+      // shown: the environment's GPU work queues behind it, not before it
+      const channel = new MessageChannel();
+      channel.port1.onmessage = environmentSoon;
+      channel.port2.postMessage(null);
+    }
+  }
+
+  function environmentSoon() {
+    if (environmentDue || meshDrawnAt === null) return;
+    const waited = performance.now() - meshDrawnAt;
+    if (streaming && waited < ENVIRONMENT_WAIT_MS) {
+      clearTimeout(environmentTimer);
+      environmentTimer = setTimeout(environmentSoon, ENVIRONMENT_WAIT_MS - waited);
+      return;
+    }
+    clearTimeout(environmentTimer);
+    environmentDue = true;
+    makeEnvironment();
+  }
+
+  function makeEnvironment() {
+    scene.environment = createEnvironment(renderer);
+    scene.remove(fill);
+    environmentMade();
+    render();
   }
 
   function render() {
@@ -416,6 +462,10 @@ export function createScene(viewer, container, panel = null) {
   viewer.on('mesh', showMesh);
   viewer.on('level', showLevel);
   viewer.on('settings', applySettings);
+  viewer.on('stream', ({ state: now }) => {
+    streaming = now === 'moving' || now === 'retrying';
+    if (!streaming) environmentSoon();
+  });
   viewer.on('reset-view', () => {
     if (!mesh) return;
     userMoved = false;
@@ -440,9 +490,14 @@ export function createScene(viewer, container, panel = null) {
     view: () => ({ fov: camera.fov, ...viewOffset(), up: settings.up }),
     // Resolves after the next frame is drawn.
     rendered: render,
+    // Resolves once the image-based light is in place (at once before a mesh
+    // is shown: it is made after the first frame showing one).
+    environmentReady: () => (mesh ? environmentReady : Promise.resolve()),
     // Resolves once every texture asked for so far has arrived.
     texturesReady: () => textures?.ready ?? Promise.resolve(),
     get textureBytes() { return textures?.textureBytes ?? 0; },
+    // How many frames of the view were drawn.
+    get draws() { return draws; },
     // For tests: the three.js objects, and the canvas pixels drawn now
     // (RGBA, bottom row first; read in the same task as the draw, so the
     // drawing buffer still holds them).

@@ -1,5 +1,7 @@
 // Fetching a mesh: its summary, a first level (the base unless the opener
-// names another), its materials if any, then packets between levels.
+// names another: the base level and one packet to it, in one round trip), its
+// materials if any, then packets between levels; at the mesh's version (the
+// summary's `urls`), so every response but the summary is cacheable for good.
 //
 // The client never refetches a level: it holds one LodState and moves it to
 // the target level packet by packet, forward (splits) or backward (collapses).
@@ -157,11 +159,31 @@ export function createStream(viewer) {
     }
   }
 
+  // The URL of a route of the open mesh ('lod', 'splits', 'materials') with
+  // `params`: at the mesh's version when its summary hands out versioned URLs
+  // (GET /meshes/{id}: urls, `?v=`; the server marks such responses immutable,
+  // so any cache keeps them for a year), else unversioned (cached a minute).
+  // The summary's URLs are rooted at the API, which serves the viewer at
+  // viewer/: they resolve against the page's parent, so a path prefix added by
+  // a proxy is kept.
+  function routeUrl(summary, route, params = {}) {
+    const root = new URL('../', window.location.href);
+    const versioned = summary.urls?.[route];
+    const url = versioned
+      ? new URL(versioned.replace(/^\/+/, ''), root)
+      : new URL(`meshes/${encodeURIComponent(summary.id)}/${route}`, root);
+    for (const [key, value] of Object.entries(params)) url.searchParams.set(key, value);
+    return url.href;
+  }
+
   // Opens mesh `id` at `level`: a number of vertices, or a function of the
   // mesh's summary returning one (or a promise of one), e.g. the level a
-  // first-frame chooser picks for the view; the base level by default. That
-  // level is fetched whole (json), then packets refine it to
-  // settings.initialRatio of the vertices.
+  // first-frame chooser picks for the view; the base level by default.
+  // That level arrives in one round trip: the base level (json: the grid and
+  // the state packets start from) and the one packet from the base to it,
+  // fetched together, and nothing is drawn until both are in. A packet costs
+  // 8-12 bytes a vertex against the json form's ~50 (120 with attributes).
+  // Packets then refine it to settings.initialRatio of the vertices.
   async function open(id, { level } = {}) {
     const ticket = ++opened;
     stopMoving();
@@ -177,25 +199,46 @@ export function createStream(viewer) {
       first = Number.isFinite(first)
         ? Math.min(summary.vertices, Math.max(base, Math.round(first))) : base;
       viewer.emit('status', `${summary.name}: loading level ${first}`);
-      const path = `../meshes/${encodeURIComponent(summary.id)}`;
-      const document = JSON.parse(new TextDecoder().decode(
-        await fetchGeometry(`${path}/lod?vertices=${first}&format=json`, ticket)));
+      const baseLevel = fetchGeometry(routeUrl(summary, 'lod', { vertices: base, format: 'json' }),
+                                      ticket);
+      // (retried as any packet; not aborted: a new open() drops it by its ticket)
+      const packet = first > base
+        ? fetchPacket(summary, base, first, new AbortController().signal, ticket)
+        : null;
+      packet?.catch(() => {});          // awaited below, after the base level
+      const document = JSON.parse(new TextDecoder().decode(await baseLevel));
       if (ticket !== opened) return;
       const appearance = { materialFaces: document.material_faces, materials: null };
-      if (document.materials) {
+      const materials = document.materials
         // the glTF records; their image uris are relative to this document
-        const url = new URL(`${path}/materials`, window.location.href).href;
-        appearance.materials = { document: await (await fetchOk(url)).json(), url };
-        if (ticket !== opened) return;
+        ? fetchOk(routeUrl(summary, 'materials')).then(async (response) => (
+          { document: await response.json(), url: response.url }))
+        : null;
+      const held = LodState.fromJson(document, { vertexCapacity: summary.vertices,
+                                                 faceCapacity: summary.faces });
+      // a first packet that fails (after its retries) leaves the base shown,
+      // the failure handled as any packet's (see move())
+      let refused = null;
+      if (packet) {
+        try {
+          const got = await packet;
+          if (ticket !== opened) return;
+          held.apply(got.packet);
+          bytes += got.bytes;
+        } catch (error) {
+          refused = error;
+        }
       }
+      if (materials) appearance.materials = await materials;
+      if (ticket !== opened) return;
       info = summary;
-      state = LodState.fromJson(document, { vertexCapacity: info.vertices,
-                                            faceCapacity: info.faces });
+      state = held;
       target = planned = shown = state.level;
       viewer.emit('mesh', { info, state, appearance,
                             curve: new ErrorCurve(info, document.error) });
       viewer.emit('level', { state, bytes, dirty: state.takeDirty() });
-      goto(Math.round(option('initialRatio') * info.vertices), { opening: true });
+      if (refused) fail(refused);
+      else goto(Math.round(option('initialRatio') * info.vertices), { opening: true });
     } catch (error) {
       if (ticket === opened) stop(error);
     }
@@ -239,7 +282,7 @@ export function createStream(viewer) {
   function request(from, to, ticket) {
     const controller = new AbortController();
     const entry = { from, to, controller, ready: false };
-    entry.result = fetchPacket(from, to, controller.signal, ticket).then((value) => {
+    entry.result = fetchPacket(info, from, to, controller.signal, ticket).then((value) => {
       entry.ready = true;
       return value;
     });
@@ -247,9 +290,9 @@ export function createStream(viewer) {
     return entry;
   }
 
-  // One packet, retried with backoff while the failure is transient.
-  async function fetchPacket(from, to, signal, ticket) {
-    const url = `../meshes/${encodeURIComponent(info.id)}/splits?from=${from}&to=${to}`;
+  // One packet of mesh `summary`, retried with backoff while the failure is transient.
+  async function fetchPacket(summary, from, to, signal, ticket) {
+    const url = routeUrl(summary, 'splits', { from, to });
     for (let attempt = 0; ; attempt++) {
       try {
         const response = await fetchOk(url, { signal });
@@ -269,7 +312,7 @@ export function createStream(viewer) {
         }
         const delay = Math.min(RETRY_MAX_MS, RETRY_BASE_MS * 2 ** attempt);
         stats.retries++;
-        viewer.emit('status', `${info.name}: a packet failed (${error.message}); retrying in ` +
+        viewer.emit('status', `${summary.name}: a packet failed (${error.message}); retrying in ` +
                     `${(delay / 1000).toFixed(1)} s (attempt ${attempt + 2} of ` +
                     `${option('retries') + 1})`);
         emitStream('retrying', { attempt: attempt + 1, delayMs: delay, error: error.message });
@@ -447,15 +490,21 @@ export function createStream(viewer) {
     } catch (error) {
       if (ticket !== opened) return;
       report();
-      if (error instanceof FetchError && error.transient) {
-        stalled = error;
-        abortQueue(0);
-        viewer.emit('status', `error: ${error.message} (move the level to try again)`);
-        emitStream('stalled', { error: error.message });
-      } else {
-        stop(error instanceof PacketError || error instanceof FetchError ? error
-          : new Error(`the packet could not be applied (${error.message})`));
-      }
+      fail(error);
+    }
+  }
+
+  // A packet failed: a transient failure the retries ran out on stalls the
+  // stream (the next move of the level tries again); any other stops the mesh.
+  function fail(error) {
+    if (error instanceof FetchError && error.transient) {
+      stalled = error;
+      abortQueue(0);
+      viewer.emit('status', `error: ${error.message} (move the level to try again)`);
+      emitStream('stalled', { error: error.message });
+    } else {
+      stop(error instanceof PacketError || error instanceof FetchError ? error
+        : new Error(`the packet could not be applied (${error.message})`));
     }
   }
 

@@ -198,13 +198,15 @@ def write_ply(npz: Path, out: Path) -> Path:
 
 def run_streaming(args, browser_factory, out: Path) -> dict:
     """--streaming: one server per viewer copy (``--static``), the same meshes."""
-    labels = args.label or [f"static{i}" for i in range(len(args.static))]
+    statics = args.static or [ROOT / "static"]
+    labels = args.label or ([f"static{i}" for i in range(len(statics))] if args.static
+                            else ["viewer"])
     results = {}
     with tempfile.TemporaryDirectory(prefix="lodserver-stream-") as work:
         sources = {"bunny": args.mesh}
         if args.large and args.large.is_file():
             sources["bunny_1.1M"] = write_ply(args.large, Path(work) / "bunny_loop2.ply")
-        for label, static in zip(labels, args.static or [ROOT / "static"]):
+        for label, static in zip(labels, statics):
             data = Path(work) / f"data-{label}"
             env = {"LODSERVER_STATIC_DIR": str(Path(static).resolve())}
             with serve(data, warm_kernels=True, timeout=300, env=env) as client:

@@ -9,7 +9,8 @@ navigation's start):
 * ``first_frame_ms``: the first frame drawn holding a level (the first
   animation frame after ``lodViewer.status().level`` is set);
 * ``full_detail_ms``: ``lodViewer.settled()`` resolving at the mesh's full
-  detail (the frame showing it is drawn);
+  detail (its textures and the image-based light in place, the frame showing
+  it drawn);
 * ``geometry_bytes``: what the page fetched under ``/meshes/`` (resource
   timing's ``transferSize``: on the wire, headers included, compressed if the
   server compressed), ``static_bytes`` what it fetched under ``/viewer/``;

@@ -157,11 +157,16 @@ def test_packets_are_pipelined_grow_and_land_exactly(chromium, server, sphere):
         assert spans[0][1] - spans[0][0] <= chunk
         sizes = [stop - start for start, stop in spans]
         assert max(sizes) > chunk, spans                # the packets grew
-        for start, stop in spans:                      # cut at multiples of a size
+        # the first packet takes the base to the level chosen for the view
+        # (stream.js open()), the others are cut at multiples of a size
+        assert spans[0][0] == sphere["base_vertices"], spans
+        for start, stop in spans[1:]:
             assert stop == sphere["vertices"] or any(
                 stop % (chunk << k) == 0 and stop - start <= chunk << k for k in range(8))
         assert most[0] >= 2, "never more than one packet in flight"
-        draws = page.evaluate("lodViewer.scene.three.renderer.info.render.frame")
+        # the view's draws (the renderer's own count has the environment's
+        # PMREM passes too)
+        draws = page.evaluate("lodViewer.scene.draws")
         assert draws <= page.evaluate("window.framesSeen"), "more draws than frames"
         # back to the base and up again: exact both ways
         for level in (sphere["base_vertices"] + 7, sphere["vertices"] - 11):
@@ -176,3 +181,58 @@ def test_packets_are_pipelined_grow_and_land_exactly(chromium, server, sphere):
         assert not errors, errors
     finally:
         page.close()
+
+
+@pytest.fixture(scope="module")
+def textured(server, tmp_path_factory):
+    """A UV sphere with a material using five images (test_materials.py)."""
+    from lodserver.io.glb import encode_glb
+
+    from .test_materials import every_channel_sphere
+
+    path = tmp_path_factory.mktemp("textured") / "every_channel.glb"
+    path.write_bytes(encode_glb(every_channel_sphere()))
+    return upload_and_wait(server, path)
+
+
+def test_geometry_materials_and_images_are_fetched_at_the_mesh_version(chromium, server,
+                                                                       textured):
+    """Every level, packet, materials and image request carries the mesh's
+    version (``v=``, from GET /meshes/{id}'s urls) and is answered immutable;
+    the first level is the base level and one packet from it, both asked for
+    before either arrives (one round trip). (Before: unversioned URLs, cached
+    for a minute, and the first level as one json document.)"""
+    events = []
+
+    def requested(request):
+        if "/meshes/" in request.url:
+            events.append(("request", request.url))
+
+    def answered(response):
+        if "/meshes/" in response.url:
+            events.append(("response", response.url, response.headers.get("cache-control")))
+
+    page, errors, packets = _open(chromium, server, textured, listeners=[
+        ("request", requested), ("response", answered)])
+    try:
+        status = page.evaluate(SETTLED_JS, textured["vertices"])
+        assert status["error"] is None and status["level"] == textured["vertices"], status
+        assert page.evaluate("lodViewer.status().textureBytes") > 0
+    finally:
+        page.close()
+    assert not errors, errors
+    version = server.get(f"/meshes/{textured['id']}").json()["version"]
+    summary = f"/meshes/{textured['id']}"
+    data = [event for event in events if not event[1].split("?")[0].endswith(summary)]
+    routes = {event[1].split(summary + "/", 1)[1].split("?")[0].split("/")[0] for event in data}
+    assert {"lod", "splits", "materials", "images"} <= routes, routes
+    for event in data:
+        assert f"v={version}" in event[1], event
+        if event[0] == "response":
+            assert "immutable" in event[2], event
+    requests = [event[1] for event in data if event[0] == "request"]
+    first_response = next(i for i, event in enumerate(data) if event[0] == "response")
+    early = requests[:sum(1 for event in data[:first_response] if event[0] == "request")]
+    base = textured["base_vertices"]
+    assert any(f"/lod?" in url and f"vertices={base}" in url for url in early), early
+    assert any("/splits?" in url and f"from={base}&" in url for url in early), early

@@ -123,15 +123,26 @@ def test_the_first_level_is_chosen_for_the_view_and_the_base_never_drawn(chromiu
     page = chromium.new_page(viewport=WIDE)
     requests = []
     page.on("request", lambda request: requests.append(request.url))
+    # the level held at each animation frame, from the first one holding any
+    page.add_init_script("""window.framedLevels = [];
+(function watch() {
+  const level = window.lodViewer?.status().level;
+  if (level != null) window.framedLevels.push(level);
+  requestAnimationFrame(watch);
+})();""")
     try:
         page.goto(f"{server.base_url}/viewer/?mesh={mesh['id']}")
         page.wait_for_function("() => window.lodViewer?.status().level != null")
         page.evaluate("lodViewer.settled()")
-        # one level fetched whole, the first drawn; then packets refine it
-        first = [url for url in requests if "/lod?" in url]
-        assert len(first) == 1, first
-        level = int(first[0].split("vertices=")[1].split("&")[0])
+        # the base level (json) and one packet from it to the chosen level,
+        # the first level drawn; then packets refine it
+        lods = [url for url in requests if "/lod?" in url]
+        assert len(lods) == 1 and f"vertices={mesh['base_vertices']}&" in lods[0], lods
+        packets = [url for url in requests if "/splits?" in url]
+        assert f"from={mesh['base_vertices']}&" in packets[0], packets
+        level = int(packets[0].split("to=")[1].split("&")[0])
         assert mesh["base_vertices"] < level < mesh["vertices"], level
+        assert page.evaluate("window.framedLevels[0]") == level
         assert page.evaluate("lodViewer.status()")["level"] == mesh["vertices"]
         # how many pixels a unit covers at the nearest point of the box's sphere
         # (centre 0, radius sqrt 3), seen from where the page framed it

@@ -210,8 +210,10 @@ def test_viewer_levels_equal_the_server_levels(name, chromium, server, tmp_path)
         png = page.screenshot(path=str(tmp_path / f"{name}.png"))
         assert _pixel_fractions(page, png)[0] > 0.03, f"the mesh is not drawn: see {tmp_path}"
         if name == "textured-spot":
-            assert any(url.endswith(f"/meshes/{mesh['id']}/materials") for url in requests)
-            assert any(url.endswith(f"/meshes/{mesh['id']}/images/0") for url in requests)
+            # at the mesh's version (stream.js: the summary's urls)
+            version = server.get(f"/meshes/{mesh['id']}").json()["version"]
+            assert f"{server.base_url}/meshes/{mesh['id']}/materials?v={version}" in requests
+            assert f"{server.base_url}/meshes/{mesh['id']}/images/0?v={version}" in requests
             assert _pixel_fractions(page, png)[1] > 0.1, f"the texture is not drawn: see {tmp_path}"
         assert not failures, failures
         assert page.evaluate("window.cspViolations") == []
