@@ -31,6 +31,12 @@ class LimitError(MeshError):
     """An upload exceeds a configured limit (bytes, triangles, vertices, ...)."""
 
 
+class OutOfMemory(LimitError):
+    """Reading a file needed more memory than the process may use (its address-space
+    limit): the file is refused, and a parse worker that hit its limit is replaced,
+    since the heap it grew may stay mapped."""
+
+
 @dataclass(frozen=True)
 class LoadLimits:
     """Upper bounds on what one mesh file may declare; ``None`` means unbounded.

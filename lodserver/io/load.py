@@ -22,7 +22,7 @@ import trimesh
 from ..mesh import Mesh, MeshError
 from .clean import LoadReport, clean_mesh
 from .gltf import read_gltf
-from .limits import LimitError, LoadLimits
+from .limits import LimitError, LoadLimits, OutOfMemory
 from .obj import read_obj
 from .ply import (checked_ply_header, ply_attributes, ply_columns, ply_triangle_rows,
                   read_ply_tristrips)
@@ -117,8 +117,8 @@ def load_mesh(path, *, file_type: str | None = None, root=None,
     except RecursionError:
         raise MeshError(f"cannot load {path.name}: it is nested too deeply to read") from None
     except MemoryError:
-        raise LimitError(f"cannot load {path.name}: reading it needs more memory than this "
-                         "process may use") from None
+        raise OutOfMemory(f"cannot load {path.name}: reading it needs more memory than this "
+                          "process may use") from None
     except Exception as exc:
         # A reader tripping over garbage (numpy, trimesh, a missing optional
         # dependency) is a bad file, not a server error; its message is kept

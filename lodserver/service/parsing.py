@@ -26,7 +26,7 @@ from pathlib import Path
 
 from ..io import LoadReport, load_mesh
 from ..io.fileset import DEFAULT_SET_LIMITS, FileSetLimits, open_set
-from ..io.limits import LimitError, LoadLimits
+from ..io.limits import LimitError, LoadLimits, OutOfMemory
 from ..mesh import Mesh, MeshError
 
 # Address space of one parse worker by default: its imports (numpy, numba,
@@ -135,7 +135,7 @@ def _parse_in_worker(path: str, file_type: str, root: str | None, max_triangles:
     except MeshError:
         raise
     except MemoryError:
-        raise LimitError(f"cannot load {path}: reading it needs more memory than this server "
+        raise OutOfMemory(f"cannot load {path}: reading it needs more memory than this server "
                          "allows one file") from None
     except Exception as exc:
         # a reader tripped over the file: the file's fault as far as the client
@@ -240,12 +240,13 @@ class ParsePool:
                     with _worker_environment():     # a worker may be spawned here
                         future = executor.submit(function, *args)
                     return future.result()
+                except OutOfMemory:
+                    # the worker survived its address-space limit, but the heap it
+                    # grew may stay mapped and fail the next file: a fresh pool
+                    self._retire(executor, cancel=False)   # others' parses finish there
+                    raise
                 except BrokenProcessPool:
-                    with self._lock:
-                        closed = self._closed
-                        if self._executor is executor:
-                            self._executor = None   # the next parse starts a fresh pool
-                    executor.shutdown(wait=False, cancel_futures=True)
+                    closed = self._retire(executor, cancel=True)
                     if closed:
                         raise ParserClosed("the server is shutting down; try again "
                                            "shortly") from None
@@ -253,6 +254,16 @@ class ParsePool:
         finally:
             with self._lock:
                 self._admitted -= 1
+
+    def _retire(self, executor: ProcessPoolExecutor, *, cancel: bool) -> bool:
+        """Stop ``executor`` so the next parse starts a fresh pool (``cancel``: its
+        waiting parses too); whether the pool was closed meanwhile."""
+        with self._lock:
+            closed = self._closed
+            if self._executor is executor:
+                self._executor = None
+        executor.shutdown(wait=False, cancel_futures=cancel)
+        return closed
 
     def _started(self) -> ProcessPoolExecutor:
         with self._lock:

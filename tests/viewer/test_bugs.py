@@ -11,23 +11,10 @@ user meets it (each test failed before its fix):
 
 import pytest
 
-from ..conftest import headless_chromium
 from ..meshes import DATA, textured_spot_glb
-from ..server import serve, upload_and_wait
+from ..server import upload_and_wait
 
 VIEWPORT = {"width": 960, "height": 640}
-
-
-@pytest.fixture(scope="module")
-def chromium():
-    with headless_chromium() as browser:
-        yield browser
-
-
-@pytest.fixture(scope="module")
-def server(tmp_path_factory):
-    with serve(tmp_path_factory.mktemp("bugs") / "data") as client:
-        yield client
 
 
 @pytest.fixture(scope="module")

@@ -8,9 +8,8 @@ geomorph off and on; the level reached is exactly the server's either way.
 
 import pytest
 
-from ..conftest import headless_chromium
 from ..meshes import DATA, SHARED
-from ..server import serve, upload_and_wait
+from ..server import upload_and_wait
 from .test_viewer import _expected
 
 VIEWPORT = {"width": 480, "height": 360}
@@ -99,18 +98,6 @@ def measure_level_change(page, level: int, geomorph_ms: float, *, tail_ms: float
     the per-frame pixel changes (see LEVEL_CHANGE_JS)."""
     return page.evaluate(LEVEL_CHANGE_JS, {"level": level, "geomorphMs": geomorph_ms,
                                            "tailMs": tail_ms, "threshold": threshold})
-
-
-@pytest.fixture(scope="module")
-def chromium():
-    with headless_chromium() as browser:
-        yield browser
-
-
-@pytest.fixture(scope="module")
-def server(tmp_path_factory):
-    with serve(tmp_path_factory.mktemp("geomorph") / "data") as client:
-        yield client
 
 
 @pytest.mark.parametrize("name", ["spot", "bunny"])

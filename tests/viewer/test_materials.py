@@ -17,9 +17,8 @@ import pytest
 from lodserver.io.glb import encode_glb
 from lodserver.mesh import Materials, Mesh
 
-from ..conftest import headless_chromium
 from ..meshes import SHARED, textured_sphere
-from ..server import serve, upload_and_wait
+from ..server import upload_and_wait
 
 VIEWPORT = {"width": 640, "height": 480}
 
@@ -160,18 +159,6 @@ def every_channel_sphere() -> Mesh:
         "images": [{"mimeType": "image/png", "name": f"channel{i}"} for i in range(5)]},
         tuple(images))
     return Mesh(m.positions, m.faces, m.attributes, np.zeros(m.face_count, np.int32), materials)
-
-
-@pytest.fixture(scope="module")
-def chromium():
-    with headless_chromium() as browser:
-        yield browser
-
-
-@pytest.fixture(scope="module")
-def server(tmp_path_factory):
-    with serve(tmp_path_factory.mktemp("materials") / "data") as client:
-        yield client
 
 
 def _source(name, tmp_path):

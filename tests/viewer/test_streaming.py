@@ -6,9 +6,8 @@ import json
 
 import pytest
 
-from ..conftest import headless_chromium
 from ..meshes import DATA
-from ..server import serve, upload_and_wait
+from ..server import upload_and_wait
 from .test_viewer import _expected
 
 VIEWPORT = {"width": 640, "height": 480}
@@ -30,18 +29,6 @@ SETTLED_JS = """async (full) => {
   }
   return lodViewer.status();
 }"""
-
-
-@pytest.fixture(scope="module")
-def chromium():
-    with headless_chromium() as browser:
-        yield browser
-
-
-@pytest.fixture(scope="module")
-def server(tmp_path_factory):
-    with serve(tmp_path_factory.mktemp("streaming") / "data") as client:
-        yield client
 
 
 @pytest.fixture(scope="module")

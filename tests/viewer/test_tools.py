@@ -15,9 +15,8 @@ import numpy as np
 import pytest
 import trimesh
 
-from ..conftest import headless_chromium
 from ..meshes import DATA
-from ..server import serve, upload_and_wait
+from ..server import upload_and_wait
 
 WIDE = {"width": 960, "height": 640}
 PHONE = {"width": 390, "height": 700}
@@ -65,18 +64,6 @@ CAMERA_JS = """() => {
   const { camera } = window.lodViewer.scene.three;
   return { position: camera.position.toArray(), up: camera.up.toArray() };
 }"""
-
-
-@pytest.fixture(scope="module")
-def chromium():
-    with headless_chromium() as browser:
-        yield browser
-
-
-@pytest.fixture(scope="module")
-def server(tmp_path_factory):
-    with serve(tmp_path_factory.mktemp("tools") / "data") as client:
-        yield client
 
 
 @pytest.fixture(scope="module")

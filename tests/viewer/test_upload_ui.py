@@ -11,9 +11,8 @@ import zipfile
 
 import pytest
 
-from ..conftest import headless_chromium
 from ..meshes import DATA
-from ..server import serve, upload_and_wait
+from ..server import upload_and_wait
 
 VIEWPORT = {"width": 960, "height": 640}
 SPOT_FILES = ("spot.obj", "spot.mtl", "spot_texture.png")
@@ -26,20 +25,6 @@ new MutationObserver(() => {
     window.uploadTexts.push(line.textContent);
   }
 }).observe(document, { subtree: true, childList: true, characterData: true });"""
-
-
-@pytest.fixture(scope="module")
-def chromium():
-    with headless_chromium() as browser:
-        yield browser
-
-
-@pytest.fixture(scope="module")
-def server(tmp_path_factory):
-    data = tmp_path_factory.mktemp("upload-ui") / "data"
-    with serve(data) as client:
-        client.data_dir = data
-        yield client
 
 
 @pytest.fixture

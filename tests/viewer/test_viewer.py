@@ -23,9 +23,8 @@ from fastapi.testclient import TestClient
 from lodserver.api.main import create_app
 from lodserver.api.settings import Settings
 
-from ..conftest import headless_chromium
 from ..meshes import DATA, SHARED, textured_spot_glb
-from ..server import serve, upload_and_wait
+from ..server import upload_and_wait
 
 VIEWPORT = {"width": 960, "height": 640}
 BACKGROUND = (0x1D, 0x20, 0x26)     # settings.background in static/main.js
@@ -86,19 +85,6 @@ def test_viewer_without_its_files_says_where_it_looked(tmp_path, monkeypatch):
 
 
 # ---- the browser ----------------------------------------------------------------
-@pytest.fixture(scope="module")
-def chromium():
-    """A launched headless Chromium (Playwright over Debian's binary), or a skip."""
-    with headless_chromium() as browser:
-        yield browser
-
-
-@pytest.fixture(scope="module")
-def server(tmp_path_factory):
-    with serve(tmp_path_factory.mktemp("viewer") / "data") as client:
-        yield client
-
-
 def _expected(client, mesh_id, level):
     """(faces, SHA-256) of the server's quantized level, hashed as the page does."""
     document = client.get(f"/meshes/{mesh_id}/lod",
