@@ -41,7 +41,7 @@ Queue = namedtuple("Queue", "heap_key heap_pair heap_version key pair version si
 HEAP = 0
 RESERVOIR = 1
 CAPACITY = 2
-# pop_fresh's answers besides a vertex id
+# pop_fresh_from's answers besides a vertex id
 EMPTY = -1          # no entry left
 NEEDS_ROOM = -2     # the heap must hold the whole reservoir to refill: call with_room
 
@@ -275,37 +275,16 @@ def next_key(queue):
 
 @njit(cache=True, nogil=True, inline="always")
 def pop_fresh_from(hk, hab, hvs, size, queue, version, vertex_alive, rejected, stale):
-    """``pop_fresh`` on the heap's arrays ``hk, hab, hvs`` and ``size`` of
-    ``queue``, as the pass loop holds them: inlined, every read of a field of
-    ``queue`` would count a reference, and this runs once per candidate;
-    ``queue`` itself is only read at a refill."""
-    while True:
-        if size[HEAP] == 0:
-            rsize = size[RESERVOIR]
-            if rsize == 0:
-                return EMPTY, EMPTY, EMPTY
-            if hk.shape[0] < rsize:
-                return NEEDS_ROOM, NEEDS_ROOM, NEEDS_ROOM
-            rejected[stale] += _refill(queue, version, vertex_alive)
-            continue
-        e_ab = hab[0]
-        e_vs = hvs[0]
-        size[HEAP] = _heap_pop(hk, hab, hvs, size[HEAP])
-        if _fresh(e_ab, e_vs, version, vertex_alive):
-            return e_ab >> 32, e_ab & 0xFFFFFFFF, e_vs
-        rejected[stale] += 1
-
-
-@njit(cache=True, nogil=True, inline="always")
-def pop_fresh(queue, version, vertex_alive, rejected, stale):
     """Take the cheapest entry whose endpoints are as queued.
 
-    Returns (a, b, entry version); a is EMPTY when the queue is, NEEDS_ROOM
-    when the heap must first grow to hold the reservoir (``with_room(queue,
-    queue.size[RESERVOIR], 0)``). Every stale entry met on the way adds one to
-    ``rejected[stale]``.
+    The heap's arrays ``hk, hab, hvs`` and ``size`` of ``queue`` are passed as
+    the pass loop holds them: inlined, every read of a field of ``queue`` would
+    count a reference, and this runs once per candidate; ``queue`` itself is
+    only read at a refill. Returns (a, b, entry version); a is EMPTY when the
+    queue is, NEEDS_ROOM when the heap must first grow to hold the reservoir
+    (``with_room(queue, queue.size[RESERVOIR], 0)``). Every stale entry met on
+    the way adds one to ``rejected[stale]``.
     """
-    size, hk, hab, hvs = queue.size, queue.heap_key, queue.heap_pair, queue.heap_version
     while True:
         if size[HEAP] == 0:
             rsize = size[RESERVOIR]
