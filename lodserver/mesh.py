@@ -23,6 +23,7 @@ their input (finite coordinates, indices in range) without re-checking.
 
 from __future__ import annotations
 
+import re
 from dataclasses import dataclass
 
 import numpy as np
@@ -32,8 +33,67 @@ class MeshError(ValueError):
     """A mesh (or a file that should hold one) cannot be used; the message says why."""
 
 
-# Attribute names follow glTF's vertex attribute semantics; the width is fixed per name.
+# How each vertex attribute is simplified, by glTF semantic (a rules table, first match wins):
+# (name pattern, width, kind, merge). Widths are fixed except for custom ``_NAME``
+# attributes, whose width (1..4) the layout gives.
+#
+# kind SOLVED : an attribute quadric ranks the collapse and solves the merged value at the
+#               new position (Hoppe 1999; ``simplify.wedges``)
+# kind CARRIED: no part of the cost; a merged wedge takes the value interpolated along the
+#               collapsed edge at the new position (``simplify.carried``). Skin and morph
+#               errors are counted through pose quadrics instead (``simplify.poses``).
+#
+# merge: how a merged value is made valid again: "unit" renormalised, "clamp" kept in
+# [0, 1], "value" as interpolated, "tangent" made orthogonal to the merged normal and
+# unit with a handedness of +-1, "skin" the influences of both ends (every JOINTS_n/
+# WEIGHTS_n set together) summed per joint, the largest kept, weights summing to 1.
+#
+# Morph targets are attributes too: ``TARGET{t}_POSITION`` (and ``_NORMAL``,
+# ``_TANGENT``) holds target t's delta, carried per wedge like any value.
+SOLVED, CARRIED = "solved", "carried"
+ATTRIBUTE_RULES = (
+    (r"NORMAL", 3, SOLVED, "unit"),
+    (r"TEXCOORD_\d+", 2, SOLVED, "value"),
+    (r"COLOR_\d+", 4, SOLVED, "clamp"),
+    (r"TANGENT", 4, CARRIED, "tangent"),
+    (r"JOINTS_\d+", 4, CARRIED, "skin"),
+    (r"WEIGHTS_\d+", 4, CARRIED, "skin"),
+    (r"TARGET\d+_(POSITION|NORMAL|TANGENT)", 3, CARRIED, "value"),
+    (r"_[A-Za-z0-9_]+", None, CARRIED, "value"),
+)
+CUSTOM_WIDTHS = (1, 2, 3, 4)
+# The fixed-width names known before the rules table (kept for their readers).
 ATTRIBUTE_WIDTHS = {"NORMAL": 3, "TEXCOORD_0": 2, "TEXCOORD_1": 2, "COLOR_0": 4}
+
+
+def attribute_rule(name: str, width: int | None = None) -> tuple[int, str, str]:
+    """``(width, kind, merge)`` of vertex attribute ``name`` (see ``ATTRIBUTE_RULES``).
+
+    ``width`` is required for custom ``_NAME`` attributes and checked for the others;
+    an unknown name or a wrong width is a MeshError.
+    """
+    for pattern, fixed, kind, merge in ATTRIBUTE_RULES:
+        if re.fullmatch(pattern, name):
+            if fixed is None:
+                if width not in CUSTOM_WIDTHS:
+                    raise MeshError(f"custom attribute {name!r} must have 1 to 4 components, "
+                                    f"got {width}")
+                return int(width), kind, merge
+            if width is not None and int(width) != fixed:
+                raise MeshError(f"attribute {name!r} has {fixed} components, got {width}")
+            return fixed, kind, merge
+    raise MeshError(f"unknown attribute {name!r}")
+
+
+def attribute_width(name: str, width: int | None = None) -> int:
+    """The number of floats of attribute ``name`` (``width`` for a custom one)."""
+    return attribute_rule(name, width)[0]
+
+
+def is_solved(name: str) -> bool:
+    """True when attribute ``name`` has an attribute quadric (kind SOLVED)."""
+    return any(re.fullmatch(pattern, name) and kind == SOLVED
+               for pattern, _, kind, _ in ATTRIBUTE_RULES)
 
 
 @dataclass(frozen=True, eq=False)
@@ -42,8 +102,11 @@ class Attributes:
 
     layout : tuple of (name, width)
         The columns of ``values``, in order, named as glTF vertex attributes
-        (keys of :data:`ATTRIBUTE_WIDTHS`): e.g. ``(("NORMAL", 3), ("TEXCOORD_0", 2))``.
-        UVs are in glTF's convention (origin top-left, v down); colours are linear RGBA in 0..1.
+        (:data:`ATTRIBUTE_RULES`): e.g. ``(("NORMAL", 3), ("TEXCOORD_0", 2))``.
+        UVs are in glTF's convention (origin top-left, v down); colours are linear RGBA in
+        0..1; ``TANGENT`` is xyz plus handedness w = +-1; ``JOINTS_n`` hold joint indices
+        (into the skin's ``joints``) as exact integers, ``WEIGHTS_n`` their weights (all sets
+        of a vertex summing to 1); ``TARGET{t}_*`` morph target t's deltas.
     values : (w, d) float64
         One attribute vector per wedge, ``d = sum(widths)``.
     corners : (m, 3) int64
@@ -57,8 +120,7 @@ class Attributes:
     def __post_init__(self):
         layout = tuple((str(name), int(width)) for name, width in self.layout)
         for name, width in layout:
-            if ATTRIBUTE_WIDTHS.get(name) != width:
-                raise MeshError(f"unknown attribute {name!r} of width {width}")
+            attribute_rule(name, width)
         if len({name for name, _ in layout}) != len(layout):
             raise MeshError("an attribute appears twice in the layout")
         d = sum(width for _, width in layout)
@@ -218,3 +280,14 @@ def unit_box(positions):
 def to_unit_box(positions, lo, extent):
     """``(positions - lo) / extent`` as a C-contiguous (n, 3) float64 array."""
     return np.ascontiguousarray((np.asarray(positions, dtype=np.float64) - lo) / extent)
+
+
+def split_layout(layout) -> tuple[np.ndarray, np.ndarray]:
+    """The value columns of ``layout`` ((name, width), ...) that are SOLVED and CARRIED,
+    as two int64 index arrays into an attribute vector."""
+    solved, carried, start = [], [], 0
+    for name, width in layout:
+        columns = range(start, start + width)
+        (solved if attribute_rule(name, width)[1] == SOLVED else carried).extend(columns)
+        start += width
+    return np.array(solved, dtype=np.int64), np.array(carried, dtype=np.int64)
