@@ -518,7 +518,8 @@ def _run_kernels(verts, faces, wedges, options, parts, states):
 # --------------------------------------------------------------------------
 
 def _prepare(mesh: Mesh, *, boundary_weight, locked, flip_cos, pair_threshold,
-             attribute_weights, preserve_volume, seam_weight, min_vertices=0, limit=None):
+             attribute_weights, preserve_volume, seam_weight, min_vertices=0, limit=None,
+             poses=None):
     """The kernel's inputs for ``mesh``: (Vertices, faces, Wedges, Options,
     attribute scales, unit-box scale)."""
     positions = np.asarray(mesh.positions, dtype=np.float64)
@@ -539,6 +540,13 @@ def _prepare(mesh: Mesh, *, boundary_weight, locked, flip_cos, pair_threshold,
     quadrics = vertex_quadrics(unit, faces, boundary_weight=boundary_weight,
                                boundary=(found.boundary_edges, found.boundary_faces),
                                seams=seams, seam_weight=seam_weight)
+    if poses is not None:
+        # Skinned or morphed: the surface is also measured in the poses it is seen in,
+        # each posed plane pulled back through the vertex's own pose map to bind space
+        # (simplify.poses); the mean over the bind pose and every pose keeps mesh units.
+        from .poses import pose_quadrics, poses_to_unit_box
+        posed = pose_quadrics(unit, faces, poses_to_unit_box(poses, lo, scale))
+        quadrics = (quadrics + posed) / (1.0 + len(poses))
     wedges, scales = wedge_inputs(attributes, unit, faces, attribute_weights, n)
 
     if not pair_threshold >= 0:
@@ -556,7 +564,8 @@ def decimate(mesh: Mesh, *, boundary_weight: float = 1.0, locked=None, min_verti
              max_collapses: int | None = None, flip_cos: float = DEFAULT_FLIP_COS,
              pair_threshold: float = 0.0, attribute_weights: dict | None = None,
              preserve_volume: bool = True, seam_weight: float = 1.0, progress=None,
-             cancel: threading.Event | None = None, parts: int | None = None) -> CollapseLog:
+             cancel: threading.Event | None = None, parts: int | None = None,
+             poses=None) -> CollapseLog:
     """Collapse edges of ``mesh`` cheapest first and log every collapse.
 
     Parameters
@@ -602,6 +611,10 @@ def decimate(mesh: Mesh, *, boundary_weight: float = 1.0, locked=None, min_verti
         one thread. Default: ``parts.DEFAULT_PARTS`` for meshes of
         ``parts.PARALLEL_MIN_VERTICES`` vertices or more, else 1. Ignored
         (1) with close pairs or ``max_collapses``.
+    poses : (P, n, 3, 4) float64, optional
+        Per pose, the affine map of every vertex from its bind position to its
+        posed one (mesh units; ``simplify.poses``): the error of a collapse is
+        then the mean over the bind pose and these poses.
 
     Returns
     -------
@@ -612,7 +625,7 @@ def decimate(mesh: Mesh, *, boundary_weight: float = 1.0, locked=None, min_verti
         mesh, boundary_weight=boundary_weight, locked=locked, flip_cos=flip_cos,
         pair_threshold=pair_threshold, attribute_weights=attribute_weights,
         preserve_volume=preserve_volume, seam_weight=seam_weight, min_vertices=min_vertices,
-        limit=max_collapses)
+        limit=max_collapses, poses=poses)
     n = len(verts.pos)
     if parts is None:
         parts = DEFAULT_PARTS if n >= PARALLEL_MIN_VERTICES else 1
