@@ -6,6 +6,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .simplify.carried import complete_log, solved_part
 from .simplify.collapse import decimate
 from .mesh import Mesh, MeshError
 from .options import METHODS, BuildOptions
@@ -20,7 +21,7 @@ COLD_COMPILE_SECONDS = 40
 
 
 def build(source, options: BuildOptions | dict | None = None, *, locked=None, progress=None,
-          cancel=None, untrusted: bool = False, **overrides) -> ProgressiveMesh:
+          cancel=None, untrusted: bool = False, poses=None, **overrides) -> ProgressiveMesh:
     """Build the progressive mesh of ``source``.
 
     Parameters
@@ -42,6 +43,10 @@ def build(source, options: BuildOptions | dict | None = None, *, locked=None, pr
         ``source`` is a file from someone else: load it as the server loads an
         upload (every file it names must lie in its folder, no symlinks or URLs,
         the default ``LoadLimits``).
+    poses : (P, n, 3, 4) float64, optional
+        Per pose, every vertex's affine map from bind to posed position
+        (``simplify.poses.scene_poses``): a skinned or morphed mesh's error is then
+        measured in those poses too (``simplify.collapse.decimate``).
 
     Returns
     -------
@@ -76,11 +81,13 @@ def build(source, options: BuildOptions | dict | None = None, *, locked=None, pr
     locked = _locked(mesh, locked, options.lock_border)
     threshold = distance_from(options.pair_threshold, mesh)
     weights = options.attribute_weights()
-    log = decimate(mesh, boundary_weight=options.boundary_weight, locked=locked,
+    # the kernel ranks on the solved attributes; the carried ones follow the log
+    log = decimate(solved_part(mesh), boundary_weight=options.boundary_weight, locked=locked,
                    min_vertices=options.min_vertices, flip_cos=options.flip_cos,
                    pair_threshold=threshold, attribute_weights=weights,
                    preserve_volume=options.preserve_volume, seam_weight=options.seam_weight,
-                   progress=progress, cancel=cancel)
+                   progress=progress, cancel=cancel, poses=poses)
+    log = complete_log(mesh, log)
     metadata["options"] = {
         **options.model_dump(),
         "attributes": [name for name, _ in mesh.attributes.layout] if mesh.attributes else [],

@@ -124,7 +124,9 @@ class Attributes:
         if len({name for name, _ in layout}) != len(layout):
             raise MeshError("an attribute appears twice in the layout")
         d = sum(width for _, width in layout)
-        values = np.ascontiguousarray(self.values, dtype=np.float64).reshape(-1, d)
+        values = np.ascontiguousarray(self.values, dtype=np.float64)
+        # (w, 0) when no column is left (the solved part of a mesh with carried columns only)
+        values = values.reshape(len(values) if d == 0 else -1, d)
         corners = np.ascontiguousarray(self.corners, dtype=np.int64)
         if not np.isfinite(values).all():
             raise MeshError("attribute values are NaN or infinite")

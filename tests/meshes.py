@@ -134,3 +134,32 @@ def canonical_faces(positions, faces):
     roll = (first[:, None] + np.arange(3)) % 3
     rotated = positions[np.take_along_axis(faces, roll, axis=1)].reshape(len(faces), 9)
     return rotated[np.lexsort(rotated.T[::-1])]
+
+
+def skinned_sphere(nu=32, nv=16) -> Mesh:
+    """:func:`textured_sphere` with every kind of carried attribute on its wedges:
+    TANGENT (along u, handedness -1 on the lower half), JOINTS_0/WEIGHTS_0 (three
+    joints blended smoothly along z), two morph targets (inflate; lift the top) and a
+    custom ``_BAND`` (the quarter of u a wedge lies in)."""
+    base = textured_sphere(nu, nv)
+    a = base.attributes
+    wedge_vertex = base.wedge_vertices()
+    p = base.positions[wedge_vertex]
+    normal, u = a.values[:, 0:3], a.values[:, 3]
+    theta = 2 * np.pi * u
+    tangent = np.stack([-np.sin(theta), np.cos(theta), np.zeros_like(theta)], 1)
+    tangent -= normal * (tangent * normal).sum(1, keepdims=True)
+    length = np.linalg.norm(tangent, axis=1, keepdims=True)
+    tangent = np.where(length > 1e-9, tangent / np.maximum(length, 1e-12), [1.0, 0.0, 0.0])
+    handed = np.where(p[:, 2] < 0, -1.0, 1.0)[:, None]
+    z = p[:, 2]
+    raw = np.stack([np.clip(-z, 0, 1), 1 - np.abs(z), np.clip(z, 0, 1), np.zeros_like(z)], 1)
+    weights = raw / raw.sum(1, keepdims=True)
+    joints = np.tile([0.0, 1.0, 2.0, 0.0], (len(z), 1))
+    inflate = 0.1 * normal
+    lift = np.stack([np.zeros_like(z), np.zeros_like(z), 0.3 * np.clip(z, 0, 1)], 1)
+    band = np.floor(np.clip(u, 0, 0.999) * 4)[:, None]
+    layout = a.layout + (("TANGENT", 4), ("JOINTS_0", 4), ("WEIGHTS_0", 4),
+                         ("TARGET0_POSITION", 3), ("TARGET1_POSITION", 3), ("_BAND", 1))
+    values = np.concatenate([a.values, tangent, handed, joints, weights, inflate, lift, band], 1)
+    return Mesh(base.positions, base.faces, Attributes(layout, values, a.corners))

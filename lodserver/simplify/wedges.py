@@ -47,16 +47,25 @@ Wedges = namedtuple("Wedges", "corner quadric value fixed mark stamp merged "
 # namedtuple argument otherwise costs a count per array on every call.
 
 
+def attribute_weight(name: str, weights: dict) -> float:
+    """The weight of solved attribute ``name``: ``weights[name]``, else that of the first
+    of its family (``TEXCOORD_0`` for every ``TEXCOORD_n``, ``COLOR_0`` for ``COLOR_n``),
+    else the family's default."""
+    family = name.rsplit("_", 1)[0] + "_0" if name.startswith(("TEXCOORD_", "COLOR_")) else name
+    return float(weights.get(name, weights.get(family, DEFAULT_ATTRIBUTE_WEIGHTS[family])))
+
+
 def attribute_scales(layout, weights: dict | None) -> np.ndarray:
-    """(d,) float64: sqrt(weight) for every attribute column of ``layout``."""
-    weights = {**DEFAULT_ATTRIBUTE_WEIGHTS, **(weights or {})}
+    """(d,) float64: sqrt(weight) for every attribute column of ``layout`` (solved
+    attributes only: carried ones have no quadric, ``simplify.carried``)."""
+    weights = dict(weights or {})
     unknown = set(weights) - {name for name, _ in layout} - set(DEFAULT_ATTRIBUTE_WEIGHTS)
     if unknown:
         raise ValueError(f"no attribute named {', '.join(sorted(unknown))}; "
                          f"known are {', '.join(DEFAULT_ATTRIBUTE_WEIGHTS)}")
     scales = []
     for name, width in layout:
-        weight = float(weights[name])
+        weight = attribute_weight(name, weights)
         if not 0 < weight < float("inf"):
             raise ValueError(f"the weight of {name} must be a positive number, got {weight}")
         scales += [np.sqrt(weight)] * width
