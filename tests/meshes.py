@@ -156,7 +156,7 @@ def skinned_sphere(nu=32, nv=16) -> Mesh:
     raw = np.stack([np.clip(-z, 0, 1), 1 - np.abs(z), np.clip(z, 0, 1), np.zeros_like(z)], 1)
     weights = raw / raw.sum(1, keepdims=True)
     joints = np.tile([0.0, 1.0, 2.0, 0.0], (len(z), 1))
-    inflate = 0.1 * normal
+    inflate = 0.1 * p / np.linalg.norm(p, axis=1, keepdims=True)      # per vertex, not corner
     lift = np.stack([np.zeros_like(z), np.zeros_like(z), 0.3 * np.clip(z, 0, 1)], 1)
     band = np.floor(np.clip(u, 0, 0.999) * 4)[:, None]
     layout = a.layout + (("TANGENT", 4), ("JOINTS_0", 4), ("WEIGHTS_0", 4),

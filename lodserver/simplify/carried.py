@@ -13,10 +13,22 @@ gives every merged wedge its carried value:
   middle takes half of each end, one left at the survivor keeps its own value;
 - each rule of ``MERGES`` then makes the interpolated value valid again.
 
-A wedge that is not merged keeps its value wherever its vertex goes, exactly as
-the kernel treats the solved columns. The values land in the log's
-``merge_value``, so the progressive mesh stores them like any other: exact at
-every level, both ways.
+Skin influences and morph deltas belong to the vertex, not the corner: if two
+wedges of one vertex (the sides of a UV seam) disagree on them, the seam tears
+open when the asset moves. A merge changes only the merged wedges, so which
+values these take depends on which wedges the collapse leaves unmerged:
+
+===========================  ==========================  ===================
+survivor's wedges            removed vertex's wedges      per-vertex values
+===========================  ==========================  ===================
+all merged                   all merged                   interpolated at t
+some unmerged (a seam)       all merged                   the survivor's
+all merged                   some unmerged (moved over)   the removed's
+some unmerged                some unmerged                the survivor's
+===========================  ==========================  ===================
+
+Only the last row (seams meeting, which the kernel's seam penalty makes rare)
+leaves a vertex whose wedges disagree.
 """
 
 from __future__ import annotations
@@ -29,8 +41,8 @@ from numba import njit
 from ..mesh import Attributes, Mesh, attribute_rule, split_layout
 
 # merge rule -> its code in the compiled replay (ATTRIBUTE_RULES' "merge" column)
-VALUE, TANGENT, SKIN = 0, 1, 2
-MERGES = {"value": VALUE, "tangent": TANGENT, "skin": SKIN}
+VALUE, TANGENT, SKIN, VERTEX = 0, 1, 2, 3
+MERGES = {"value": VALUE, "tangent": TANGENT, "skin": SKIN, "vertex": VERTEX}
 
 
 def solved_part(mesh: Mesh) -> Mesh:
@@ -86,20 +98,24 @@ def complete_log(mesh: Mesh, log):
     normal = attributes.columns("NORMAL")
     value = np.zeros((len(log.merge_survivor), attributes.width), dtype=np.float64)
     value[:, solved] = log.merge_value
+    owner = mesh.wedge_vertices()
+    live = np.bincount(owner[owner >= 0], minlength=mesh.vertex_count).astype(np.int64)
     _replay(np.asarray(mesh.positions, dtype=np.float64).copy(), log.survivor, log.removed,
             log.position, log.merge_offsets, log.merge_survivor, log.merge_removed,
-            attributes.values.copy(), value, groups, skin, -1 if normal is None else normal.start)
+            attributes.values.copy(), value, groups, skin, -1 if normal is None else normal.start,
+            live)
     return replace(log, merge_value=value)
 
 
 @njit(cache=True, nogil=True)
 def _replay(positions, survivor, removed, position, offsets, merge_survivor, merge_removed,
-            current, value, groups, skin, normal_col):
+            current, value, groups, skin, normal_col, live):
     """Fill the carried columns of ``value`` (g, d), collapse by collapse.
 
-    positions (n, 3) and current (w, d) are scratch: every vertex's position and
-    every wedge's full value as the log has them so far. ``value``'s solved columns
-    (the normal among them) are already the merged ones.
+    positions (n, 3), current (w, d) and live (n,) are scratch: every vertex's
+    position, every wedge's full value and every vertex's wedge count as the log
+    has them so far. ``value``'s solved columns (the normal among them) are already
+    the merged ones.
     """
     k = survivor.shape[0]
     d = current.shape[1]
@@ -118,15 +134,29 @@ def _replay(positions, survivor, removed, position, offsets, merge_survivor, mer
             t = ((position[i, 0] - positions[s, 0]) * ex + (position[i, 1] - positions[s, 1]) * ey
                  + (position[i, 2] - positions[s, 2]) * ez) / length2
             t = min(max(t, 0.0), 1.0)
+        pairs = offsets[i + 1] - offsets[i]
+        # per-vertex values: the table in the module docstring
+        whole_s, whole_r = live[s] == pairs, live[r] == pairs
+        tv = t if whole_s and whole_r else (1.0 if whole_s else 0.0)
+        live[s] += live[r] - pairs
         for g in range(offsets[i], offsets[i + 1]):
             a, b = merge_survivor[g], merge_removed[g]
             for row in range(groups.shape[0]):
                 first, width, rule = groups[row, 0], groups[row, 1], groups[row, 2]
-                if rule == SKIN:
-                    _merge_skin(current, a, b, t, skin, value, g, joint, weight)
+                if rule == SKIN and 0.0 < tv < 1.0:
+                    _merge_skin(current, a, b, tv, skin, value, g, joint, weight)
                     continue
+                if rule == SKIN:
+                    # one end's influences, bit for bit (as the vertex's other wedges have them)
+                    end = a if tv == 0.0 else b
+                    for row2 in range(skin.shape[0]):
+                        for k in range(4):
+                            value[g, skin[row2, 0] + k] = current[end, skin[row2, 0] + k]
+                            value[g, skin[row2, 1] + k] = current[end, skin[row2, 1] + k]
+                    continue
+                f = tv if rule == VERTEX else t
                 for j in range(first, first + width):
-                    value[g, j] = (1.0 - t) * current[a, j] + t * current[b, j]
+                    value[g, j] = (1.0 - f) * current[a, j] + f * current[b, j]
                 if rule == TANGENT:
                     _fix_tangent(value, g, first, normal_col, current, a, b, t)
             # the merged wedge now holds every column of value[g]

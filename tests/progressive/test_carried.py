@@ -112,3 +112,19 @@ def test_carried_columns_survive_the_artefact(sphere, tmp_path):
     assert again.attribute_layout == pm.attribute_layout
     level = pm.level_for(ratio=0.3)
     assert same_level(again.at(level), pm.at(level))
+
+
+def test_skin_and_morph_deltas_agree_on_every_wedge_of_a_vertex(sphere):
+    """The sides of the UV seam must skin and morph alike at every level, or the seam
+    tears open when the asset moves (simplify.carried's table)."""
+    m, pm = sphere
+    per_vertex = slice(9, 23)       # JOINTS_0, WEIGHTS_0, TARGET0_POSITION, TARGET1_POSITION
+    for level in _levels(pm, 16):
+        lv = pm.at(level)
+        owner = lv.wedge_vertices()
+        used = owner >= 0
+        values = lv.attributes.values[used, per_vertex]
+        order = np.argsort(owner[used], kind="stable")
+        first = np.unique(owner[used][order], return_index=True)[1]
+        reference = np.repeat(values[order][first], np.diff(np.append(first, len(order))), axis=0)
+        assert np.array_equal(values[order], reference), level
