@@ -46,7 +46,10 @@ class MeshError(ValueError):
 # merge: how a merged value is made valid again: "unit" renormalised, "clamp" kept in
 # [0, 1], "value" as interpolated, "tangent" made orthogonal to the merged normal and
 # unit with a handedness of +-1, "skin" the influences of both ends (every JOINTS_n/
-# WEIGHTS_n set together) summed per joint, the largest kept, weights summing to 1.
+# WEIGHTS_n set together) summed per joint, the largest kept, weights summing to 1;
+# "vertex" as interpolated, for values that belong to the vertex rather than the corner
+# (morph deltas, like skins, must agree on every wedge of a vertex or the surface tears
+# when it moves: both blend only when that keeps the vertex's wedges in agreement).
 #
 # Morph targets are attributes too: ``TARGET{t}_POSITION`` (and ``_NORMAL``,
 # ``_TANGENT``) holds target t's delta, carried per wedge like any value.
@@ -58,7 +61,7 @@ ATTRIBUTE_RULES = (
     (r"TANGENT", 4, CARRIED, "tangent"),
     (r"JOINTS_\d+", 4, CARRIED, "skin"),
     (r"WEIGHTS_\d+", 4, CARRIED, "skin"),
-    (r"TARGET\d+_(POSITION|NORMAL|TANGENT)", 3, CARRIED, "value"),
+    (r"TARGET\d+_(POSITION|NORMAL|TANGENT)", 3, CARRIED, "vertex"),
     (r"_[A-Za-z0-9_]+", None, CARRIED, "value"),
 )
 CUSTOM_WIDTHS = (1, 2, 3, 4)
