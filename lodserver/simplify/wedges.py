@@ -19,6 +19,7 @@ from collections import namedtuple
 import numpy as np
 from numba import njit
 
+from ..mesh import is_solved
 from .quadrics import add_fixed, add_reduced, best_attributes, seam_edges, wedge_quadrics
 from .state import NO_REFCOUNT
 
@@ -63,6 +64,11 @@ def attribute_scales(layout, weights: dict | None) -> np.ndarray:
     if unknown:
         raise ValueError(f"no attribute named {', '.join(sorted(unknown))}; "
                          f"known are {', '.join(DEFAULT_ATTRIBUTE_WEIGHTS)}")
+    carried = [name for name, _ in layout if not is_solved(name)]
+    if carried:
+        raise ValueError(f"the decimation kernel ranks solved attributes only, not "
+                         f"{', '.join(carried)}: decimate simplify.carried.solved_part(mesh) "
+                         f"and complete the log with simplify.carried.complete_log")
     scales = []
     for name, width in layout:
         weight = attribute_weight(name, weights)
