@@ -62,9 +62,11 @@ ATTRIBUTE_RULES = (
     (r"JOINTS_\d+", 4, CARRIED, "skin"),
     (r"WEIGHTS_\d+", 4, CARRIED, "skin"),
     (r"TARGET\d+_(POSITION|NORMAL|TANGENT)", 3, CARRIED, "vertex"),
-    (r"_[A-Za-z0-9_]+", None, CARRIED, "value"),
+    (r"_[A-Za-z0-9_]{1,63}", None, CARRIED, "value"),
 )
 CUSTOM_WIDTHS = (1, 2, 3, 4)
+# At most this many attributes a mesh: what a packet header can name (packets.format).
+MAX_ATTRIBUTES = 255
 # The fixed-width names known before the rules table (kept for their readers).
 ATTRIBUTE_WIDTHS = {"NORMAL": 3, "TEXCOORD_0": 2, "TEXCOORD_1": 2, "COLOR_0": 4}
 
@@ -124,6 +126,9 @@ class Attributes:
         layout = tuple((str(name), int(width)) for name, width in self.layout)
         for name, width in layout:
             attribute_rule(name, width)
+        if len(layout) > MAX_ATTRIBUTES:
+            raise MeshError(f"the mesh has {len(layout)} vertex attributes; at most "
+                            f"{MAX_ATTRIBUTES} are supported")
         if len({name for name, _ in layout}) != len(layout):
             raise MeshError("an attribute appears twice in the layout")
         d = sum(width for _, width in layout)

@@ -13,7 +13,8 @@
 // Unlike the reference, apply() works in place for speed: a packet that fails
 // half-way leaves the state unusable, and the caller must reopen the mesh.
 //
-// A mesh with attributes (normals, UVs, colours) also has wedges (version 2
+// A mesh with attributes (any of lodserver/mesh.py's ATTRIBUTE_RULES: normals, UVs,
+// colours, tangents, skin, morph deltas, custom ones) also has wedges (version 2 and 3
 // packets): integer grid values per wedge, the wedge of every corner, and the
 // material of every face. The state keeps each wedge's vertex (the vertex of
 // the corners holding it) so a renderer can draw one vertex per wedge, and
@@ -51,7 +52,7 @@ export class LodState {
                             `the capacity (${vertexCapacity}, ${faceCapacity})`);
     }
     const attributes = (document.layout || []).map(
-      ([name]) => attributeGrid(name, document.attribute_grid[name]));
+      ([name, width]) => attributeGrid(name, document.attribute_grid[name], width));
     const wedgeCapacity = attributes.length ? document.wedge_capacity : 0;
     const hasMaterials = Array.isArray(document.face_material);
     const state = new LodState(document.grid, vertexCapacity, faceCapacity,
@@ -248,7 +249,22 @@ export class LodState {
       throw new PacketError(`the packet left ${this.faceCount} faces, its header says ` +
                             `${packet.stopFaces}`);
     }
+    this.checkHandedness();
     return Math.abs(packet.stop - packet.start);
+  }
+
+  // A tangent's handedness is 0 or 1 (w = -1 or +1) on its grid, not any value below
+  // 2^bits: checked on the wedges touched since takeDirty() (those a packet changed).
+  checkHandedness() {
+    const { wedges, components, touchedWedges } = this;
+    for (const a of this.attributes) {
+      if (a.encoding !== 'tangent') continue;
+      for (let i = 0; i < this.touchedWedgeCount; i++) {
+        if (wedges[components * touchedWedges[i] + a.offset + 2] > 1) {
+          throw new PacketError('the packet gives a TANGENT a handedness other than -1 or +1');
+        }
+      }
+    }
   }
 }
 

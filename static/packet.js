@@ -12,13 +12,26 @@
 // "Exactness").
 
 const MAGIC = 0x56444f4c;          // "LODV" read as a little-endian u32
-const READABLE_VERSIONS = [1, 2];  // version 1: a geometry-only packet of version 2
+// Version 1: a geometry-only packet of version 2; version 2: attribute records with
+// one of four kind codes; version 3: attribute records that name the attribute.
+const READABLE_VERSIONS = [1, 2, 3];
 const HEADER_BYTES = 60;
 const STREAM_NAMES = ['vertex', 'count', 'pattern', 'other', 'fan', 'mask', 'position'];
 const HAS_MATERIALS = 1;           // header flag
-const ATTRIBUTE_NAMES = ['NORMAL', 'TEXCOORD_0', 'TEXCOORD_1', 'COLOR_0'];   // by header id
-const ATTRIBUTE_WIDTHS = { NORMAL: 3, TEXCOORD_0: 2, TEXCOORD_1: 2, COLOR_0: 4 };
-const ENCODINGS = ['linear', 'octahedral'];
+const V2_ATTRIBUTE_NAMES = ['NORMAL', 'TEXCOORD_0', 'TEXCOORD_1', 'COLOR_0'];   // by kind code
+const ENCODINGS = ['linear', 'octahedral', 'tangent'];
+const V2_ENCODINGS = ['linear', 'octahedral'];       // version 2 had these two only
+// The attribute each non-linear encoding is for, and its components.
+const ENCODING_ATTRIBUTE = { octahedral: 'NORMAL', tangent: 'TANGENT' };
+const ENCODING_COMPONENTS = { octahedral: 2, tangent: 3 };
+const MAX_ATTRIBUTES = 255, MAX_NAME = 64, MAX_BITS = 24;
+// Floats per value by glTF name, as lodserver/mesh.py's ATTRIBUTE_RULES (first match
+// wins); null: a custom attribute, 1 to 4 as its layout or record says.
+const ATTRIBUTE_RULES = [
+  [/^NORMAL$/, 3], [/^TEXCOORD_\d+$/, 2], [/^COLOR_\d+$/, 4], [/^TANGENT$/, 4],
+  [/^JOINTS_\d+$/, 4], [/^WEIGHTS_\d+$/, 4], [/^TARGET\d+_(POSITION|NORMAL|TANGENT)$/, 3],
+  [/^_[A-Za-z0-9_]+$/, null],
+];
 // A malformed varint could run on forever; 2^63 bounds any value the format uses.
 const MAX_VARINT_SCALE = 2 ** 63;
 
@@ -116,29 +129,51 @@ export function streamNames(attributes, hasMaterials) {
 
 // ---- attribute grids -------------------------------------------------------------
 
-// An attribute grid as the json form gives it ({encoding, origin, step, bits}).
-// `components` are the stored values per wedge (2 for an octahedral normal),
-// `width` the floats drawn (3 for any normal).
-export function attributeGrid(name, grid) {
-  const components = grid.encoding === 'octahedral' ? 2 : ATTRIBUTE_WIDTHS[name];
+// The floats per value of attribute `name` (`width`, 1 to 4, for a custom `_NAME`
+// one; checked against the name for the others); a PacketError for an unknown name.
+export function attributeWidth(name, width) {
+  for (const [pattern, fixed] of ATTRIBUTE_RULES) {
+    if (!pattern.test(name)) continue;
+    if (fixed === null) {
+      if (Number.isInteger(width) && width >= 1 && width <= 4) return width;
+      throw new PacketError(`custom attribute ${name} must have 1 to 4 components, got ${width}`);
+    }
+    if (width !== undefined && width !== fixed) {
+      throw new PacketError(`attribute ${name} has ${fixed} components, got ${width}`);
+    }
+    return fixed;
+  }
+  throw new PacketError(`unknown attribute ${name}`);
+}
+
+// An attribute grid as the json form gives it ({encoding, origin, step, bits}), with
+// the attribute's width from the json layout (needed for a custom attribute).
+// `components` are the stored values per wedge (2 for an octahedral normal, 3 for a
+// tangent), `width` the floats drawn (3 for any normal, 4 for a tangent).
+export function attributeGrid(name, grid, width) {
+  width = attributeWidth(name, width);
+  const components = ENCODING_COMPONENTS[grid.encoding] || width;
   return { name, encoding: grid.encoding, origin: [...grid.origin], step: grid.step,
-           bits: grid.bits, components, width: ATTRIBUTE_WIDTHS[name] };
+           bits: grid.bits, components, width };
 }
 
 // Exact comparison: a packet is only valid on the very grid it was made for.
 export function sameGrid(a, b) {
   return a.name === b.name && a.encoding === b.encoding && a.bits === b.bits &&
-         a.step === b.step && a.origin.every((x, k) => x === b.origin[k]);
+         a.width === b.width && a.step === b.step && a.origin.length === b.origin.length &&
+         a.origin.every((x, k) => x === b.origin[k]);
 }
 
 // The float value of wedge grid coordinates q[at .. at + components) into out[o ..):
-// origin + q * step, and for octahedral normals the unfolded unit vector.
+// origin + q * step, for octahedral normals the unfolded unit vector, and for a
+// tangent that vector then its handedness -1 + 2 q.
 export function dequantize(grid, q, at, out, o) {
   const { origin, step } = grid;
-  if (grid.encoding !== 'octahedral') {
+  if (grid.encoding === 'linear') {
     for (let k = 0; k < grid.components; k++) out[o + k] = origin[k] + q[at + k] * step;
     return;
   }
+  if (grid.encoding === 'tangent') out[o + 3] = origin[2] + 2 * q[at + 2];
   let x = origin[0] + q[at] * step, y = origin[1] + q[at + 1] * step;
   const z = 1 - Math.abs(x) - Math.abs(y);
   if (z < 0) {
@@ -153,6 +188,74 @@ export function dequantize(grid, q, at, out, o) {
 }
 
 // ---- the header and body -----------------------------------------------------------
+
+function truncatedAttributes() {
+  return new PacketError('the packet is truncated in its attribute records');
+}
+
+// A version 3 attribute record at `at`: u8 name length, the ASCII name, u8 width,
+// u8 encoding, u8 bits, f64 step, f64 origin per component; { grid, at (its end) }.
+function readAttributeV3(bytes, view, at) {
+  if (bytes.length < at + 1) throw truncatedAttributes();
+  const size = bytes[at];
+  if (size < 1 || size > MAX_NAME) {
+    throw new PacketError(`the packet has an attribute name of ${size} bytes; names have ` +
+                          `1 to ${MAX_NAME}`);
+  }
+  if (bytes.length < at + 1 + size + 11) throw truncatedAttributes();
+  let name = '';
+  for (let k = 0; k < size; k++) {
+    const code = bytes[at + 1 + k];
+    if (code < 0x20 || code > 0x7e) {
+      throw new PacketError('the packet has an attribute name that is not printable ASCII');
+    }
+    name += String.fromCharCode(code);
+  }
+  at += 1 + size;
+  const width = attributeWidthOf(name, view.getUint8(at));
+  return readAttributeGrid(bytes, view, at + 3, name, width, view.getUint8(at + 1),
+                           view.getUint8(at + 2), view.getFloat64(at + 3, true));
+}
+
+// A version 2 attribute record: u8 kind code, u8 encoding, u8 bits, u8 reserved, f64 step, origin.
+function readAttributeV2(bytes, view, at) {
+  if (bytes.length < at + 12) throw truncatedAttributes();
+  const name = V2_ATTRIBUTE_NAMES[view.getUint8(at)];
+  if (!name) throw new PacketError(`the packet names an unknown attribute (${view.getUint8(at)})`);
+  const encoding = view.getUint8(at + 1);
+  return readAttributeGrid(bytes, view, at + 4, name, attributeWidth(name), encoding,
+                           view.getUint8(at + 2), view.getFloat64(at + 4, true),
+                           V2_ENCODINGS);
+}
+
+function attributeWidthOf(name, width) {
+  try {
+    return attributeWidth(name, width);
+  } catch (error) {
+    throw new PacketError(`the packet has a bad attribute record: ${error.message}`);
+  }
+}
+
+// The end of an attribute record: `at` is where its step is, the origin follows.
+function readAttributeGrid(bytes, view, at, name, width, code, bits, step,
+                           encodings = ENCODINGS) {
+  const encoding = encodings[code];
+  if (!encoding) throw new PacketError(`the packet gives ${name} an unknown encoding (${code})`);
+  if ((ENCODING_ATTRIBUTE[encoding] || name) !== name) {
+    throw new PacketError(`the packet encodes ${name} as ${encoding}: only ` +
+                          `${ENCODING_ATTRIBUTE[encoding]} can be`);
+  }
+  if (bits < 1 || bits > MAX_BITS) {
+    throw new PacketError(`the packet gives ${name} a grid of ${bits} bits; 1 to ${MAX_BITS} ` +
+                          'are allowed');
+  }
+  const components = ENCODING_COMPONENTS[encoding] || width;
+  at += 8;
+  if (bytes.length < at + 8 * components) throw truncatedAttributes();
+  const origin = [];
+  for (let k = 0; k < components; k++, at += 8) origin.push(view.getFloat64(at, true));
+  return { grid: attributeGrid(name, { encoding, origin, step, bits }, width), at };
+}
 
 // Parse a packet's header and inflate its streams: { grid, start, stop,
 // startFaces, stopFaces, attributes, hasMaterials, streams (Uint8Array views
@@ -176,23 +279,19 @@ export async function readPacket(buffer) {
   if (version === 1 && (attributeCount || flags)) {
     throw new PacketError('the packet has version 1 but sets reserved header bytes');
   }
+  if (attributeCount > MAX_ATTRIBUTES) {
+    throw new PacketError(`the packet has ${attributeCount} attribute records; at most ` +
+                          `${MAX_ATTRIBUTES} are allowed`);
+  }
   const attributes = [];
   let at = HEADER_BYTES;
   for (let i = 0; i < attributeCount; i++) {
-    if (bytes.length < at + 12) throw new PacketError('the packet is truncated in its attributes');
-    const name = ATTRIBUTE_NAMES[view.getUint8(at)], encoding = ENCODINGS[view.getUint8(at + 1)];
-    if (!name || !encoding || (encoding === 'octahedral' && name !== 'NORMAL')) {
-      throw new PacketError('the packet names an unknown attribute or encoding');
+    const record = (version === 2 ? readAttributeV2 : readAttributeV3)(bytes, view, at);
+    at = record.at;
+    if (attributes.some((a) => a.name === record.grid.name)) {
+      throw new PacketError('the packet names an attribute twice');
     }
-    const grid = { bits: view.getUint8(at + 2), step: view.getFloat64(at + 4, true),
-                   encoding, origin: [] };
-    const components = encoding === 'octahedral' ? 2 : ATTRIBUTE_WIDTHS[name];
-    at += 12;
-    if (bytes.length < at + 8 * components) {
-      throw new PacketError('the packet is truncated in its attributes');
-    }
-    for (let k = 0; k < components; k++, at += 8) grid.origin.push(view.getFloat64(at, true));
-    attributes.push(attributeGrid(name, grid));
+    attributes.push(record.grid);
   }
   const packet = {
     grid: {

@@ -12,7 +12,8 @@ values, corner wedges and face materials. The byte layout is specified in
 The package, in the order data flows through it:
 
 - ``format.py``     the wire format: constants, header, stream names, varints
-- ``grids.py``      quantization grids (positions, attributes) and a level's quantized form
+- ``grids.py``      quantization grids (positions, every attribute of
+                    ``mesh.ATTRIBUTE_RULES``) and a level's quantized form
 - ``encode.py``     the compiled encoder (numba), with ``corners.py`` (connectivity)
                     and ``encode_wedges.py`` (the wedge part of each record); its
                     kernels take the small records of ``kernel_types.py``
@@ -31,7 +32,9 @@ from .format import (
     LINEAR,
     MAGIC,
     MASK,
+    MAX_ATTRIBUTES,
     MAX_BITS,
+    MAX_NAME,
     MIN_BITS,
     OCTAHEDRAL,
     OTHER,
@@ -39,6 +42,7 @@ from .format import (
     PATTERN,
     POSITION,
     READABLE_VERSIONS,
+    TANGENT,
     VERTEX,
     WEDGE_CORNER,
     WEDGE_COUNT,
@@ -51,14 +55,17 @@ from .format import (
 from .grids import (
     DEFAULT_ATTRIBUTE_BITS,
     EDGE_BITS,
+    MORPH_EDGE_BITS,
     AttributeGrid,
     Grid,
     LodState,
     attribute_grids_of,
     check_bits,
+    default_attribute_bits,
     default_bits,
     fold_octahedral,
     grid_of,
+    mean_edge,
     quantize_wedges,
     quantized_level,
     state_from_json,
@@ -80,12 +87,14 @@ from .reference import Packet, apply_packet, decode_packet
 
 __all__ = [
     "ATTRIBUTE_IDS", "CHUNK_RECORDS", "COUNT", "DEFAULT_ATTRIBUTE_BITS", "EDGE_BITS", "FAN",
-    "LINEAR", "MAGIC", "MASK", "MAX_BITS", "MIN_BITS", "OCTAHEDRAL", "OTHER", "PACKET_VERSION",
-    "PATTERN", "POSITION", "READABLE_VERSIONS", "VERTEX", "WEDGE_CORNER", "WEDGE_COUNT",
+    "LINEAR", "MAGIC", "MASK", "MAX_ATTRIBUTES", "MAX_BITS", "MAX_NAME", "MIN_BITS",
+    "MORPH_EDGE_BITS", "OCTAHEDRAL", "OTHER", "PACKET_VERSION", "PATTERN", "POSITION",
+    "READABLE_VERSIONS", "TANGENT", "VERTEX", "WEDGE_CORNER", "WEDGE_COUNT",
     "WEDGE_PARENT", "AttributeGrid", "Grid", "LodState", "Packet", "PacketError",
     "RecordStreams", "apply_packet", "attribute_grids_of", "cached_records", "check_bits",
-    "decode_packet", "default_bits", "deflate_body", "encode_packet", "encode_records",
-    "fold_octahedral", "grid_of", "pack_header", "packet_between", "prepare_records",
-    "quantize_wedges", "quantized_level", "record_cache", "record_streams", "records_ready",
-    "shutdown_background", "state_from_json", "stream_names", "unfold_octahedral",
+    "decode_packet", "default_attribute_bits", "default_bits", "deflate_body",
+    "encode_packet", "encode_records", "fold_octahedral", "grid_of", "mean_edge",
+    "pack_header", "packet_between", "prepare_records", "quantize_wedges", "quantized_level",
+    "record_cache", "record_streams", "records_ready", "shutdown_background",
+    "state_from_json", "stream_names", "unfold_octahedral",
 ]

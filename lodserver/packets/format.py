@@ -12,30 +12,51 @@ from __future__ import annotations
 import struct
 import zlib
 
-from ..mesh import ATTRIBUTE_WIDTHS, MeshError
+from ..mesh import MeshError, attribute_width
 
 # ---- "Byte layout" -------------------------------------------------------------
 MAGIC = b"LODV"
-PACKET_VERSION = 2
-# Versions a decoder reads: a version 1 packet is a geometry-only version 2 one
-# ("A geometry-only mesh's version 2 packet is byte for byte a version 1 packet").
-READABLE_VERSIONS = (1, 2)
+PACKET_VERSION = 3
+# Versions a decoder reads: version 3 differs from version 2 only in its attribute
+# records (which name the attribute instead of giving one of four kind codes), and a
+# version 1 packet is a geometry-only one of either ("A geometry-only mesh's version 3
+# packet is byte for byte a version 1 (and 2) packet but for the version byte").
+READABLE_VERSIONS = (1, 2, 3)
 # The server's range for the header's ``bits`` (positions and attributes alike).
 MIN_BITS, MAX_BITS = 8, 24
 
 # magic, version, bits, attribute count, flags, from, to, faces at from, faces at to,
-# origin (3 f64), step, body length; then one ATTRIBUTE record (+ origin) per attribute.
+# origin (3 f64), step, body length; then one attribute record (+ origin) per attribute.
 HEADER = struct.Struct("<4sBBBBIIII3ddI")
-ATTRIBUTE = struct.Struct("<BBBBd")
+# Version 3 attribute record: u8 name length, the ASCII name, then ATTRIBUTE (width,
+# encoding, bits, step), then the origin. Version 2's: ATTRIBUTE_V2 (kind code,
+# encoding, bits, reserved, step), then the origin.
+ATTRIBUTE = struct.Struct("<BBBd")
+ATTRIBUTE_V2 = struct.Struct("<BBBBd")
+# Bounds on the attribute records, so that a damaged header cannot ask for much.
+# 255: the header counts records in a byte; a mesh with 80 morph targets (position and
+# normal deltas) needs 160 records plus its own (mesh.MAX_ATTRIBUTES holds meshes to it)
+MAX_ATTRIBUTES, MAX_NAME = 255, 64
 # header flags
 HAS_MATERIALS = 1
 
-# Attribute records: glTF semantic <-> id, and the encodings of their grids.
+# Version 2's attribute kind codes (read only); version 3 names every attribute.
 ATTRIBUTE_IDS = {"NORMAL": 0, "TEXCOORD_0": 1, "TEXCOORD_1": 2, "COLOR_0": 3}
 ATTRIBUTE_NAMES = {v: k for k, v in ATTRIBUTE_IDS.items()}
-LINEAR, OCTAHEDRAL = "linear", "octahedral"
-ENCODING_IDS = {LINEAR: 0, OCTAHEDRAL: 1}
+# Grid encodings: ``linear`` for any attribute; ``octahedral`` for NORMAL (2 components);
+# ``tangent`` for TANGENT: its xyz octahedral, then the handedness as a third component
+# (q = 0: w = -1, q = 1: w = +1).
+LINEAR, OCTAHEDRAL, TANGENT = "linear", "octahedral", "tangent"
+ENCODING_IDS = {LINEAR: 0, OCTAHEDRAL: 1, TANGENT: 2}
 ENCODING_NAMES = {v: k for k, v in ENCODING_IDS.items()}
+V2_ENCODING_NAMES = {0: LINEAR, 1: OCTAHEDRAL}
+# The only attribute each non-linear encoding applies to.
+ENCODING_ATTRIBUTE = {OCTAHEDRAL: "NORMAL", TANGENT: "TANGENT"}
+
+
+def encoding_components(encoding: str, width: int) -> int:
+    """Integers per quantized value of an attribute of ``width`` floats in ``encoding``."""
+    return {OCTAHEDRAL: 2, TANGENT: 3}.get(encoding, width)
 
 # ---- "How the server cuts packets": the body's streams, in body order ----------
 # A collapse packet leaves PATTERN, OTHER, FAN and MASK empty.
@@ -84,8 +105,16 @@ def pack_header(grid, attribute_grids: tuple, has_materials: bool, start: int, s
     out = bytearray(HEADER.pack(MAGIC, PACKET_VERSION, grid.bits, len(attribute_grids),
                                 HAS_MATERIALS if has_materials else 0, start, stop,
                                 start_faces, stop_faces, *grid.origin, grid.step, body_length))
+    if len(attribute_grids) > MAX_ATTRIBUTES:
+        raise ValueError(f"a packet carries at most {MAX_ATTRIBUTES} attributes, "
+                         f"got {len(attribute_grids)}")
     for g in attribute_grids:
-        out += ATTRIBUTE.pack(ATTRIBUTE_IDS[g.name], ENCODING_IDS[g.encoding], g.bits, 0, g.step)
+        name = g.name.encode("ascii")
+        if not 0 < len(name) <= MAX_NAME:
+            raise ValueError(f"attribute names must be 1 to {MAX_NAME} bytes, got {g.name!r}")
+        out.append(len(name))
+        out += name
+        out += ATTRIBUTE.pack(g.width, ENCODING_IDS[g.encoding], g.bits, g.step)
         out += struct.pack(f"<{g.components}d", *g.origin)
     return bytes(out)
 
@@ -98,7 +127,7 @@ def unpack_header(data: bytes) -> tuple[dict, list, int]:
     fields : dict
         ``bits, flags, start, stop, start_faces, stop_faces, origin`` (3 floats),
         ``step``, ``body_length``.
-    attributes : list of (name, encoding, origin, step, bits)
+    attributes : list of (name, width, encoding, origin, step, bits)
         One per attribute record, in layout order.
     at : int
         Where the deflated body starts.
@@ -122,28 +151,79 @@ def unpack_header(data: bytes) -> tuple[dict, list, int]:
         raise PacketError("the packet has version 1 but sets reserved header bytes")
     if flags & ~HAS_MATERIALS:
         raise PacketError(f"the packet sets unknown header flags {flags:#x}")
+    if attributes > MAX_ATTRIBUTES:
+        raise PacketError(f"the packet has {attributes} attribute records; at most "
+                          f"{MAX_ATTRIBUTES} are allowed")
     at = HEADER.size
     records = []
     for _ in range(attributes):
-        if len(data) < at + ATTRIBUTE.size:
-            raise PacketError("the packet is truncated in its attribute records")
-        kind, encoding, attribute_bits, _reserved, attribute_step = ATTRIBUTE.unpack_from(data, at)
-        at += ATTRIBUTE.size
-        if kind not in ATTRIBUTE_NAMES or encoding not in ENCODING_NAMES:
-            raise PacketError(f"the packet names an unknown attribute ({kind}) or encoding "
-                              f"({encoding})")
-        name, encoding = ATTRIBUTE_NAMES[kind], ENCODING_NAMES[encoding]
-        if encoding == OCTAHEDRAL and name != "NORMAL":
-            raise PacketError(f"the packet encodes {name} as octahedral: only NORMAL can be")
-        components = 2 if encoding == OCTAHEDRAL else ATTRIBUTE_WIDTHS[name]
-        if len(data) < at + 8 * components:
-            raise PacketError("the packet is truncated in its attribute records")
-        origin = struct.unpack_from(f"<{components}d", data, at)
-        at += 8 * components
-        records.append((name, encoding, origin, attribute_step, attribute_bits))
+        record, at = (_attribute_v2 if version == 2 else _attribute_v3)(data, at)
+        records.append(record)
+    if len({record[0] for record in records}) != len(records):
+        raise PacketError("the packet names an attribute twice")
     fields = dict(bits=bits, flags=flags, start=start, stop=stop, start_faces=start_faces,
                   stop_faces=stop_faces, origin=(ox, oy, oz), step=step, body_length=body_length)
     return fields, records, at
+
+
+def _truncated() -> PacketError:
+    return PacketError("the packet is truncated in its attribute records")
+
+
+def _attribute_v3(data: bytes, at: int) -> tuple[tuple, int]:
+    """One version 3 attribute record at ``at``: ``((name, width, encoding, origin, step,
+    bits), where it ends)``; a bad record is a PacketError."""
+    if len(data) < at + 1:
+        raise _truncated()
+    size = data[at]
+    if not 0 < size <= MAX_NAME:
+        raise PacketError(f"the packet has an attribute name of {size} bytes; names have "
+                          f"1 to {MAX_NAME}")
+    if len(data) < at + 1 + size + ATTRIBUTE.size:
+        raise _truncated()
+    raw = data[at + 1:at + 1 + size]
+    name = raw.decode("ascii", errors="replace")
+    if not raw.isascii() or not name.isprintable():
+        raise PacketError("the packet has an attribute name that is not printable ASCII")
+    width, encoding, bits, step = ATTRIBUTE.unpack_from(data, at + 1 + size)
+    try:
+        width = attribute_width(name, width)
+    except MeshError as exc:
+        raise PacketError(f"the packet has a bad attribute record: {exc}") from None
+    return _attribute_grid(data, at + 1 + size + ATTRIBUTE.size, name, width, encoding, bits,
+                           step)
+
+
+def _attribute_v2(data: bytes, at: int) -> tuple[tuple, int]:
+    """One version 2 attribute record (a kind code for four names), as ``_attribute_v3``."""
+    if len(data) < at + ATTRIBUTE_V2.size:
+        raise _truncated()
+    kind, encoding, bits, _reserved, step = ATTRIBUTE_V2.unpack_from(data, at)
+    if kind not in ATTRIBUTE_NAMES:
+        raise PacketError(f"the packet names an unknown attribute ({kind})")
+    name = ATTRIBUTE_NAMES[kind]
+    return _attribute_grid(data, at + ATTRIBUTE_V2.size, name, attribute_width(name),
+                           encoding, bits, step, V2_ENCODING_NAMES)
+
+
+def _attribute_grid(data, at, name, width, encoding, bits, step,
+                    encodings=ENCODING_NAMES) -> tuple[tuple, int]:
+    """The rest of an attribute record: the encoding (one of ``encodings``, by id)
+    checked against the name, then the origin."""
+    if encoding not in encodings:
+        raise PacketError(f"the packet gives {name} an unknown encoding ({encoding})")
+    encoding = encodings[encoding]
+    if ENCODING_ATTRIBUTE.get(encoding, name) != name:
+        raise PacketError(f"the packet encodes {name} as {encoding}: only "
+                          f"{ENCODING_ATTRIBUTE[encoding]} can be")
+    if not 1 <= bits <= MAX_BITS:
+        raise PacketError(f"the packet gives {name} a grid of {bits} bits; 1 to {MAX_BITS} "
+                          "are allowed")
+    components = encoding_components(encoding, width)
+    if len(data) < at + 8 * components:
+        raise _truncated()
+    origin = struct.unpack_from(f"<{components}d", data, at)
+    return (name, width, encoding, origin, step, bits), at + 8 * components
 
 
 def deflate_body(body: bytes) -> bytes:

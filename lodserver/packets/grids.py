@@ -8,12 +8,14 @@ every corner (docs/packets.md, "Exactness").
 
 - Positions live on a uniform grid over the bounding box of every position any
   level uses: ``x = origin + q * step`` with ``q`` in ``[0, 2**bits - 1]``.
-- Attributes have a grid each (:class:`AttributeGrid`): linear, or octahedral
-  for normals (Meyer et al. 2010).
+- Attributes have a grid each (:class:`AttributeGrid`): linear, octahedral for
+  normals (Meyer et al. 2010), or for tangents octahedral plus the handedness;
+  every name of ``mesh.ATTRIBUTE_RULES`` has one (:func:`attribute_grids_of`).
 """
 
 from __future__ import annotations
 
+import re
 import threading
 import weakref
 from dataclasses import dataclass
@@ -21,18 +23,45 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from ..mesh import ATTRIBUTE_WIDTHS, unit_box
-from .format import LINEAR, MAX_BITS, MIN_BITS, OCTAHEDRAL
+from ..mesh import attribute_width, unit_box
+from .format import LINEAR, MAX_BITS, MIN_BITS, OCTAHEDRAL, TANGENT, encoding_components
 
 if TYPE_CHECKING:
     from ..progressive.mesh import ProgressiveMesh
 
 # Grid steps per mean edge at full detail, as a power of two: see default_bits.
 EDGE_BITS = 6
-# Default grid bits per attribute (see attribute_grids_of). Normals: octahedral,
-# 10 bits per component (at most 0.25 degrees off); UVs: 12 bits over their range
-# (a quarter texel on a 1024-texel texture spanning it); colours: 10 bits.
-DEFAULT_ATTRIBUTE_BITS = {"NORMAL": 10, "TEXCOORD_0": 12, "TEXCOORD_1": 12, "COLOR_0": 10}
+# Default grid bits per attribute, by rule (a pattern refining mesh.ATTRIBUTE_RULES',
+# first match wins; see attribute_grids_of). Normals and tangents: octahedral, 10 bits
+# per component (at most 0.25 degrees off); UVs: 12 bits over their range (a quarter
+# texel on a 1024-texel texture spanning it); colours: 10 bits; skin weights: 12 bits
+# over [0, 1]; morph normal and tangent deltas: 10 bits over their range; custom
+# attributes: 16 bits over their range. None: chosen from the mesh (joints: enough for
+# the largest joint index; morph position deltas: from the mesh's mean edge).
+DEFAULT_ATTRIBUTE_BITS = {
+    r"NORMAL": 10,
+    r"TEXCOORD_\d+": 12,
+    r"COLOR_\d+": 10,
+    r"TANGENT": 10,
+    r"JOINTS_\d+": None,
+    r"WEIGHTS_\d+": 12,
+    r"TARGET\d+_POSITION": None,
+    r"TARGET\d+_(NORMAL|TANGENT)": 10,
+    r"_[A-Za-z0-9_]+": 16,
+}
+# Morph position deltas: grid steps per mean full-detail edge, as a power of two. 2**7 =
+# 128 steps is about what the position grid gives (114 on spot, 155 on the bunny), so a
+# morphed position is as precise as the position it moves.
+MORPH_EDGE_BITS = 7
+
+
+def default_attribute_bits(name: str) -> int | None:
+    """The default grid bits of attribute ``name`` (:data:`DEFAULT_ATTRIBUTE_BITS`),
+    None where the mesh decides them."""
+    for pattern, bits in DEFAULT_ATTRIBUTE_BITS.items():
+        if re.fullmatch(pattern, name):
+            return bits
+    raise ValueError(f"unknown attribute {name!r}")
 
 
 @dataclass(frozen=True)
@@ -65,13 +94,17 @@ class Grid:
 class AttributeGrid:
     """The quantization of one appearance attribute (a glTF vertex attribute).
 
-    name : str          ``NORMAL``, ``TEXCOORD_0``, ``TEXCOORD_1`` or ``COLOR_0``
+    name : str          a glTF vertex attribute name (``mesh.ATTRIBUTE_RULES``)
     encoding : str      ``linear``: ``value = origin + q * step`` per component;
                         ``octahedral`` (normals): two coordinates ``origin + q * step``
-                        on the octahedron, unfolded to a unit vector (:func:`unfold_octahedral`)
-    origin : tuple      per component of the encoding
-    step : float        the same for all components
+                        on the octahedron, unfolded to a unit vector (:func:`unfold_octahedral`);
+                        ``tangent``: the xyz of a tangent as ``octahedral``, then its
+                        handedness as a third component, ``w = 2 q - 1`` (q is 0 or 1)
+    origin : tuple      per component of the encoding (the handedness' is -1)
+    step : float        the same for all components (but the handedness')
     bits : int          grid coordinates lie in ``[0, 2**bits - 1]``
+    width : int         floats per value, the attribute's width; required for a custom
+                        ``_NAME`` attribute (1..4), else fixed by the name
     """
 
     name: str
@@ -79,20 +112,25 @@ class AttributeGrid:
     origin: tuple
     step: float
     bits: int
+    width: int | None = None
 
-    @property
-    def width(self) -> int:
-        """Floats per value (the attribute's glTF width)."""
-        return ATTRIBUTE_WIDTHS[self.name]
+    def __post_init__(self):
+        object.__setattr__(self, "width", attribute_width(self.name, self.width))
 
     @property
     def components(self) -> int:
         """Integers per quantized value."""
-        return 2 if self.encoding == OCTAHEDRAL else self.width
+        return encoding_components(self.encoding, self.width)
 
     def quantize(self, values: np.ndarray) -> np.ndarray:
         """(k, width) float values -> (k, components) int64 grid coordinates (nearest)."""
         values = np.asarray(values, dtype=np.float64).reshape(-1, self.width)
+        if self.encoding == TANGENT:
+            folded = fold_octahedral(values[:, :3])
+            q = np.clip(np.rint((folded - np.array(self.origin[:2])) / self.step),
+                        0, 2**self.bits - 1)
+            # the handedness exactly: +1 (and 0, which glTF does not allow) -> 1, -1 -> 0
+            return np.concatenate([q, (values[:, 3:] >= 0)], axis=1).astype(np.int64)
         if self.encoding == OCTAHEDRAL:
             values = fold_octahedral(values)
         q = np.rint((values - np.array(self.origin)) / self.step)
@@ -100,7 +138,11 @@ class AttributeGrid:
 
     def dequantize(self, q: np.ndarray) -> np.ndarray:
         """(k, components) grid coordinates -> (k, width) float64 values, as a client computes them."""
-        x = np.array(self.origin) + np.asarray(q, dtype=np.float64) * self.step
+        q = np.asarray(q, dtype=np.float64).reshape(-1, self.components)
+        if self.encoding == TANGENT:
+            xyz = unfold_octahedral(np.array(self.origin[:2]) + q[:, :2] * self.step)
+            return np.concatenate([xyz, self.origin[2] + 2 * q[:, 2:]], axis=1)
+        x = np.array(self.origin) + q * self.step
         return unfold_octahedral(x) if self.encoding == OCTAHEDRAL else x
 
     def as_dict(self) -> dict:
@@ -189,8 +231,8 @@ def _box_of(pm: ProgressiveMesh) -> tuple[tuple[float, float, float], float]:
 
 
 def _attribute_box_of(pm: ProgressiveMesh) -> list:
-    """Per attribute: the smallest value of any wedge at any level per component, and the
-    largest extent over the components."""
+    """Per attribute: the smallest value of any wedge at any level per component, the
+    largest extent over the components, and the largest value."""
     with _boxes_lock:
         boxes = _attribute_boxes.get(pm)
     if boxes is None:
@@ -201,21 +243,58 @@ def _attribute_box_of(pm: ProgressiveMesh) -> list:
             start += width
             lo = column.min(axis=0) if len(column) else np.zeros(width)
             hi = column.max(axis=0) if len(column) else np.zeros(width)
-            boxes.append((tuple(float(x) for x in lo), float((hi - lo).max())))
+            boxes.append((tuple(float(x) for x in lo), float((hi - lo).max()), float(hi.max())))
         with _boxes_lock:
             _attribute_boxes[pm] = boxes
     return boxes
 
 
+def mean_edge(pm: ProgressiveMesh) -> float:
+    """The mean length of the full-detail faces' sides, in mesh units (each interior
+    edge counted twice, once per face: a mean over sides, as a renderer sees them)."""
+    faces = pm.faces
+    if not len(faces):
+        return 0.0
+    corners = pm.positions[faces]
+    sides = corners - np.roll(corners, 1, axis=1)
+    return float(np.linalg.norm(sides, axis=2).mean())
+
+
+def _linear(name, lo, extent, bits, width) -> AttributeGrid:
+    """A linear grid over ``lo .. lo + extent`` per component (one step for all)."""
+    return AttributeGrid(name, LINEAR, lo, extent / (2**bits - 1) if extent > 0 else 1.0, bits,
+                         width)
+
+
+def _morph_bits(pm: ProgressiveMesh, extent: float) -> int:
+    """Bits for a morph position delta spanning ``extent``: enough that the grid step is
+    at most the mean full-detail edge over ``2**MORPH_EDGE_BITS``, in [MIN_BITS, MAX_BITS]."""
+    edge = mean_edge(pm)
+    if not extent > 0 or not edge > 0:
+        return MIN_BITS
+    steps = extent / (edge / 2**MORPH_EDGE_BITS)
+    return int(np.clip(np.ceil(np.log2(steps + 1)), MIN_BITS, MAX_BITS))
+
+
 def attribute_grids_of(pm: ProgressiveMesh, *, attribute_bits: dict | None = None) -> tuple:
     """The grids of ``pm``'s attributes, in layout order (empty without attributes).
 
-    Normals use an octahedral grid with ``origin = (-1, -1)`` and
-    ``step = 2 / (2**bits - 2)``, so that ``q = 2**(bits-1) - 1`` is exactly 0
-    (axis-aligned normals stay exact). Other attributes use a linear grid over
-    every value any level uses, one step for all components, like positions.
+    By rule (docs/packets.md, "Attribute grids"):
+
+    - ``NORMAL``: octahedral, ``origin = (-1, -1)``, ``step = 2 / (2**bits - 2)``, so
+      that ``q = 2**(bits-1) - 1`` is exactly 0 (axis-aligned normals stay exact).
+    - ``TANGENT``: its xyz as a normal, then the handedness exactly (0: -1, 1: +1).
+    - ``JOINTS_n``: exact integers: linear, origin 0, step 1, ``bits`` enough for the
+      largest joint index (at least ``MIN_BITS``).
+    - ``WEIGHTS_n``: linear over [0, 1].
+    - ``TARGET{t}_POSITION``: linear over its range, ``bits`` from the mean edge
+      (:data:`MORPH_EDGE_BITS`).
+    - the others (``TEXCOORD_n``, ``COLOR_n``, ``TARGET{t}_NORMAL``/``_TANGENT``, custom
+      ``_NAME``): linear over every value any level uses, one step for all components.
+
     ``attribute_bits`` maps attribute names to bits (default
-    :data:`DEFAULT_ATTRIBUTE_BITS`).
+    :data:`DEFAULT_ATTRIBUTE_BITS`); joints cannot have fewer bits than their largest
+    index needs (ValueError).
     """
     if not pm.has_attributes:
         return ()
@@ -224,14 +303,30 @@ def attribute_grids_of(pm: ProgressiveMesh, *, attribute_bits: dict | None = Non
     if unknown:
         raise ValueError(f"the mesh has no attribute named {', '.join(sorted(unknown))}")
     grids = []
-    for i, (name, _) in enumerate(pm.attribute_layout):
-        bits = check_bits(attribute_bits.get(name, DEFAULT_ATTRIBUTE_BITS[name]))
+    for i, (name, width) in enumerate(pm.attribute_layout):
+        lo, extent, top = _attribute_box_of(pm)[i]
+        bits = attribute_bits.get(name, default_attribute_bits(name))
+        if name.startswith("JOINTS_"):
+            needed = max(MIN_BITS, int(max(top, 0)).bit_length())
+            if needed > MAX_BITS:
+                raise ValueError(f"{name} holds joint {int(top)}, beyond a {MAX_BITS}-bit grid")
+            bits = needed if bits is None else check_bits(bits)
+            if bits < needed:
+                raise ValueError(f"{name} needs {needed} bits for joint {int(top)}, got {bits}")
+            grids.append(AttributeGrid(name, LINEAR, (0.0,) * width, 1.0, bits, width))
+            continue
+        if bits is None:                        # TARGET{t}_POSITION
+            bits = _morph_bits(pm, extent)
+        bits = check_bits(bits)
         if name == "NORMAL":
             grids.append(AttributeGrid(name, OCTAHEDRAL, (-1.0, -1.0), 2 / (2**bits - 2), bits))
-            continue
-        lo, extent = _attribute_box_of(pm)[i]
-        grids.append(AttributeGrid(name, LINEAR, lo, extent / (2**bits - 1) if extent > 0 else 1.0,
-                                   bits))
+        elif name == "TANGENT":
+            grids.append(AttributeGrid(name, TANGENT, (-1.0, -1.0, -1.0), 2 / (2**bits - 2),
+                                       bits))
+        elif name.startswith("WEIGHTS_"):
+            grids.append(AttributeGrid(name, LINEAR, (0.0,) * width, 1 / (2**bits - 1), bits))
+        else:
+            grids.append(_linear(name, lo, extent, bits, width))
     return tuple(grids)
 
 
@@ -306,8 +401,8 @@ def state_from_json(document: dict) -> LodState:
         grids = tuple(AttributeGrid(name, document["attribute_grid"][name]["encoding"],
                                     tuple(float(x) for x in document["attribute_grid"][name]["origin"]),
                                     float(document["attribute_grid"][name]["step"]),
-                                    int(document["attribute_grid"][name]["bits"]))
-                      for name, _ in document["layout"])
+                                    int(document["attribute_grid"][name]["bits"]), int(width))
+                      for name, width in document["layout"])
         k = sum(g.components for g in grids)
         wedges = np.array(document["wedges"], dtype=np.int64).reshape(-1, k)
         corners = np.array(document["corners"], dtype=np.int64).reshape(-1, 3)

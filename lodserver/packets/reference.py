@@ -30,6 +30,7 @@ from .format import (
     IS_NEW,
     IS_VS,
     MAX_SPLIT_RATIO,
+    TANGENT,
     PacketError,
     Reader,
     stream_names,
@@ -353,8 +354,8 @@ def decode_packet(data: bytes) -> Packet:
     """
     data = bytes(data)
     fields, records, at = unpack_header(data)
-    grids = tuple(AttributeGrid(name, encoding, origin, step, bits)
-                  for name, encoding, origin, step, bits in records)
+    grids = tuple(AttributeGrid(name, encoding, origin, step, bits, width)
+                  for name, width, encoding, origin, step, bits in records)
     try:
         body = zlib.decompress(data[at:])
     except zlib.error as exc:
@@ -437,6 +438,8 @@ def apply_packet(state: LodState, packet) -> LodState:
             start += g.components
             if column.min(initial=0) < 0 or column.max(initial=0) > 2**g.bits - 1:
                 raise PacketError(f"the packet moves a {g.name} value off its grid")
+            if g.encoding == TANGENT and column[:, 2].max(initial=0) > 1:
+                raise PacketError("the packet gives a TANGENT a handedness other than -1 or +1")
         if corners.min(initial=0) < 0 or corners.max(initial=-1) >= len(wedges):
             raise PacketError("the packet leaves a corner on a wedge that does not exist")
     if packet.has_materials:

@@ -155,13 +155,15 @@ def test_packets_with_uvs_stay_compact_on_spot():
 
 
 def test_version_1_packets_still_decode():
-    """A geometry-only version 2 packet is a version 1 packet but for its version byte."""
+    """A geometry-only version 3 packet is a version 1 (and 2) packet but for its version byte."""
     pm = progressive("grid")
     data = encode_packet(pm, 40, 80)
-    assert data[4] == 2
-    old = data[:4] + bytes([1]) + data[5:]
+    assert data[4] == packets.PACKET_VERSION == 3
     start = quantized_level(pm, 40, grid_of(pm))
-    _same(apply_packet(start, old), apply_packet(start, data))
+    for version in (1, 2):
+        old = data[:4] + bytes([version]) + data[5:]
+        _same(apply_packet(start, old), apply_packet(start, data))
+    old = data[:4] + bytes([1]) + data[5:]
     with pytest.raises(PacketError, match="reserved"):
         decode_packet(old[:6] + bytes([1]) + old[7:])
 

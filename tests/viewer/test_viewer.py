@@ -14,6 +14,7 @@ install``), and skips without them.
 import base64
 import hashlib
 import re
+from itertools import pairwise
 from pathlib import Path
 
 import numpy as np
@@ -255,3 +256,108 @@ def test_the_decoder_reads_packets_chained_from_pre_deflated_chunks(chromium, se
     for level, (vertices, faces, digest) in zip(levels[1:], reached):
         assert vertices == level
         assert (faces, digest) == _expected(server, mesh["id"], level), f"level {level}"
+
+
+ATTRIBUTE_PACKETS_JS = """async ({ document, packets, damaged, vertexCapacity, faceCapacity }) => {
+  const { LodState, dequantize } = await import('/viewer/vsplit.js');
+  const bytesOf = (b64) => Uint8Array.from(atob(b64), (c) => c.charCodeAt(0));
+  const state = LodState.fromJson(document, { vertexCapacity, faceCapacity });
+  const reached = [];
+  for (const packet of packets) {
+    state.apply(await LodState.readPacket(bytesOf(packet)));
+    const k = state.components;
+    const floats = state.attributes.map((a) => {
+      const out = new Float64Array(a.width * state.wedgeCount);
+      for (let w = 0; w < state.wedgeCount; w++) {
+        dequantize(a, state.wedges, k * w + a.offset, out, a.width * w);
+      }
+      return Array.from(out);
+    });
+    reached.push({
+      positions: Array.from(state.positions.subarray(0, 3 * state.vertexCount)),
+      faces: Array.from(state.faces.subarray(0, 3 * state.faceCount)),
+      wedges: Array.from(state.wedges.subarray(0, k * state.wedgeCount)),
+      corners: Array.from(state.corners.subarray(0, 3 * state.faceCount)),
+      floats,
+    });
+  }
+  let refused = null;
+  try {
+    await LodState.readPacket(bytesOf(damaged));
+  } catch (error) {
+    refused = `${error.name}: ${error.message}`;
+  }
+  return { reached, refused };
+}"""
+
+
+def test_the_decoder_reads_every_vertex_attribute(chromium, server):
+    """A mesh with tangents, skin, two morph targets, TEXCOORD_2 and a custom ``_ID``
+    (tests/packets/test_attributes.py): from its json level, the browser's decoder
+    applies version 3 packets forward and back to the same integers as reference.py,
+    and dequantizes every attribute to the floats grids.py gives (joints and the
+    tangent's handedness exactly); a record naming an unknown attribute is refused, and
+    version 2 packets (kind codes, a normal + UV mesh) still decode."""
+    import orjson
+
+    from lodserver.packets import apply_packet, encode_packet, state_from_json
+    from lodserver.service.levels import encode_level
+
+    from ..meshes import progressive
+    from ..packets.test_attributes import _built, _v2
+
+    def decoded(pm, levels, data, damaged):
+        document = orjson.loads(bytes(encode_level(pm, levels[0], file_type="json")))
+        return document, page.evaluate(ATTRIBUTE_PACKETS_JS, {
+            "document": document, "packets": [base64.b64encode(d).decode() for d in data],
+            "damaged": base64.b64encode(damaged).decode(),
+            "vertexCapacity": pm.vertex_count, "faceCapacity": pm.face_counts[-1].item()})
+
+    pm = _built()
+    n0, n = pm.base_vertices, pm.vertex_count
+    levels = [n0 + 3, n, (n0 + n) // 2, n0]
+    data = [encode_packet(pm, a, b) for a, b in pairwise(levels)]
+    name = data[0].index(b"TANGENT")
+    damaged = data[0][:name] + b"TANGENX" + data[0][name + 7:]
+    # and today's version 2 packets of a normal + UV mesh still decode
+    old = progressive("textured_sphere")
+    old_levels = [old.base_vertices, old.vertex_count, old.base_vertices + 9]
+    old_data = [_v2(encode_packet(old, a, b)) for a, b in pairwise(old_levels)]
+    page = chromium.new_page()
+    try:
+        page.goto(f"{server.base_url}/viewer/vsplit.js")
+        document, result = decoded(pm, levels, data, damaged)
+        old_document, old_result = decoded(old, old_levels, old_data,
+                                           old_data[0][:60] + bytes([7]) + old_data[0][61:])
+    finally:
+        page.close()
+    assert result["refused"].startswith("PacketError: ")
+    assert "unknown attribute TANGENX" in result["refused"]
+    assert old_result["refused"] == "PacketError: the packet names an unknown attribute (7)"
+    old_state = state_from_json(old_document)
+    for packet, got in zip(old_data, old_result["reached"]):
+        old_state = apply_packet(old_state, packet)
+        np.testing.assert_array_equal(np.reshape(got["wedges"], old_state.wedges.shape),
+                                      old_state.wedges)
+        np.testing.assert_array_equal(np.reshape(got["faces"], (-1, 3)), old_state.faces)
+    assert old_state.level == old_levels[-1]
+    state = state_from_json(document)
+    for level, packet, got in zip(levels[1:], data, result["reached"]):
+        state = apply_packet(state, packet)
+        assert state.level == level
+        np.testing.assert_array_equal(np.reshape(got["positions"], (-1, 3)), state.positions)
+        np.testing.assert_array_equal(np.reshape(got["faces"], (-1, 3)), state.faces)
+        np.testing.assert_array_equal(np.reshape(got["wedges"], state.wedges.shape), state.wedges)
+        np.testing.assert_array_equal(np.reshape(got["corners"], (-1, 3)), state.corners)
+        at = 0
+        for grid, floats in zip(state.attribute_grids, got["floats"]):
+            expected = grid.dequantize(state.wedges[:, at:at + grid.components])
+            at += grid.components
+            floats = np.reshape(floats, expected.shape)
+            np.testing.assert_allclose(floats, expected, rtol=0, atol=1e-12, err_msg=grid.name)
+            if grid.name in ("JOINTS_0", "TANGENT"):
+                exact = floats if grid.name == "JOINTS_0" else floats[:, 3]
+                assert set(np.unique(exact)) <= ({0.0, 37.0, 300.0, 1000.0} if grid.name ==
+                                                 "JOINTS_0" else {-1.0, 1.0})
+                np.testing.assert_array_equal(
+                    exact, expected if grid.name == "JOINTS_0" else expected[:, 3])
