@@ -67,8 +67,6 @@ ATTRIBUTE_RULES = (
 CUSTOM_WIDTHS = (1, 2, 3, 4)
 # At most this many attributes a mesh: what a packet header can name (packets.format).
 MAX_ATTRIBUTES = 255
-# The fixed-width names known before the rules table (kept for their readers).
-ATTRIBUTE_WIDTHS = {"NORMAL": 3, "TEXCOORD_0": 2, "TEXCOORD_1": 2, "COLOR_0": 4}
 
 
 def attribute_rule(name: str, width: int | None = None) -> tuple[int, str, str]:

@@ -10,6 +10,7 @@ level; the Khronos validator clean.
 from __future__ import annotations
 
 import copy
+import re
 
 import numpy as np
 import pytest
@@ -17,7 +18,7 @@ import pytest
 from lodserver import build
 from lodserver.io.glb import render_primitives
 from lodserver.io.scene import load_scene
-from lodserver.pipeline import export_lods, lod_chain
+from lodserver.pipeline import export_lods
 
 from .conftest import glb_chunks
 from .io import test_gltf
@@ -78,6 +79,44 @@ def carried_equal(source_doc, scene, document, binary, old: int, new: int):
         "componentType"]
     assert document["accessors"][new]["type"] == source_doc["accessors"][old]["type"]
     np.testing.assert_array_equal(accessor_values(document, binary, new), scene.carried[old][0])
+
+
+def assert_primitives_equal(document: dict, binary: bytes, written: list, expected: list):
+    """The glTF primitives ``written`` hold ``expected`` (render_primitives' tuples):
+    material, positions, indices, every attribute and morph target delta."""
+    assert len(written) == len(expected)
+    for record, (material, vertices, attributes, indices) in zip(written, expected):
+        assert record.get("material", -1) == material
+        np.testing.assert_array_equal(
+            accessor_values(document, binary, record["attributes"]["POSITION"]),
+            vertices.astype(np.float32))
+        np.testing.assert_array_equal(
+            accessor_values(document, binary, record["indices"]).reshape(-1, 3), indices)
+        targets = record.get("targets", [])
+        for name, values in attributes.items():
+            morph = re.fullmatch(r"TARGET(\d+)_(\w+)", name)
+            index = (targets[int(morph[1])][morph[2]] if morph
+                     else record["attributes"][name])
+            np.testing.assert_array_equal(accessor_values(document, binary, index), values)
+        assert set(record["attributes"]) == {"POSITION", *(
+            name for name in attributes if not name.startswith("TARGET"))}
+
+
+def written_level(pm, document: dict, binary: bytes, mesh: dict) -> int:
+    """The level (vertex count) of ``pm`` that glTF mesh ``mesh`` holds exactly; a
+    test failure if it is none of the levels with its face count."""
+    faces = sum(document["accessors"][p["indices"]]["count"] // 3 for p in mesh["primitives"])
+    candidates = np.flatnonzero(pm.face_counts == faces) + pm.base_vertices
+    assert len(candidates), f"no level of the mesh has {faces} faces"
+    failure = None
+    for level in candidates[::-1]:          # finest first: the budget's usual pick
+        try:
+            assert_primitives_equal(document, binary, mesh["primitives"],
+                                    list(render_primitives(pm.at(int(level)))))
+            return int(level)
+        except AssertionError as exc:
+            failure = exc
+    raise failure
 
 
 def check_scene_export(source, out, validate=None) -> tuple[dict, dict]:
@@ -147,28 +186,15 @@ def check_scene_export(source, out, validate=None) -> tuple[dict, dict]:
             for key in ("input", "output"):
                 carried_equal(source_doc, scene, document, binary, old_sampler[key],
                               new_sampler[key])
-    # each level's mesh is exactly the progressive mesh's level, as render_primitives has it
+    # each level's mesh is exactly one of the progressive mesh's levels, as
+    # render_primitives has it (which level, the scene budget chooses)
+    written_faces = [sum(scene.as_is_faces.values())] * count
     for index in meshes:
-        levels, _, _ = lod_chain(build(scene.meshes[index]), LODS)
+        pm = build(scene.meshes[index])
         for k, mesh_index in enumerate(lod_meshes[index]):
-            written = document["meshes"][mesh_index]["primitives"]
-            expected_primitives = list(render_primitives(levels[k]))
-            assert len(written) == len(expected_primitives)
-            for record, (material, vertices, attributes, indices) in zip(written,
-                                                                         expected_primitives):
-                assert record.get("material", -1) == material
-                np.testing.assert_array_equal(
-                    accessor_values(document, binary, record["attributes"]["POSITION"]),
-                    vertices.astype(np.float32))
-                np.testing.assert_array_equal(
-                    accessor_values(document, binary, record["indices"]).reshape(-1, 3), indices)
-                for name, values in attributes.items():
-                    np.testing.assert_array_equal(
-                        accessor_values(document, binary, record["attributes"][name]), values)
-    kept = sum(scene.as_is_faces.values())
-    assert done.faces == [kept + sum(chain[k].face_count for chain in
-                              (lod_chain(build(scene.meshes[i]), LODS)[0] for i in meshes))
-                          for k in range(count)]
+            level = written_level(pm, document, binary, document["meshes"][mesh_index])
+            written_faces[k] += pm.faces_at_level(level)
+    assert done.faces == written_faces
     if validate is not None:
         assert_valid(validate, out.read_bytes(), f"chain of {source.name}")
     # --separate: one complete scene per level
@@ -182,7 +208,8 @@ def check_scene_export(source, out, validate=None) -> tuple[dict, dict]:
         level_got.pop("images", None)
         assert level_got == expected
         faces = sum(level_doc["accessors"][p.get("indices", p["attributes"]["POSITION"])]
-                    ["count"] // 3 for mesh in level_doc["meshes"] for p in mesh["primitives"])
+                    ["count"] // 3 for mesh in level_doc["meshes"] for p in mesh["primitives"]
+                    if p.get("mode", 4) == 4)
         assert faces == done.faces[k]
         if validate is not None and k in (0, count - 1):
             assert_valid(validate, path.read_bytes(), f"level {k} of {source.name}")
@@ -233,39 +260,65 @@ def test_shared_scenes(shared_meshes, tmp_path, gltf_validator, name):
 
 
 @pytest.mark.parametrize("name", ["Fox.glb", "RiggedSimple.glb", "AnimatedMorphCube.glb"])
-def test_skinned_and_morphed_meshes_are_kept_as_they_are(shared_meshes, tmp_path,
-                                                          gltf_validator, name):
-    """Skins, morph targets and their animations survive; those meshes get one level."""
+def test_skinned_and_morphed_meshes_get_levels(shared_meshes, tmp_path, gltf_validator, name):
+    """Skinned and morphed meshes are simplified like any other: every level keeps its
+    joints (valid for the skin), weights summing to 1 and morph targets; the LOD nodes
+    carry the node's skin; skins, morph weights and animations survive."""
     source = shared_meshes / "scenes" / name
     before, after = check_scene_export(source, tmp_path / "out.glb", gltf_validator)
     scene = load_scene(source)
-    assert scene.as_is and not scene.meshes
-    done = export_lods(source, tmp_path / "again.glb", lods=LODS)
-    assert any("written as it is" in note for note in done.notes)
+    assert scene.meshes and not scene.as_is
     for key in ("skins", "animations"):
         assert len(after.get(key, ())) == len(before.get(key, ()))
+    document, binary = glb_chunks((tmp_path / "out.glb").read_bytes())
+    n = len(before["nodes"])
+    for number, node in enumerate(before["nodes"]):
+        if "mesh" not in node:
+            continue
+        out = document["nodes"][number]
+        lods = [out, *(document["nodes"][i] for i in out["extensions"]["MSFT_lod"]["ids"])]
+        assert all(i >= n for i in out["extensions"]["MSFT_lod"]["ids"])
+        source_mesh = before["meshes"][node["mesh"]]
+        targets = len(source_mesh["primitives"][0].get("targets", ()))
+        for lod in lods:
+            assert lod.get("skin") == node.get("skin")
+            mesh = document["meshes"][lod["mesh"]]
+            assert mesh.get("weights") == source_mesh.get("weights")
+            for primitive in mesh["primitives"]:
+                assert len(primitive.get("targets", ())) == targets
+                names = primitive["attributes"]
+                if "skin" in node:
+                    joints = accessor_values(document, binary, names["JOINTS_0"])
+                    weights = accessor_values(document, binary, names["WEIGHTS_0"])
+                    assert joints.max() < len(before["skins"][node["skin"]]["joints"])
+                    np.testing.assert_allclose(weights.astype(np.float64).sum(axis=1), 1.0,
+                                               atol=2e-7)
 
 
 def test_a_morphed_mesh_beside_static_ones(tmp_path, gltf_validator):
-    """The ball gets a morph target: it is written as it is, the spot still gets its chain."""
+    """The ball gets a morph target: it is simplified with its target and weights, and
+    the spot gets its chain as before."""
     def morphed(document):
         primitive = document["meshes"][1]["primitives"][0]
         primitive["targets"] = [{"POSITION": primitive["attributes"]["POSITION"]}]
         document["meshes"][1]["weights"] = [0.5]
+        document["meshes"][1]["extras"]["targetNames"] = ["grow"]
 
     source = tmp_path / "stage.glb"
     source.write_bytes(scene_glb(morphed))
     assert_valid(gltf_validator, source.read_bytes(), "the morphed scene")
     _, after = check_scene_export(source, tmp_path / "out.glb", gltf_validator)
-    ball = after["meshes"][after["nodes"][3]["mesh"]]
-    assert ball["weights"] == [0.5] and len(ball["primitives"][0]["targets"]) == 1
-    assert "MSFT_lod" not in after["nodes"][3].get("extensions", {})
+    ids = after["nodes"][3]["extensions"]["MSFT_lod"]["ids"]
+    for node in (after["nodes"][3], *(after["nodes"][i] for i in ids)):
+        ball = after["meshes"][node["mesh"]]
+        assert ball["weights"] == [0.5] and len(ball["primitives"][0]["targets"]) == 1
+        assert ball["extras"]["targetNames"] == ["grow"]
     assert "MSFT_lod" in after["nodes"][1]["extensions"]
-    assert len(after["meshes"]) == len(LODS) + 1
+    assert len(after["meshes"]) == 2 * len(LODS)
 
 
 def test_carried_vertex_data_and_gpu_instancing(tmp_path, gltf_validator):
-    """A kept mesh's 3-byte colours get a padded stride (vertex data is 4-byte aligned)
+    """A kept mesh's (points, no triangles) 3-byte colours get a padded stride (vertex data is 4-byte aligned)
     and keep their values; EXT_mesh_gpu_instancing's accessors follow their node."""
     from .io.test_scene import pack_glb, scene_document
     document, binary = scene_document()
@@ -281,8 +334,7 @@ def test_carried_vertex_data_and_gpu_instancing(tmp_path, gltf_validator):
                                   "componentType": 5121, "normalized": True, "count": count,
                                   "type": "VEC3"})
     primitive["attributes"]["COLOR_0"] = len(document["accessors"]) - 1
-    primitive["targets"] = [{"POSITION": primitive["attributes"]["POSITION"]}]
-    document["meshes"][1]["weights"] = [0.25]
+    primitive["mode"] = 0           # points: no triangles, so the mesh is written as it is
     offsets = np.array([[0, 0, 0], [5, 0, 0]], np.float32)
     binary.extend(offsets.tobytes())
     document["bufferViews"].append({"buffer": 0, "byteOffset": len(binary) - 24,
@@ -302,6 +354,9 @@ def test_carried_vertex_data_and_gpu_instancing(tmp_path, gltf_validator):
     np.testing.assert_array_equal(accessor_values(written, data, colour), colours.reshape(-1, 3))
     moved = after["nodes"][1]["extensions"]["EXT_mesh_gpu_instancing"]["attributes"]
     np.testing.assert_array_equal(accessor_values(written, data, moved["TRANSLATION"]), offsets)
+    # the node's levels are instanced as it is
+    for i in after["nodes"][1]["extensions"]["MSFT_lod"]["ids"]:
+        assert after["nodes"][i]["extensions"]["EXT_mesh_gpu_instancing"]["attributes"] == moved
 
 
 def test_untrusted_scene_keeps_to_its_folder(tmp_path):

@@ -14,7 +14,7 @@ from dataclasses import asdict, dataclass, field
 
 import numpy as np
 
-from ..mesh import ATTRIBUTE_WIDTHS, Attributes, Materials, Mesh, MeshError
+from ..mesh import Attributes, Materials, Mesh, MeshError, attribute_rule
 
 
 @dataclass
@@ -44,7 +44,8 @@ class LoadReport:
     materials: int = 0
     """Material records carried along (used by a face or not)."""
     dropped_attributes: list[str] = field(default_factory=list)
-    """Per-vertex data in the file that is not kept (TANGENT, JOINTS_0, a PLY 'quality', ...)."""
+    """Per-vertex data in the file that is not kept (JOINTS_0 of a flattened glTF, a
+    matrix-typed custom attribute, a PLY 'quality', ...)."""
     missing_files: list[str] = field(default_factory=list)
     """Companion files the mesh names but that do not exist (an OBJ's mtllib), ignored."""
 
@@ -63,7 +64,9 @@ def clean_mesh(positions, faces, *, corner_values=None, layout=(), face_material
     attributes and material with it); vertices no face uses are dropped and the
     indices compacted. Then every corner gets a wedge: the corners of one vertex
     with the same attribute vector (exact float equality) and material share
-    one. Everything kept stays in the order of its first occurrence, so the
+    one. Every column counts, carried ones too: two corners whose joints, weights,
+    tangent or one morph delta differ are two wedges (a skin seam is kept like a
+    UV seam). Everything kept stays in the order of its first occurrence, so the
     result is deterministic.
 
     Parameters
@@ -75,8 +78,8 @@ def clean_mesh(positions, faces, *, corner_values=None, layout=(), face_material
     corner_values : (m, 3, d) array_like of float, optional
         Each face corner's attribute vector, columns as in ``layout``.
     layout : tuple of (name, width)
-        Attribute names (see :data:`~lodserver.mesh.ATTRIBUTE_WIDTHS`) and
-        widths adding up to ``d``.
+        Attribute names and widths (:data:`~lodserver.mesh.ATTRIBUTE_RULES`) adding
+        up to ``d``.
     face_material : (m,) array_like of int, optional
         Material index of each face into ``materials``, -1 for none.
     materials : Materials, optional
@@ -177,8 +180,10 @@ def _checked_corner_values(corner_values, layout: tuple, face_count: int) -> np.
         raise MeshError(f"corner attribute values must have shape ({face_count}, 3, {width}) "
                         f"for layout {layout}, got {values.shape}")
     for name, width in layout:
-        if ATTRIBUTE_WIDTHS.get(name) != width:
-            raise MeshError(f"unknown attribute {name!r} of width {width}")
+        try:
+            attribute_rule(name, width)
+        except MeshError as exc:
+            raise MeshError(f"unknown attribute {name!r} of width {width}") from exc
     finite = np.isfinite(values)
     if not finite.all():
         start, broken = 0, []

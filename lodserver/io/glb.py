@@ -8,6 +8,13 @@ bufferView 4-byte aligned. A mesh without attributes and materials takes a
 separate, faster path whose bytes have not changed since lodserver wrote
 positions only.
 
+Every layout column is written (:func:`render_attributes`): NORMAL, TEXCOORD_n,
+COLOR_n, TANGENT and custom ``_NAME`` as FLOAT, JOINTS_n as UNSIGNED_BYTE (or
+UNSIGNED_SHORT) and WEIGHTS_n as FLOAT summing to 1 per vertex, and the
+``TARGET{t}_*`` columns as the primitive's morph ``targets`` (POSITION with min
+and max, NORMAL and TANGENT deltas). The mesh's ``weights`` and
+``extras.targetNames`` are the scene writer's (:mod:`.scene_glb`).
+
 The ``Materials.gltf`` dict holds ``materials``, ``textures``, ``samplers`` and
 ``images`` lists as in a glTF document (images as ``{"mimeType", "name"}``,
 bytes in ``Materials.images``) and, when the source required extensions used by
@@ -18,6 +25,7 @@ from __future__ import annotations
 
 import itertools
 import json
+import re
 import struct
 
 import numpy as np
@@ -25,6 +33,14 @@ import numpy as np
 from ..mesh import Materials, Mesh, MeshError
 from .gltf import (ARRAY_BUFFER, ELEMENT_ARRAY_BUFFER, FLOAT, TRIANGLES, UINT,
                    extension_names)
+from .gltf_attributes import perpendicular
+
+
+# numpy dtype -> glTF componentType of the accessors written, and back
+_COMPONENTS = {"<f4": FLOAT, "<u4": UINT, "|u1": 5121, "<u2": 5123}
+_DTYPES = {FLOAT: "<f4", UINT: "<u4", 5121: "<u1", 5123: "<u2"}
+
+_TARGET = re.compile(r"TARGET(\d+)_(POSITION|NORMAL|TANGENT)")
 
 
 def encode_glb(mesh: Mesh) -> bytes:
@@ -138,9 +154,10 @@ class GlbWriter:
 
     def add_accessor(self, values: np.ndarray, kind: str, *, bounds: bool = False,
                      target: int = ARRAY_BUFFER) -> int:
-        """An accessor over ``values`` (float32 or uint32), min/max when ``bounds``."""
-        component = FLOAT if values.dtype == np.float32 else UINT
-        values = np.ascontiguousarray(values, dtype="<f4" if component == FLOAT else "<u4")
+        """An accessor over ``values`` (float32, uint32, or uint8/uint16 joint indices),
+        min/max when ``bounds``."""
+        component = _COMPONENTS.get(values.dtype.newbyteorder("<").str, UINT)
+        values = np.ascontiguousarray(values, dtype=_DTYPES[component])
         accessor = {"bufferView": self.add_view(values.tobytes(), target),
                     "componentType": component, "count": len(values), "type": kind}
         if bounds:
@@ -155,9 +172,20 @@ class GlbWriter:
             # glTF requires POSITION bounds, taken from the float32 values written
             record = {"attributes": {"POSITION": self.add_accessor(vertices.astype(np.float32),
                                                                    "VEC3", bounds=True)}}
+            targets = {}
             for name, values in attributes.items():
-                kind = f"VEC{values.shape[1]}"
-                record["attributes"][name] = self.add_accessor(values, kind)
+                kind = "SCALAR" if values.shape[1] == 1 else f"VEC{values.shape[1]}"
+                morph = _TARGET.fullmatch(name)
+                if morph:
+                    # a morph target's POSITION needs min and max, like any POSITION
+                    index = self.add_accessor(values, kind, bounds=morph[2] == "POSITION")
+                    targets.setdefault(int(morph[1]), {})[morph[2]] = index
+                else:
+                    record["attributes"][name] = self.add_accessor(values, kind)
+            if targets:
+                record["targets"] = [targets.get(t) or {"POSITION": self.add_accessor(
+                    np.zeros((len(vertices), 3), np.float32), "VEC3", bounds=True)}
+                    for t in range(max(targets) + 1)]
             record["indices"] = self.add_accessor(indices.ravel(), "SCALAR",
                                                   target=ELEMENT_ARRAY_BUFFER)
             if material >= 0:
@@ -214,8 +242,10 @@ def render_primitives(mesh: Mesh):
         Index into ``mesh.materials``, -1 for faces without one.
     positions : (r, 3) float64
         The render vertices' positions, ``positions[wedge vertex]``.
-    attributes : dict of str to (r, k) float32
-        NORMAL (unit length), TEXCOORD_n, COLOR_0 (RGBA in [0, 1]).
+    attributes : dict of str to (r, k) array
+        Every layout column, as written (:func:`render_attributes`): float32 but
+        JOINTS_n (uint8, or uint16 when a joint is 256 or more); ``TARGET{t}_*``
+        are morph target t's deltas (the writer puts them in ``targets``).
     indices : (f, 3) uint32
         The primitive's triangles over its render vertices, in mesh face order.
     """
@@ -235,14 +265,115 @@ def render_primitives(mesh: Mesh):
         vertices = used if owner is None else owner[used]
         attributes = {}
         if mesh.attributes is not None:
-            for name, _ in mesh.attributes.layout:
-                values = mesh.attributes.values[used, mesh.attributes.columns(name)]
-                if name == "NORMAL":
-                    values = _unit_normals(values, mesh.positions[vertices], indices)
-                elif name == "COLOR_0":
-                    values = np.clip(values, 0.0, 1.0)  # glTF colours are in [0, 1]
-                attributes[name] = values.astype(np.float32)
+            attributes = render_attributes(mesh.attributes.layout, mesh.attributes.values[used],
+                                           mesh.positions[vertices], indices)
         yield material, mesh.positions[vertices], attributes, indices
+
+
+def render_attributes(layout, values: np.ndarray, positions: np.ndarray,
+                      triangles: np.ndarray) -> dict:
+    """The glTF vertex attributes of render vertices: ``values`` (r, d) in ``layout``,
+    ``positions`` (r, 3), ``triangles`` (f, 3) over them; name -> (r, k) array.
+
+    Each column made valid as glTF requires, whatever interpolation left:
+    NORMAL unit (:func:`_unit_normals`); COLOR_n clipped to [0, 1]; TANGENT xyz
+    unit (a zero one perpendicular to the normal) and w exactly +-1 (0 -> +1);
+    JOINTS_n rounded to uint8 (uint16 when a joint is 256 or more) and WEIGHTS_n
+    float32 (:func:`skin_influences`); TEXCOORD_n, morph deltas and custom
+    ``_NAME`` columns float32 as they are.
+    """
+    columns = {}
+    start = 0
+    for name, width in layout:
+        columns[name] = values[:, start:start + width]
+        start += width
+    out = {}
+    for name, _ in layout:
+        column = columns[name]
+        if name == "NORMAL":
+            column = _unit_normals(column, positions, triangles)
+        elif name.startswith("COLOR_"):
+            column = np.clip(column, 0.0, 1.0)  # glTF colours are in [0, 1]
+        elif name == "TANGENT":
+            # a zero tangent is replaced in the plane of the normal (or of the faces)
+            normal = columns.get("NORMAL", np.zeros((len(column), 3)))
+            column = unit_tangents(column, _unit_normals(normal, positions, triangles))
+        elif name.startswith(("JOINTS_", "WEIGHTS_")):
+            continue        # all sets at once, below
+        out[name] = column.astype(np.float32)
+    sets = sorted(int(name[8:]) for name, _ in layout if name.startswith("WEIGHTS_")
+                  and f"JOINTS_{name[8:]}" in columns)
+    if sets:
+        joints, weights = skin_influences(
+            np.hstack([columns[f"JOINTS_{n}"] for n in sets]),
+            np.hstack([columns[f"WEIGHTS_{n}"] for n in sets]))
+        for k, n in enumerate(sets):
+            out[f"JOINTS_{n}"] = joints[:, 4 * k:4 * k + 4]
+            out[f"WEIGHTS_{n}"] = weights[:, 4 * k:4 * k + 4]
+    for name, _ in layout:      # a JOINTS_n or WEIGHTS_n set without its partner
+        if name.startswith(("JOINTS_", "WEIGHTS_")) and name not in out:
+            out[name] = (columns[name].astype(np.float32) if name.startswith("W")
+                         else _joint_array(columns[name]))
+    return {name: out[name] for name, _ in layout}      # in layout order
+
+
+def unit_tangents(tangents: np.ndarray, normals: np.ndarray) -> np.ndarray:
+    """(r, 4) float64 tangents made valid: xyz unit length (a zero or non-finite one
+    replaced by a unit vector perpendicular to ``normals`` (r, 3)), w exactly +-1
+    by its sign (0 counts as +1)."""
+    xyz = np.array(tangents[:, :3], dtype=np.float64)
+    length = np.linalg.norm(xyz, axis=1)
+    bad = ~(length > 1e-12)
+    xyz[bad] = perpendicular(normals[bad])
+    length[bad] = 1.0
+    w = np.where(tangents[:, 3] < 0, -1.0, 1.0)
+    return np.column_stack([xyz / length[:, None], w])
+
+
+def skin_influences(joints: np.ndarray, weights: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Joints (r, 4s) and weights (r, 4s) of s influence sets made valid for glTF.
+
+    Weights below 0 become 0; a joint named twice in a vertex keeps one slot with
+    the sum of its weights; a slot of weight 0 gets joint 0 (the validator warns of
+    a joint used with weight 0); each vertex's weights are renormalised to sum to 1
+    over all sets, in float32 (the largest absorbs the rounding), and a vertex whose
+    weights sum to 0 gets joint 0 with weight 1.
+
+    Returns
+    -------
+    joints : (r, 4s) uint8, or uint16 when a joint is 256 or more
+    weights : (r, 4s) float32
+    """
+    joints = np.rint(np.asarray(joints, dtype=np.float64)).astype(np.int64)
+    weights = np.maximum(np.asarray(weights, dtype=np.float64), 0.0)
+    slots = joints.shape[1]
+    # merge repeated joints: a slot whose joint an earlier slot of the vertex holds
+    for b in range(1, slots):
+        for a in range(b):
+            same = (joints[:, a] == joints[:, b]) & (weights[:, b] > 0)
+            weights[same, a] += weights[same, b]
+            weights[same, b] = 0.0
+    total = weights.sum(axis=1)
+    empty = ~(total > 0)
+    weights[empty] = 0.0
+    weights[empty, 0] = 1.0
+    joints[empty] = 0       # joint 0 exists in every skin
+    total[empty] = 1.0
+    weights /= total[:, None]
+    joints[weights == 0] = 0
+    single = weights.astype(np.float32)
+    # the float32 sum off by a few ulps: the largest weight takes the difference
+    largest = np.argmax(single, axis=1)
+    rows = np.arange(len(single))
+    rest = single.astype(np.float64).sum(axis=1) - single[rows, largest]
+    single[rows, largest] = np.float32(1.0) - rest.astype(np.float32)
+    return _joint_array(joints), single
+
+
+def _joint_array(joints) -> np.ndarray:
+    """Joint indices rounded, as uint8 (uint16 when one is 256 or more)."""
+    joints = np.rint(np.asarray(joints, dtype=np.float64))
+    return joints.astype(np.uint16 if joints.size and joints.max() >= 256 else np.uint8)
 
 
 def _unit_normals(normals: np.ndarray, positions: np.ndarray, triangles: np.ndarray) -> np.ndarray:

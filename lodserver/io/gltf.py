@@ -7,8 +7,10 @@ primitive by its node's world transform, giving the arrays
 - ``positions``     : (n, 3) float64, world-space vertex positions.
 - ``faces``         : (m, 3) int64, triangles (strips and fans unrolled).
 - ``corner_values`` : (m, 3, d) float64 or None, each face corner's attribute
-  vector in ``layout`` order: NORMAL (world space, unit or zero), TEXCOORD_0,
-  TEXCOORD_1 (as stored: glTF's v-down convention) and COLOR_0 (linear RGBA).
+  vector in ``layout`` order: NORMAL (world space, unit or zero), TEXCOORD_n (as
+  stored: glTF's v-down convention), COLOR_n (linear RGBA), TANGENT (xyz by the
+  world linear map, renormalised; w negated under a mirror) and custom ``_NAME``
+  attributes (:mod:`.gltf_attributes`).
 - ``face_material`` : (m,) int32 or None, the primitive's material, -1 for none.
 - ``materials``     : :class:`~lodserver.mesh.Materials` or None, every material,
   texture, sampler and image of the document, the image bytes as stored.
@@ -19,10 +21,11 @@ transform), so vertices and faces come in the order lodserver read them
 through trimesh before it parsed glTF itself. Transforms are used as stored,
 whereas trimesh snaps nearly rigid ones to exact rotations: positions can differ
 from trimesh's by the float32 rounding of the stored matrices (4e-8 relative on
-2CylinderEngine.glb), with the same weld and face counts. Attributes lodserver
-does not carry (TANGENT, JOINTS_n, WEIGHTS_n, more UV or colour sets) are
-listed in ``dropped_attributes``: renderers regenerate tangents from normals
-and UVs. Points and lines are skipped; mesh compression is refused.
+2CylinderEngine.glb), with the same weld and face counts. What means nothing
+once flattened (JOINTS_n, WEIGHTS_n, morph targets) and what no rule knows
+(matrix-typed custom attributes) is listed in ``dropped_attributes``;
+:func:`read_gltf_meshes` keeps every attribute, the skin and the targets too.
+Points and lines are skipped; mesh compression is refused.
 
 Everything the file declares is checked before it is read: accessor counts
 and byte ranges against their bufferViews and buffers, primitive, instance,
@@ -47,7 +50,11 @@ from urllib.parse import unquote
 
 import numpy as np
 
-from ..mesh import ATTRIBUTE_WIDTHS, Materials, MeshError
+from ..mesh import Materials, MeshError
+from .gltf_attributes import (as_float as _as_float, attribute_layout, check_attribute_size,
+                              check_joints, primitive_corners)
+# their home was this module: readers (obj.py) and tests import them from here
+from .gltf_attributes import face_normals, transform_normals  # noqa: F401
 from .images import image_type
 from .gltf_document import (TRIANGLE_FAN as _TRIANGLE_FAN, TRIANGLE_STRIP as _TRIANGLE_STRIP,
                             TRIANGLES, check_declared, natural, parse_container, record)
@@ -61,10 +68,6 @@ _COMPONENT_DTYPES = {5120: "<i1", 5121: "<u1", 5122: "<i2", 5123: "<u2", 5125: "
 _TYPE_WIDTHS = {"SCALAR": 1, "VEC2": 2, "VEC3": 3, "VEC4": 4, "MAT2": 4, "MAT3": 9, "MAT4": 16}
 
 
-# Normalized integers map to [0, 1] (unsigned) or [-1, 1] (signed, -128 clamped): spec §3.11.
-_NORMALIZED_SCALE = {5120: 127.0, 5121: 255.0, 5122: 32767.0, 5123: 65535.0}
-
-
 FLOAT, UINT = 5126, 5125
 
 
@@ -74,10 +77,6 @@ ARRAY_BUFFER, ELEMENT_ARRAY_BUFFER = 34962, 34963
 # Geometry compressed by these has no plain accessor data to fall back on.
 _UNDECODABLE = ("KHR_draco_mesh_compression", "EXT_meshopt_compression")
 
-
-# What a primitive without the attribute looks like (spec §3.7.2.1: flat normals,
-# and COLOR_0 multiplies the base colour, so white changes nothing).
-_DEFAULT_COLOR = (1.0, 1.0, 1.0, 1.0)
 
 
 def read_gltf(path: Path, kind: str, *, root: Path | None = None,
@@ -276,14 +275,6 @@ def _read_accessor(document: dict, views: list, index: int) -> np.ndarray:
     return values
 
 
-def _as_float(values: np.ndarray, accessor: dict) -> np.ndarray:
-    """float64 values of an attribute accessor, normalized integers mapped as the spec says."""
-    if accessor.get("normalized"):
-        scale = _NORMALIZED_SCALE[accessor["componentType"]]
-        return np.maximum(values / scale, -1.0)
-    return values.astype(np.float64)
-
-
 def _local_matrix(node: dict) -> np.ndarray:
     """(4, 4) node transform: ``matrix`` times translation, rotation, scale (like trimesh)."""
     matrix = np.eye(4)
@@ -361,13 +352,16 @@ def read_gltf_meshes(path: Path, kind: str, *, root: Path | None = None,
     -------
     dict
         ``document`` (the parsed JSON), ``meshes`` ({mesh index: the arrays
-        :func:`read_gltf` returns, or a MeshError's message for a mesh without
-        triangles}) for every mesh some node uses, ``materials`` (Materials
+        :func:`read_gltf` returns, with every attribute (JOINTS_n, WEIGHTS_n and
+        ``TARGET{t}_*`` morph deltas too, :mod:`.gltf_attributes`), or a
+        MeshError's message for a mesh without triangles}) for every mesh some
+        node uses, ``materials`` (Materials
         or None, shared by every mesh: face_material indexes it) and
         ``accessor(index) -> (count, width) array`` of the accessor's own dtype
         (sparse applied), for data carried as it is (animations).
 
-    An ``extensionsRequired`` entry not in ``honoured`` is a MeshError.
+    An ``extensionsRequired`` entry not in ``honoured`` is a MeshError, and so is a
+    joint index outside the skin of a node that uses the mesh.
     """
     def refuse(required):
         raise MeshError(f"it requires the glTF extension {required}, which lodserver "
@@ -390,11 +384,15 @@ def read_gltf_meshes(path: Path, kind: str, *, root: Path | None = None,
             try:
                 found[index] = _flatten_scene(document, views, files,
                                               instances=[(index, np.eye(4))],
-                                              materials=materials, accessor=accessor)
+                                              materials=materials, accessor=accessor,
+                                              every=True)
             except MeshError as exc:
                 if not str(exc).startswith("it has no faces"):
                     raise
                 found[index] = f"mesh {index} has no triangles (only points or lines)"
+                continue
+            check_joints(document, index, found[index]["layout"],
+                         found[index]["corner_values"])
         return {"document": document, "meshes": found, "materials": materials,
                 "accessor": accessor}
 
@@ -405,12 +403,14 @@ _READ = object()  # materials not given: read them
 
 
 def _flatten_scene(document: dict, views: list, files: _ReferencedFiles, *,
-                   instances=None, materials=_READ, accessor=None) -> dict:
+                   instances=None, materials=_READ, accessor=None, every=False) -> dict:
     """Arrays of every placed triangle primitive (see :func:`read_gltf`).
 
     ``instances`` ((mesh index, (4, 4) transform) pairs) defaults to the
     default scene's; ``materials`` and ``accessor`` may be given when the
-    caller reads several meshes of one document.
+    caller reads several meshes of one document. ``every`` keeps JOINTS_n,
+    WEIGHTS_n and morph targets too (:mod:`.gltf_attributes`), for one mesh in
+    its local space.
     """
     if accessor is None:
         cache = {}
@@ -454,13 +454,13 @@ def _flatten_scene(document: dict, views: list, files: _ReferencedFiles, *,
     faces = np.concatenate([triangles + start
                             for (_, _, triangles, _), start in zip(placed, starts)])
 
-    names = {name for primitive, *_ in placed for name in primitive["attributes"]}
-    layout = tuple((name, width) for name, width in ATTRIBUTE_WIDTHS.items() if name in names)
-    dropped = sorted(names - set(ATTRIBUTE_WIDTHS) - {"POSITION"})
+    layout, dropped = attribute_layout(document, [primitive for primitive, *_ in placed], every)
     corner_values = None
     if layout:
+        check_attribute_size(files.limits if files is not None else None, 3 * len(faces), layout)
         corner_values = np.concatenate([
-            _primitive_corners(primitive, linear, triangles, world, layout, accessor, document)
+            primitive_corners(document, primitive, linear, triangles, world, layout, accessor,
+                              every)
             for primitive, linear, triangles, world in placed])
 
     if materials is _READ:
@@ -476,55 +476,6 @@ def _flatten_scene(document: dict, views: list, files: _ReferencedFiles, *,
     return {"positions": positions, "faces": faces, "corner_values": corner_values,
             "layout": layout, "face_material": face_material, "materials": materials,
             "dropped_attributes": dropped}
-
-
-def _primitive_corners(primitive, linear, triangles, world, layout, accessor, document):
-    """(t, 3, d) corner attribute vectors of one placed primitive, defaults where it has none."""
-    attributes = primitive["attributes"]
-    count = len(world)
-    columns = []
-    for name, width in layout:
-        if name in attributes:
-            stored = record(document, "accessors", attributes[name], f"primitive {name}")
-            if stored.get("count") != count:  # checked before reading: it could be huge
-                raise MeshError(f"a primitive's {name} has {stored.get('count')!r} values "
-                                f"for {count} vertices")
-            values = _as_float(accessor(attributes[name]), stored)
-            if len(values) != count:
-                raise MeshError(f"a primitive's {name} has {len(values)} values "
-                                f"for {count} vertices")
-            if name == "NORMAL":
-                values = transform_normals(values, linear)
-            elif name == "COLOR_0" and values.shape[1] == 3:
-                values = np.column_stack([values, np.ones(count)])  # RGB means opaque
-            columns.append(values[triangles])
-        elif name == "NORMAL":
-            columns.append(np.repeat(face_normals(world, triangles)[:, None], 3, axis=1))
-        else:
-            fill = _DEFAULT_COLOR if name == "COLOR_0" else (0.0,) * width
-            columns.append(np.broadcast_to(np.array(fill), (len(triangles), 3, width)))
-    return np.concatenate(columns, axis=2)
-
-
-def transform_normals(normals: np.ndarray, linear: np.ndarray) -> np.ndarray:
-    """Normals (n, 3) under the linear map (3, 3): inverse transpose, renormalised.
-
-    Normals must stay perpendicular to the surface, which a non-uniform scale
-    would break if they were transformed like positions. Zero normals stay zero.
-    """
-    if np.allclose(linear, np.eye(3), rtol=0, atol=1e-15):
-        return normals
-    moved = normals @ np.linalg.pinv(linear)  # row form of inv(L).T @ n; pinv survives scale 0
-    length = np.linalg.norm(moved, axis=1, keepdims=True)
-    return np.divide(moved, length, out=np.zeros_like(moved), where=length > 0)
-
-
-def face_normals(positions: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    """Unit normals (m, 3) of triangles (m, 3) by their winding; zero for zero-area faces."""
-    corners = positions[faces]
-    cross = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
-    length = np.linalg.norm(cross, axis=1, keepdims=True)
-    return np.divide(cross, length, out=np.zeros_like(cross), where=length > 0)
 
 
 def _read_materials(document: dict, views: list, files: _ReferencedFiles) -> Materials | None:

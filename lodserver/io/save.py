@@ -7,9 +7,13 @@ relative), and vertices closer than that would be welded on reload. OBJ and OFF
 are text written with 17 decimals, exact for any coordinate of magnitude 0.1 or
 more and within 5e-18 otherwise.
 
-What each output format keeps: GLB everything (attributes, materials, images);
-OBJ positions plus ``vt``/``vn`` per wedge (no ``.mtl``: the bytes API writes one
-file); PLY, OFF and STL positions and triangles only.
+What each output format keeps: GLB everything (every attribute column of the
+layout, materials, images; :func:`lodserver.io.glb.render_attributes`); OBJ
+positions plus ``vt``/``vn`` per wedge from TEXCOORD_0 and NORMAL (no ``.mtl``:
+the bytes API writes one file); PLY, OFF and STL positions and triangles only.
+The columns a format cannot hold (TEXCOORD_1.., COLOR_n, TANGENT, joints and
+weights, morph deltas, custom attributes) are left out without a word: the
+format says what it keeps, and GLB is the one that keeps everything.
 """
 
 from __future__ import annotations

@@ -10,11 +10,15 @@ unknown extensions) and turns each glTF mesh a node uses into one cleaned
 :class:`~lodserver.mesh.Mesh` in that mesh's LOCAL space (all its triangle
 primitives, one material per primitive), however many nodes instance it.
 
-What this first slice does not simplify yet: skinned meshes (``JOINTS_n``/
-``WEIGHTS_n``, or used by a node with a ``skin``), meshes with morph targets, and
-meshes without triangles. Those are kept AS THEY ARE (:attr:`Scene.as_is`): one
-level, every accessor they use carried with its values, so the skins, their
-inverse bind matrices, morph weights and the animations driving them survive.
+Each Mesh holds every vertex attribute of its primitives
+(:mod:`.gltf_attributes`): NORMAL, TEXCOORD_n, COLOR_n, TANGENT, JOINTS_n and
+WEIGHTS_n (joint indices into the skin of the nodes using it, checked to exist),
+morph target deltas as ``TARGET{t}_POSITION``/``_NORMAL``/``_TANGENT`` and custom
+``_NAME`` attributes; a primitive lacking one another primitive has gets a neutral
+value. Skinned and morphed meshes are simplified like any other; the skins,
+inverse bind matrices, mesh ``weights``, ``extras.targetNames`` and the animations
+driving them are carried. Only meshes without triangles (points, lines) are kept
+AS THEY ARE (:attr:`Scene.as_is`): one level, every accessor they use carried.
 """
 
 from __future__ import annotations
@@ -67,8 +71,8 @@ class Scene:
     notes : list of str
         What is not kept exactly, or kept without levels.
     as_is : dict of int to str
-        Meshes written as they are, one level (skinned, morphed, no triangles),
-        with the reason (:func:`kept_as_is`); not in ``meshes``.
+        Meshes written as they are, one level (those without triangles), with
+        the reason (:func:`kept_as_is`); not in ``meshes``.
     as_is_faces : dict of int to int
         Their triangle counts (strips and fans unrolled).
     """
@@ -143,29 +147,16 @@ def load_scene(path, *, root=None, limits: LoadLimits | None = None) -> Scene:
 
 
 def kept_as_is(document: dict, meshes: dict) -> dict:
-    """Meshes this version writes as they are (one level, every attribute and target
-    carried byte-exact in value), each with the one-sentence reason.
+    """Meshes this version writes as they are (one level, every accessor carried
+    byte-exact in value), each with the one-sentence reason.
 
     ``meshes`` maps mesh index -> arrays, or the message of a mesh without
-    triangles (:func:`.gltf.read_gltf_meshes`). A mesh is kept as it is when it
-    has morph targets or weights, ``JOINTS_n``/``WEIGHTS_n``, a node with a skin
-    uses it, or it has no triangles: simplifying those with their attributes is
-    the next step (issue 12).
+    triangles (:func:`.gltf.read_gltf_meshes`): only those are kept as they are.
+    Skinned and morphed meshes have their joints, weights and target deltas as
+    attributes and are simplified like any other.
     """
-    reasons = {}
-    skinned = {node["mesh"] for node in document.get("nodes", ())
-               if "mesh" in node and "skin" in node}
-    for index, arrays in meshes.items():
-        mesh = document["meshes"][index]
-        primitives = mesh.get("primitives", ())
-        if isinstance(arrays, str):
-            reasons[index] = "it has no triangles (only points or lines)"
-        elif index in skinned or any(name.startswith(("JOINTS_", "WEIGHTS_"))
-                                     for p in primitives for name in p["attributes"]):
-            reasons[index] = "it is skinned (joints and weights are not simplified yet)"
-        elif mesh.get("weights") or any(p.get("targets") for p in primitives):
-            reasons[index] = "it has morph targets (not simplified yet)"
-    return reasons
+    return {index: "it has no triangles (only points or lines)"
+            for index, arrays in meshes.items() if isinstance(arrays, str)}
 
 
 # how a carried accessor is used, for its bufferView's target and alignment
@@ -219,6 +210,9 @@ def _scene(parts: dict) -> Scene:
         arrays_in.pop("missing_files", None)
         mesh, report = clean_mesh(**arrays_in)
         report.dropped_attributes = list(dropped)
+        if dropped:
+            scene.notes.append(f"mesh {index}: its attributes {', '.join(dropped)} are not kept "
+                               "(matrix-typed or unknown)")
         scene.meshes[index], scene.reports[index] = mesh, report
     for index, mesh in enumerate(document.get("meshes", ())):
         if index in scene.as_is:

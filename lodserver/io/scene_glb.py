@@ -14,9 +14,16 @@ of detail of it:
 - the single-level form (``level=i``): the same document with level i in
   place of every mesh, for ``export --separate``.
 
-A mesh in ``scene.as_is`` (skinned, morphed, no triangles) is written once, as
-it was: its primitives over its carried accessors, no ``MSFT_lod``, in every
-form; skins keep their inverse bind matrices.
+Each level keeps every attribute column (:func:`.glb.render_attributes`): joints
+and weights (valid for the skin, summing to 1), tangents, morph targets as
+``primitive.targets`` with the mesh's ``weights`` and ``extras`` (``targetNames``)
+carried. A node's LOD nodes carry its transform, ``skin``, morph ``weights`` and
+``EXT_mesh_gpu_instancing``, so every level is posed and instanced like level 0
+(animations still target the node itself: a viewer that swaps levels by MSFT_lod
+draws the LOD node's static weights). Skins keep their
+inverse bind matrices. A mesh in ``scene.as_is`` (no triangles) is written once,
+as it was: its primitives over its carried accessors, no ``MSFT_lod``, in every
+form.
 
 Node indices are kept, so animation channels, camera and light references
 and unknown extensions naming nodes stay right; the accessors animations and
@@ -38,7 +45,7 @@ from .scene import GEOMETRY_EXTENSIONS, INDEX, VERTEX, Scene
 _REBUILT = ("meshes", "accessors", "bufferViews", "buffers", "images", "materials", "textures",
             "samplers", "extensionsUsed", "extensionsRequired")
 
-_TRANSFORM = ("matrix", "translation", "rotation", "scale")
+_LOD_KEYS = ("matrix", "translation", "rotation", "scale", "skin", "weights")
 
 
 def encode_scene(scene: Scene, levels: dict, coverage: list[float], *,
@@ -96,6 +103,9 @@ def encode_scene(scene: Scene, levels: dict, coverage: list[float], *,
             for key in ("extras", "extensions"):
                 if key in record:
                     out[key] = copy.deepcopy(record[key])
+            targets = max((len(p.get("targets", ())) for p in out["primitives"]), default=0)
+            if "weights" in record and len(record["weights"]) == targets:
+                out["weights"] = list(record["weights"])      # the default morph weights
 
     for index in sorted(scene.as_is):
         # kept as it is: the same primitives over the carried accessors
@@ -132,7 +142,11 @@ def encode_scene(scene: Scene, levels: dict, coverage: list[float], *,
             continue
         ids = []
         for k in range(1, count):
-            lod = {key: copy.deepcopy(node[key]) for key in _TRANSFORM if key in node}
+            # the same transform, skin and morph weights: each level is posed like level 0
+            lod = {key: copy.deepcopy(node[key]) for key in _LOD_KEYS if key in node}
+            if isinstance(instancing, dict):
+                # an instanced node's levels are drawn at every one of its instances
+                lod["extensions"] = {"EXT_mesh_gpu_instancing": copy.deepcopy(instancing)}
             if "name" in node:
                 lod["name"] = f"{node['name']} LOD{k}"
             lod["mesh"] = made[mesh, k]

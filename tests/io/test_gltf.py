@@ -369,12 +369,15 @@ def test_gltf_colours_tangents_and_missing_normals(tmp_path):
     positions = [[0, 0, 0], [1, 0, 0], [0, 1, 0]]
     colours = np.array([[255, 0, 0], [0, 255, 0], [0, 0, 51]], dtype=np.uint8)  # normalized
     path = gltf_file(tmp_path, positions, [[0, 1, 2]],
-                     attributes={"COLOR_0": colours, "TANGENT": [[1, 0, 0, 1]] * 3})
+                     attributes={"COLOR_0": colours, "TANGENT": [[1, 0, 0, 1]] * 3,
+                                 "JOINTS_0": np.zeros((3, 4), np.uint8) + 255})
     mesh, report = load_mesh(path)
-    assert report.dropped_attributes == ["TANGENT"]
-    assert mesh.attributes.layout == (("COLOR_0", 4),)
+    # flattened: the skin means nothing without its nodes, the tangent is kept
+    assert report.dropped_attributes == ["JOINTS_0"]
+    assert mesh.attributes.layout == (("COLOR_0", 4), ("TANGENT", 4))
     np.testing.assert_allclose(mesh.attributes.values[mesh.attributes.corners[0]],
-                               [[1, 0, 0, 1], [0, 1, 0, 1], [0, 0, 0.2, 1]])
+                               [[1, 0, 0, 1, 1, 0, 0, 1], [0, 1, 0, 1, 1, 0, 0, 1],
+                                [0, 0, 0.2, 1, 1, 0, 0, 1]])
 
 
 def test_gltf_image_bytes_from_a_data_uri_are_kept(tmp_path):
@@ -412,7 +415,7 @@ def test_gltf_compressed_geometry_is_refused_with_a_reason(tmp_path):
 
 def test_shared_textured_meshes_have_seams(shared_meshes):
     for name, layout in [("Duck.glb", ["NORMAL", "TEXCOORD_0"]), ("spot/spot.obj", ["TEXCOORD_0"]),
-                         ("Avocado/Avocado.gltf", ["NORMAL", "TEXCOORD_0"]),
+                         ("Avocado/Avocado.gltf", ["NORMAL", "TEXCOORD_0", "TANGENT"]),
                          ("bunny10k_textured/bunny10k_textured.obj", ["TEXCOORD_0"])]:
         mesh, report = load_mesh(shared_meshes / name)
         assert [n for n, _ in mesh.attributes.layout] == layout, name
@@ -422,7 +425,7 @@ def test_shared_textured_meshes_have_seams(shared_meshes):
 def test_avocado_keeps_its_three_images_byte_for_byte(shared_meshes):
     folder = shared_meshes / "Avocado"
     mesh, report = load_mesh(folder / "Avocado.gltf")
-    assert report.dropped_attributes == ["TANGENT"]
+    assert report.dropped_attributes == []      # its TANGENT is kept
     names = ["Avocado_baseColor.png", "Avocado_roughnessMetallic.png", "Avocado_normal.png"]
     assert mesh.materials.images == tuple((folder / n).read_bytes() for n in names)
     assert mesh.materials.gltf["materials"][0]["normalTexture"] == {"index": 2}

@@ -190,23 +190,34 @@ def test_limits_and_root_as_load_mesh(tmp_path, scene_file):
         load_scene(tmp_path / "nothing.glb")
 
 
-def test_skinned_and_morphed_meshes_are_kept_as_they_are(tmp_path):
+def test_skinned_and_morphed_meshes_are_meshes_and_points_are_kept_as_they_are(tmp_path):
+    """A skinned or morphed mesh is a Mesh with its joints, weights and target deltas as
+    attributes; only a mesh without triangles is written as it is."""
     def skinned(document):
         document["skins"] = [{"joints": [3]}]
         document["nodes"][1]["skin"] = 0
 
     def morphed(document):
-        document["meshes"][1]["primitives"][0]["targets"] = [{"POSITION": 2}]
+        primitive = document["meshes"][1]["primitives"][0]
+        primitive["targets"] = [{"POSITION": primitive["attributes"]["POSITION"]}]
 
-    for edit, mesh, said in ((skinned, 0, "skinned"), (morphed, 1, "morph targets")):
+    def points(document):
+        document["meshes"][1]["primitives"][0]["mode"] = 0
+
+    for edit in (skinned, morphed):
         path = tmp_path / "x.glb"
         path.write_bytes(scene_glb(edit))
         scene = load_scene(path)
-        assert list(scene.as_is) == [mesh] and said in scene.as_is[mesh]
-        assert sorted(scene.meshes) == [1 - mesh]
-        primitive = scene.document["meshes"][mesh]["primitives"][0]
-        assert all(scene.carried[a][2] == "vertex" for a in primitive["attributes"].values())
-        assert scene.carried[primitive["indices"]][2] == "index"
+        assert not scene.as_is and sorted(scene.meshes) == [0, 1]
+    names = [name for name, _ in scene.meshes[1].attributes.layout]
+    assert "TARGET0_POSITION" in names
+    path.write_bytes(scene_glb(points))
+    scene = load_scene(path)
+    assert list(scene.as_is) == [1] and "no triangles" in scene.as_is[1]
+    assert sorted(scene.meshes) == [0]
+    primitive = scene.document["meshes"][1]["primitives"][0]
+    assert all(scene.carried[a][2] == "vertex" for a in primitive["attributes"].values())
+    assert scene.carried[primitive["indices"]][2] == "index"
 
 
 def test_shared_scenes(shared_meshes):
@@ -221,7 +232,8 @@ def test_shared_scenes(shared_meshes):
     # welding across instances in the flattened mesh can only remove faces
     assert per_instance >= flat.face_count > 0.99 * per_instance
     fox = load_scene(shared_meshes / "scenes" / "Fox.glb")
-    assert list(fox.as_is) == [0] and "skinned" in fox.as_is[0] and not fox.meshes
+    assert not fox.as_is and [n for n, _ in fox.meshes[0].attributes.layout] == [
+        "TEXCOORD_0", "JOINTS_0", "WEIGHTS_0"]
     box = load_scene(shared_meshes / "scenes" / "BoxAnimated.glb")
     assert not box.as_is and box.carried
     duck = load_scene(shared_meshes / "Duck.glb")
