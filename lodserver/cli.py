@@ -21,6 +21,8 @@ from . import __version__
 from .mesh import MeshError
 from .options import METHODS, BuildOptions, Flag, describe_error, field_default_text
 
+DEFAULT_LODS_TEXT = "1,0.5,0.2,0.05"      # pipeline.DEFAULT_LODS, without importing it
+
 EXAMPLES = """\
 examples:
   lodserver build tests/data/spot.obj -o spot.pm
@@ -200,10 +202,38 @@ def _cmd_simplify(args) -> int:
     return 0
 
 
-def _cmd_export(args) -> int:
-    from .pipeline import export_lods, is_url, parse_lods
+def _export_usage(args) -> str | None:
+    """What is wrong with how ``export``'s level flags are combined (a usage error,
+    exit code 2), or None."""
+    if args.lods is not None and args.errors is not None:
+        return "give --lods or --error, not both"
+    if args.errors is not None and args.per_mesh:
+        return "--per-mesh applies to --lods; levels by --error are per mesh already"
+    if args.errors is not None and args.reach != "none":
+        return "--reach meets face budgets, and levels by --error have none"
+    if args.errors is not None:
+        try:
+            values = [float(part) for part in args.errors.split(",")]
+        except ValueError:
+            return f"--error takes comma-separated numbers like 0.001,0.01, got {args.errors!r}"
+        if not all(value >= 0 for value in values):     # NaN too
+            return (f"--error values are fractions of the bounding-box diagonal, each 0 or "
+                    f"more, got {args.errors}")
+    return None
 
-    ratios = parse_lods(args.lods)
+
+def _cmd_export(args) -> int:
+    from .pipeline import export_lods, is_url, parse_errors, parse_lods
+
+    problem = _export_usage(args)
+    if problem is not None:
+        print(f"lodserver export: {problem}", file=sys.stderr)
+        return 2
+    if args.errors is not None:
+        ratios, errors = None, parse_errors(args.errors)
+    else:
+        ratios, errors = parse_lods(args.lods or DEFAULT_LODS_TEXT), None
+    args.error_bounds = errors          # for _export_folder
     options = options_from(args)
     if is_url(args.source) or Path(args.source).is_dir():
         if Path(args.output).suffix.lower() == ".glb":
@@ -221,6 +251,7 @@ def _cmd_export(args) -> int:
     progress = _Progress()
     try:
         done = export_lods(args.source, _output_file(args.output), lods=ratios,
+                           errors=errors, per_mesh=args.per_mesh,
                            separate=args.separate, reach=args.reach, options=options,
                            untrusted=args.untrusted, progress=progress)
     finally:
@@ -234,6 +265,10 @@ def _levels(done) -> str:
     coverage = ", ".join(f"{c:.3g}" for c in done.coverage)
     text = (f"{len(done.faces)} levels of {faces} faces (screen coverage {coverage}) "
             f"in {done.seconds:.2f} s")
+    if done.drawn:      # a scene: what is drawn, each mesh once per instance
+        drawn = ", ".join(str(count) for count in done.drawn)
+        errors = ", ".join(f"{e:.3g}" for e in done.errors)
+        text += f"; {drawn} triangles drawn, worst world error {errors}"
     if done.clustered:
         levels = ", ".join(str(i) for i in done.clustered)
         text += (f"; level {levels} by vertex clustering (edge collapse stops at "
@@ -283,7 +318,9 @@ def _export_folder(args, ratios, options) -> int:
 
     start = time.perf_counter()
     try:
-        report = export_folder(args.source, args.output, lods=ratios, separate=args.separate,
+        report = export_folder(args.source, args.output, lods=ratios,
+                               errors=args.error_bounds, per_mesh=args.per_mesh,
+                               separate=args.separate,
                                reach=args.reach, jobs=args.jobs, force=args.force,
                                options=options, untrusted=args.untrusted,
                                scheduler=args.scheduler, progress=progress)
@@ -456,10 +493,21 @@ def _parser() -> argparse.ArgumentParser:
                    "folder: every mesh file under it, its layout mirrored in OUTPUT (a "
                    "folder may be an object-store URL, s3://bucket/prefix, for SOURCE and "
                    "OUTPUT alike; endpoint and credentials from the AWS_* variables)")
-    p.add_argument("--lods", default="1,0.5,0.2,0.05", metavar="R1,R2,...",
-                   help="face ratios of the levels, finest first, each in (0, 1] "
-                        "(default 1,0.5,0.2,0.05); level i's screen coverage hint is "
-                        "0.5*sqrt(R(i+1)/R1), the last level's 0")
+    p.add_argument("--lods", metavar="R1,R2,...",
+                   help=f"face ratios of the levels, finest first, each in (0, 1] "
+                        f"(default {DEFAULT_LODS_TEXT}); for a glTF scene, of the whole "
+                        f"scene's triangles (each mesh once per instance), one budget whose "
+                        f"worst world error is as low as it allows; a single mesh's level "
+                        f"i's screen coverage hint is 0.5*sqrt(R(i+1)/R1), the last level's 0")
+    p.add_argument("--per-mesh", action="store_true",
+                   help="a glTF scene's --lods are each mesh's own face ratios, not the "
+                        "scene's")
+    p.add_argument("--error", dest="errors", metavar="E1,E2,...",
+                   help="instead of --lods: error bounds of the levels, finest first, "
+                        "increasing, as fractions of the bounding-box diagonal (a scene's "
+                        "world box), each mesh at its coarsest level within the bound; "
+                        "screen coverage hints from the levels' errors (under a pixel at "
+                        "1080p)")
     p.add_argument("-o", "--output", required=True,
                    help="the .glb file to write; for a folder source, the folder to write "
                         "into (created either way)")

@@ -1,10 +1,11 @@
 """The asset pipeline: mesh files in, chains of levels of detail (GLB) out.
 
-``export_lods`` writes one source's levels, picked by face ratio, as one GLB
-whose nodes are linked by ``MSFT_lod`` (with ``MSFT_screencoverage`` hints), or
-as one GLB per level. The source is a ``.pm`` artefact or a mesh file, built
-on the way; a glTF scene keeps its document, each of its meshes replaced by
-its own chain.
+``export_lods`` writes one source's levels, picked by face ratio or by error
+bound, as one GLB whose nodes are linked by ``MSFT_lod`` (with
+``MSFT_screencoverage`` hints), or as one GLB per level. The source is a ``.pm``
+artefact or a mesh file, built on the way; a glTF scene keeps its document,
+each of its meshes replaced by its own chain, the levels of all its meshes
+chosen together: a ratio is of the whole scene's triangles (``budget``).
 
 ``export_folder`` does that for every mesh file under a folder, mirroring the
 folder's layout (``ASSETS/props/chair.obj`` -> ``LODS/props/chair.glb``), with
@@ -25,7 +26,9 @@ writes each output as one whole object.
 
 from __future__ import annotations
 
+import itertools
 import json
+import math
 import tempfile
 import time
 import uuid
@@ -64,6 +67,29 @@ def check_lods(ratios) -> tuple[float, ...]:
     return ratios
 
 
+def parse_errors(text: str) -> tuple[float, ...]:
+    """Error bounds from ``"0.001,0.01"``: finest first, each >= 0, increasing."""
+    try:
+        errors = tuple(float(part) for part in text.split(","))
+    except ValueError:
+        raise MeshError(f"LOD errors must be comma-separated numbers like 0.001,0.01, "
+                        f"got {text!r}") from None
+    return check_errors(errors)
+
+
+def check_errors(errors) -> tuple[float, ...]:
+    """Error bounds (fractions of the bounding-box diagonal) of the levels, finest
+    first: each finite and >= 0, strictly increasing."""
+    errors = tuple(float(e) for e in errors)
+    if not errors or not all(math.isfinite(e) and e >= 0 for e in errors):
+        raise MeshError(f"every LOD error must be a non-negative number (a fraction of the "
+                        f"bounding-box diagonal), got {list(errors)}")
+    if any(b <= a for a, b in itertools.pairwise(errors)):
+        raise MeshError(f"LOD errors must be strictly increasing, finest first, "
+                        f"got {list(errors)}")
+    return errors
+
+
 @dataclass
 class Exported:
     """One source's levels of detail, as written."""
@@ -76,6 +102,10 @@ class Exported:
     base_faces: int = 0         # the coarsest edge collapse reaches: ratios below it stop there
     clustered: list[int] = field(default_factory=list)   # levels made by clustering (reach)
     notes: list[str] = field(default_factory=list)       # what a scene's export did not keep
+    # a scene's: triangles drawn per level (each part once per instance) and the
+    # worst world error of each level (world units); empty for a single mesh
+    drawn: list[int] = field(default_factory=list)
+    errors: list[float] = field(default_factory=list)
 
 
 # A level whose edge-collapse mesh overshoots its face budget by more than this is
@@ -117,9 +147,36 @@ def lod_chain(pm: ProgressiveMesh, lods=DEFAULT_LODS, *, reach: str = "none"):
     return meshes, coverage_from_ratios(ratios), clustered
 
 
-def export_lods(source, output, *, lods=DEFAULT_LODS, separate: bool = False,
+def error_chain(pm: ProgressiveMesh, errors):
+    """The levels of ``pm`` within error bounds ``errors`` (fractions of its
+    bounding-box diagonal, finest first): ``(meshes, coverage)``, the hints from
+    the levels' measured errors (:func:`budget.coverage_from_errors`)."""
+    from .budget import coverage_from_errors, part_diagonal
+
+    diagonal = part_diagonal(pm)
+    levels = [pm.level_for(error=e * diagonal) for e in check_errors(errors)]
+    coverage = coverage_from_errors([pm.error_at_level(v) for v in levels], diagonal)
+    return [pm.at(v) for v in levels], coverage
+
+
+def _check_choice(lods, errors, per_mesh, reach):
+    """The levels' criterion: (ratios or None, error bounds or None); one sentence
+    for a bad combination."""
+    if lods is not None and errors is not None:
+        raise MeshError("give LOD ratios or LOD errors, not both")
+    if errors is not None:
+        if per_mesh:
+            raise MeshError("per-mesh levels are chosen by ratio; levels by error are "
+                            "per mesh already")
+        if reach != "none":
+            raise MeshError("reach meets face budgets, and levels by error have none")
+        return None, check_errors(errors)
+    return check_lods(DEFAULT_LODS if lods is None else lods), None
+
+
+def export_lods(source, output, *, lods=None, separate: bool = False,
                 reach: str = "none", options: BuildOptions | None = None,
-                untrusted: bool = False,
+                untrusted: bool = False, per_mesh: bool = False, errors=None,
                 progress=None) -> Exported:
     """Write the levels of detail of ``source`` to ``output`` (a ``.glb`` path).
 
@@ -131,8 +188,19 @@ def export_lods(source, output, *, lods=DEFAULT_LODS, separate: bool = False,
         and the output is the input document with every mesh replaced by its
         levels (``io.scene_glb``); skinned and morphed meshes are kept as they
         are, one level, and ``Exported.notes`` says so.
-    lods : sequence of float
-        Face ratios of the levels, finest first, strictly decreasing, in (0, 1].
+    lods : sequence of float, optional
+        Face ratios of the levels, finest first, strictly decreasing, in (0, 1]
+        (default ``DEFAULT_LODS``). For a scene, ratios of the whole scene's
+        triangles, each part once per instance, with one budget for all parts
+        (:func:`budget.scene_levels`); with ``per_mesh``, of each mesh's own.
+    errors : sequence of float, optional
+        Instead of ``lods``: error bounds of the levels, finest first, strictly
+        increasing, >= 0, as fractions of the bounding-box diagonal (a scene's
+        world box); each mesh at its coarsest level within the bound (world
+        error for a scene: the mesh's error times its largest instance scale).
+    per_mesh : bool
+        A scene's ``lods`` are each mesh's own face ratios (the meaning before
+        scenes had one budget). The same for a single mesh.
     separate : bool
         Write ``OUT_lod0.glb``, ``OUT_lod1.glb``, ... instead of one file.
     reach : str
@@ -140,7 +208,8 @@ def export_lods(source, output, *, lods=DEFAULT_LODS, separate: bool = False,
         at the coarsest it reaches. ``"cluster"``: such a level is made by vertex
         clustering of the full mesh instead (``cluster.cluster``), which joins
         parts and meets the budget but keeps positions only (no UVs, normals or
-        materials: a textured asset's far level is drawn untextured).
+        materials: a textured asset's far level is drawn untextured). Not with
+        ``errors``.
     options : BuildOptions, optional
         How a mesh file is built (``options.BuildOptions``; None: the defaults).
         A ``.pm`` source was built already and ignores them.
@@ -149,14 +218,20 @@ def export_lods(source, output, *, lods=DEFAULT_LODS, separate: bool = False,
     progress : callable, optional
         ``progress(done, expected)`` during a build, as for ``build``.
 
+    The ``MSFT_screencoverage`` hints of a single mesh's ratios come from the
+    ratios (``glb.coverage_from_ratios``); those of a scene, and of levels by
+    error, from the levels' measured errors (``budget.coverage_from_errors``:
+    the coverage below which the next level's error is under a pixel at 1080p).
+
     Raises
     ------
     MeshError
-        On a bad source, bad ratios or an output that is not ``.glb``. Nothing is
-        written then; each file written is complete (``io.write_atomic``).
+        On a bad source, bad ratios or errors, both given, or an output that is
+        not ``.glb``. Nothing is written then; each file written is complete
+        (``io.write_atomic``).
     """
-    check_lods(lods)        # before a build, not after
     check_reach(reach)
+    lods, errors = _check_choice(lods, errors, per_mesh, reach)     # before a build
     options = BuildOptions.check(options)
     source, output = Path(source), Path(output)
     if output.suffix.lower() != ".glb":
@@ -166,8 +241,8 @@ def export_lods(source, output, *, lods=DEFAULT_LODS, separate: bool = False,
     if source.suffix.lower() in (".gltf", ".glb"):
         from .io.scene import load_scene
         scene = load_scene(source, root=source.parent if untrusted else None)
-        return _export_scene(scene, source, output, lods, separate, reach, options,
-                             progress, start)
+        return _export_scene(scene, source, output, lods, errors, per_mesh, separate, reach,
+                             options, progress, start)
     if source.suffix.lower() == ".pm":
         pm = ProgressiveMesh.load(source)
     else:
@@ -176,7 +251,17 @@ def export_lods(source, output, *, lods=DEFAULT_LODS, separate: bool = False,
             pm = build(source, options, progress=progress, untrusted=untrusted)
         except ValueError as exc:       # argument checks deep in the build
             raise MeshError(str(exc)) from exc
-    meshes, coverage, clustered = lod_chain(pm, lods, reach=reach)
+    if errors is not None:
+        (meshes, coverage), clustered = error_chain(pm, errors), []
+    else:
+        meshes, coverage, clustered = lod_chain(pm, lods, reach=reach)
+    outputs = _write_chain(output, separate, meshes, coverage)
+    return Exported(source, outputs, [mesh.face_count for mesh in meshes], coverage,
+                    time.perf_counter() - start, pm.faces_at_level(pm.base_vertices),
+                    clustered)
+
+
+def _write_chain(output: Path, separate: bool, meshes, coverage) -> list[Path]:
     if separate:
         outputs = [output.with_name(f"{output.stem}_lod{i}{output.suffix}")
                    for i in range(len(meshes))]
@@ -186,46 +271,77 @@ def export_lods(source, output, *, lods=DEFAULT_LODS, separate: bool = False,
     output.parent.mkdir(parents=True, exist_ok=True)
     for path, blob in zip(outputs, blobs):
         write_atomic(path, blob)
-    return Exported(source, outputs, [mesh.face_count for mesh in meshes], coverage,
-                    time.perf_counter() - start, pm.faces_at_level(pm.base_vertices),
-                    clustered)
+    return outputs
 
 
-def _export_scene(scene, source: Path, output: Path, lods, separate, reach, options,
-                  progress, start) -> Exported:
-    """:func:`export_lods` of a glTF scene kept whole: each glTF mesh built once into a
-    progressive mesh, its levels written in place of it (``io.scene_glb``).
-
-    ``Exported.faces`` counts each source mesh once per level (not per instance);
-    ``base_faces`` sums the meshes' coarsest reachable levels; ``clustered``
-    lists the levels that clustering made for at least one mesh.
-    """
+def _build_parts(scene, source: Path, options, progress) -> dict:
+    """glTF mesh index -> its progressive mesh, each built once; a skinned or morphed
+    mesh with its error measured in the poses it is seen in (``simplify.poses``)."""
     from .build import build
-    from .io.scene_glb import encode_scene
-    if not scene.meshes and not scene.as_is:
-        raise MeshError(f"cannot load {source.name}: it has no faces (no node of it places "
-                        "a mesh)")
-    levels, coverage, clustered, base = {}, None, set(), 0
+    from .simplify.poses import scene_poses
+
+    pms = {}
     for index, mesh in scene.meshes.items():
         try:
-            pm = build(mesh, options, progress=progress)
+            pms[index] = build(mesh, options, progress=progress,
+                               poses=scene_poses(scene, index, mesh))
         except ValueError as exc:       # argument checks deep in the build
             raise MeshError(str(exc)) from exc
         except MeshError as exc:
             raise MeshError(f"cannot build mesh {index} of {source.name}: {exc}") from exc
-        try:
-            levels[index], coverage, made = lod_chain(pm, lods, reach=reach)
-        except MeshError:
-            if reach == "none":
-                raise
-            # clustering cannot bring a tiny part (a few faces) to its budget: the part
-            # keeps its edge-collapse levels, and the others are still clustered
-            levels[index], coverage, made = lod_chain(pm, lods)
-        clustered.update(made)
-        base += pm.faces_at_level(pm.base_vertices)
-    if coverage is None:        # every mesh is kept as it is
-        coverage = coverage_from_ratios(check_lods(lods))
-    count = len(coverage)
+    return pms
+
+
+def _export_scene(scene, source: Path, output: Path, lods, errors, per_mesh, separate, reach,
+                  options, progress, start) -> Exported:
+    """:func:`export_lods` of a glTF scene kept whole: each glTF mesh built once into a
+    progressive mesh, the levels of all of them chosen together (``budget.chain_levels``)
+    and written in place of them (``io.scene_glb``).
+
+    ``Exported.faces`` counts each source mesh once per level (not per instance),
+    ``Exported.drawn`` once per instance; ``errors`` is the worst world error of
+    each level. ``base_faces`` sums the meshes' coarsest reachable levels;
+    ``clustered`` lists the levels that clustering made for at least one mesh:
+    with ``reach="cluster"``, a level whose drawn triangles overshoot its budget
+    by more than ``REACH_SLACK`` has each mesh that stopped at its base made by
+    clustering at its share (the level's ratio of its faces), if that has fewer
+    faces. Meshes kept as they are (``scene.as_is``) are drawn at every level
+    and are outside the budget: the ratios are of the simplified meshes' triangles.
+    """
+    from .budget import chain_levels, coverage_from_errors, scene_instances, world_errors
+    from .io.scene_glb import encode_scene
+    if not scene.meshes and not scene.as_is:
+        raise MeshError(f"cannot load {source.name}: it has no faces (no node of it places "
+                        "a mesh)")
+    pms = _build_parts(scene, source, options, progress)
+    instances, diagonal = scene_instances(scene, pms)
+    count = len(errors if errors is not None else lods)
+    chain = chain_levels(pms, instances, lods=lods, errors=errors, per_mesh=per_mesh,
+                         diagonal=diagonal)
+    levels = {index: [pm.at(chosen[index]) for chosen in chain] for index, pm in pms.items()}
+    worst = [max(world_errors(pms, instances, chosen).values(), default=0.0)
+             for chosen in chain]
+    drawn = [sum(len(instances[index]) * levels[index][k].face_count for index in pms)
+             for k in range(count)]
+    clustered = set()
+    if reach == "cluster":
+        full_drawn = sum(len(instances[index]) * pm.face_count for index, pm in pms.items())
+        for k, ratio in enumerate(lods):
+            # per mesh: each mesh over its own budget; scene: the meshes stopped at their
+            # base, when the scene is over its budget
+            if per_mesh or drawn[k] > REACH_SLACK * max(1, ratio * full_drawn):
+                replaced = _cluster_stuck(pms, chain[k], levels, k, ratio, per_mesh)
+                if replaced:
+                    clustered.add(k)
+                    # a clustered level has no collapse error: its measured distance
+                    # to the full mesh stands in (world units, for the hints)
+                    worst[k] = max(worst[k], *(max(instances[index], default=0.0) * error
+                                               for index, error in replaced.items()))
+        drawn = [sum(len(instances[index]) * levels[index][k].face_count for index in pms)
+                 for k in range(count)]
+    kept_drawn = sum(scene.as_is_faces[index] * len(scene.mesh_nodes.get(index, ()))
+                     for index in scene.as_is)
+    coverage = coverage_from_errors(worst, diagonal) if count else []
     if separate:
         outputs = [output.with_name(f"{output.stem}_lod{i}{output.suffix}") for i in range(count)]
         blobs = [encode_scene(scene, levels, coverage, level=i) for i in range(count)]
@@ -235,12 +351,46 @@ def _export_scene(scene, source: Path, output: Path, lods, separate, reach, opti
     for path, blob in zip(outputs, blobs):
         write_atomic(path, blob)
     kept = sum(scene.as_is_faces.values())
-    faces = [kept + sum(chain[k].face_count for chain in levels.values()) for k in range(count)]
+    faces = [kept + sum(chain_[k].face_count for chain_ in levels.values()) for k in range(count)]
+    base = sum(pm.faces_at_level(pm.base_vertices) for pm in pms.values())
     # base_faces: the coarsest the simplified meshes reach, with the kept ones beside them
     # (0 when nothing was simplified: no "simplifies no further" for a skinned asset)
     return Exported(source, outputs, faces, coverage, time.perf_counter() - start,
-                    base + kept if levels else 0,
-                    sorted(clustered), list(scene.notes))
+                    base + kept if levels else 0, sorted(clustered), list(scene.notes),
+                    [kept_drawn + d for d in drawn], worst)
+
+
+def _cluster_stuck(pms: dict, chosen: dict, levels: dict, k: int, ratio: float,
+                   per_mesh: bool) -> dict:
+    """Replace level ``k`` of the meshes edge collapse left short, by clustering of
+    the full mesh at ``ratio`` of its faces where that has fewer faces. Short: over
+    ``REACH_SLACK`` times its own budget (``per_mesh``, as :func:`lod_chain` does),
+    else stopped at its base. Returns mesh index -> the clustered level's error,
+    mesh units: its sampled two-sided Hausdorff distance to the full mesh."""
+    from .metrics.surface import surface_distance
+    from .simplify.cluster import cluster
+
+    replaced = {}
+    for index, pm in pms.items():
+        budget = max(1, round(ratio * pm.face_count))
+        short = (levels[index][k].face_count > REACH_SLACK * budget if per_mesh
+                 else chosen[index] == pm.base_vertices)
+        if not short:
+            continue
+        full = pm.at(pm.vertex_count)
+        full = Mesh(full.positions, full.faces)
+        try:
+            joined = cluster(full, target_faces=budget)
+        except MeshError:
+            continue    # clustering cannot bring a tiny part (a few faces) to its budget
+        if joined.face_count < levels[index][k].face_count:
+            levels[index][k] = joined
+            try:
+                distance = surface_distance(full, joined, samples=20_000)
+                replaced[index] = distance["hausdorff"] * distance["diagonal"]
+            except ValueError:      # a flat or degenerate part: no area to sample
+                replaced[index] = pm.error_at_level(pm.base_vertices)
+    return replaced
 
 
 @dataclass
@@ -280,9 +430,10 @@ def _keep_sources(relatives: list) -> list:
             and not any(out == relative.parent or out in relative.parents for out in outputs)]
 
 
-def export_folder(source, output, *, lods=DEFAULT_LODS, separate: bool = False,
+def export_folder(source, output, *, lods=None, separate: bool = False,
                   reach: str = "none", jobs: int = 1, force: bool = False,
                   options: BuildOptions | None = None, untrusted: bool = False,
+                  per_mesh: bool = False, errors=None,
                   scheduler=None, progress=None) -> FolderReport:
     """Export every mesh file under ``source`` into ``output`` (see the module docstring).
 
@@ -295,9 +446,10 @@ def export_folder(source, output, *, lods=DEFAULT_LODS, separate: bool = False,
         ``AWS_ENDPOINT_URL``): a task then fetches its source, with the files it
         names (a glTF's buffers and images, an OBJ's MTL and textures), into a
         temporary folder, and writes each output as one whole object.
-    lods, separate, reach, options
+    lods, errors, per_mesh, separate, reach, options
         As for :func:`export_lods`; the manifest records them all, so changing
-        one rebuilds.
+        one rebuilds (``per_mesh`` only for glTF sources, the only ones it
+        changes; ``errors`` when given).
     jobs : int
         Sources built at once: threads of the local pool (the compiled kernels
         release the GIL), or worker processes of ``scheduler="local"``. Each holds
@@ -328,8 +480,8 @@ def export_folder(source, output, *, lods=DEFAULT_LODS, separate: bool = False,
     """
     from .schedulers import check_scheduler, open_scheduler
 
-    ratios = check_lods(lods)
     check_reach(reach)
+    ratios, errors = _check_choice(lods, errors, per_mesh, reach)
     options = BuildOptions.check(options)
     check_scheduler(scheduler)
     if jobs < 1:
@@ -341,8 +493,18 @@ def export_folder(source, output, *, lods=DEFAULT_LODS, separate: bool = False,
     if not sources:
         raise MeshError(f"{source} holds no mesh file ({', '.join(SOURCE_SUFFIXES)})")
     outputs.create()
-    recorded = {"lods": list(ratios), "separate": separate, "reach": reach,
-                "build": options.model_dump()}
+    recorded = {"lods": list(ratios) if ratios is not None else None, "separate": separate,
+                "reach": reach, "build": options.model_dump()}
+    if errors is not None:
+        recorded["errors"] = list(errors)
+
+    def recorded_for(relative) -> dict:
+        # a glTF scene's levels depend on whether they share one budget; other
+        # sources are one mesh either way, so their entries stay as they were
+        if PurePosixPath(relative).suffix.lower() in (".gltf", ".glb"):
+            return {**recorded, "levels": "per mesh" if per_mesh else "scene"}
+        return recorded
+
     manifest = outputs.read_manifest()
     existing = outputs.existing()
     report = FolderReport()
@@ -376,7 +538,7 @@ def export_folder(source, output, *, lods=DEFAULT_LODS, separate: bool = False,
             continue
         entry = manifest.get(_key(relative))
         if (not force and entry is not None and entry.get("sha256") == digest
-                and entry.get("options") == recorded
+                and entry.get("options") == recorded_for(relative)
                 and all(path in existing for path in entry.get("outputs", ()))):
             report.up_to_date.append(relative)
             finish(relative, "up to date")
@@ -393,7 +555,7 @@ def export_folder(source, output, *, lods=DEFAULT_LODS, separate: bool = False,
             for relative, digest in todo:
                 job = AssetJob(inputs.shared(shared), outputs.shared(shared),
                                PurePosixPath(relative).as_posix(), ratios,
-                               separate, reach, options, untrusted)
+                               separate, reach, options, untrusted, per_mesh, errors)
                 key = f"lodserver-export-{_key(relative)}-{uuid.uuid4().hex[:12]}"
                 running[runner.submit(export_asset, job, key)] = (relative, digest)
             for done in runner.completed(list(running)) if running else ():
@@ -409,7 +571,7 @@ def export_folder(source, output, *, lods=DEFAULT_LODS, separate: bool = False,
                                        outputs=[outputs.location(name)
                                                 for name in outcome.outputs])
                     manifest[_key(relative)] = {
-                        "sha256": digest, "options": recorded,
+                        "sha256": digest, "options": recorded_for(relative),
                         "outputs": [str(name) for name in outcome.outputs]}
                     report.written.append(exported)
                     finish(relative, exported)
@@ -443,6 +605,8 @@ class AssetJob:
     reach: str
     options: BuildOptions
     untrusted: bool
+    per_mesh: bool = False
+    errors: tuple | None = None
 
 
 def export_asset(job: AssetJob):
@@ -475,7 +639,8 @@ def _export_asset(job: AssetJob) -> Exported:
         written_to = Path(scratch, "out") if is_url(job.output) else Path(job.output)
         exported = export_lods(source, written_to.joinpath(*target.parts), lods=job.lods,
                                separate=job.separate, reach=job.reach, options=job.options,
-                               untrusted=job.untrusted)
+                               untrusted=job.untrusted, per_mesh=job.per_mesh,
+                               errors=job.errors)
         names = [PurePosixPath(path.relative_to(written_to).as_posix())
                  for path in exported.outputs]
         if is_url(job.output):

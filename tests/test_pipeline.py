@@ -236,3 +236,33 @@ def test_export_takes_the_build_options_and_creates_the_output_folder(tmp_path, 
                  "--uv-weight", "0"]) == 1
     err = capsys.readouterr().err
     assert err.strip() == "lodserver export: --uv-weight must be a positive number, got 0.0"
+
+
+def test_scene_level_choice_is_part_of_the_manifest(tmp_path):
+    """per_mesh changes only a glTF scene's levels, so only it is rebuilt; errors
+    change every source's."""
+    from .test_scene_budget import bolt_and_hull_glb
+
+    source, out = _assets(tmp_path / "assets"), tmp_path / "lods"
+    (source / "props" / "broken.stl").unlink()
+    (source / "ship.glb").write_bytes(bolt_and_hull_glb())
+    first = export_folder(source, out, lods=(1, 0.5))
+    assert len(first.written) == 3
+    scene = next(e for e in first.written if e.source.name == "ship.glb")
+    assert scene.drawn[1] <= 0.5 * scene.drawn[0]           # one budget for the scene
+    entries = json.loads((out / MANIFEST).read_text())["sources"]
+    assert entries["ship.glb"]["options"]["levels"] == "scene"
+    assert "levels" not in entries["spot.obj"]["options"]
+    assert not export_folder(source, out, lods=(1, 0.5)).written
+    again = export_folder(source, out, lods=(1, 0.5), per_mesh=True)
+    assert [e.source.name for e in again.written] == ["ship.glb"]
+    entries = json.loads((out / MANIFEST).read_text())["sources"]
+    assert entries["ship.glb"]["options"]["levels"] == "per mesh"
+    by_error = export_folder(source, out, errors=(0.001, 0.01))
+    assert len(by_error.written) == 3
+    assert all(len(e.faces) == 2 for e in by_error.written)
+    entries = json.loads((out / MANIFEST).read_text())["sources"]
+    assert entries["spot.obj"]["options"]["errors"] == [0.001, 0.01]
+    assert not export_folder(source, out, errors=(0.001, 0.01)).written
+    with pytest.raises(MeshError, match="not both"):
+        export_folder(source, out, lods=(1, 0.5), errors=(0.01,))

@@ -19,6 +19,7 @@ from lodserver import build
 from lodserver.io.glb import render_primitives
 from lodserver.io.scene import load_scene
 from lodserver.pipeline import export_lods
+from lodserver.simplify.poses import scene_poses
 
 from .conftest import glb_chunks
 from .io import test_gltf
@@ -190,7 +191,7 @@ def check_scene_export(source, out, validate=None) -> tuple[dict, dict]:
     # render_primitives has it (which level, the scene budget chooses)
     written_faces = [sum(scene.as_is_faces.values())] * count
     for index in meshes:
-        pm = build(scene.meshes[index])
+        pm = build(scene.meshes[index], poses=scene_poses(scene, index, scene.meshes[index]))
         for k, mesh_index in enumerate(lod_meshes[index]):
             level = written_level(pm, document, binary, document["meshes"][mesh_index])
             written_faces[k] += pm.faces_at_level(level)
