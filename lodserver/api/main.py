@@ -20,7 +20,7 @@ from ..service.parsing import ParsePool
 from ..service.store import LocalStore
 from .caching import BodyCache
 from .errors import add_error_handlers
-from .routes import health, lods, materials, meshes, viewer
+from .routes import health, lods, materials, meshes, parts, viewer
 from .settings import Settings, get_settings
 
 
@@ -81,7 +81,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
                            allow_headers=["Authorization", "If-None-Match"],
                            expose_headers=["ETag", "Location"])
     add_error_handlers(app)
-    for module in (meshes, lods, materials, health, viewer):
+    for module in (meshes, lods, parts, materials, health, viewer):
         app.include_router(module.router)
     viewer.mount_static(app, settings)
     from .bodies import add_bounded_reads   # body files, heavy-request limit, security headers

@@ -42,6 +42,28 @@ class ErrorPoint(BaseModel):
     error: float = Field(description="Largest collapse error to reach this level, mesh units.")
 
 
+class PartPublic(BaseModel):
+    """One part of a mesh: a glTF mesh of a scene with its own levels (a single mesh
+    is a scene of one part, index 0, whose endpoints answer as the mesh's own)."""
+
+    index: int
+    name: str
+    mesh: int | None = Field(None, description="The glTF mesh index in the uploaded "
+                             "document; null for a single mesh.")
+    nodes: list[int] = Field(default_factory=list, description="The glTF nodes placing it.")
+    vertices: int
+    faces: int
+    base_vertices: int
+    base_faces: int
+    splits: int | None = None
+    max_error: float | None = None
+    error_curve: list[ErrorPoint] = Field(default_factory=list)
+    bounds: dict[str, list[float]] | None = Field(
+        None, description="Full-detail bounding box in the part's own (mesh) space.")
+    urls: dict[str, str] = Field(description="The part's lod and splits URLs at the mesh's "
+                                 "version (append the route's parameters).")
+
+
 class MeshPublic(BaseModel):
     """A mesh as clients see it; counts and the error curve appear once it is ready."""
 
@@ -73,7 +95,12 @@ class MeshPublic(BaseModel):
     urls: dict[str, str] | None = Field(None, description="Once ready: the lod, splits, chain "
                                         "and materials URLs at this version (append the "
                                         "route's parameters: &ratio=0.1), which any cache, a "
-                                        "CDN too, may keep for a year.")
+                                        "CDN too, may keep for a year. A scene has no "
+                                        "splits of its own (its parts have).")
+    scene: bool = Field(False, description="Once ready: whether the mesh is a glTF scene "
+                        "kept with its node tree (several parts, skins, animations, cameras).")
+    parts: list[PartPublic] = Field(default_factory=list, description="Once ready: its parts, "
+                                    "one per glTF mesh of a scene, one for a single mesh.")
     created: datetime
     updated: datetime
 
@@ -88,13 +115,46 @@ class MeshPublic(BaseModel):
             splits=summary.get("splits"), max_error=summary.get("max_error"),
             error_curve=summary.get("error_curve", []), bounds=summary.get("bounds"),
             load_report=summary.get("metadata", {}).get("load_report"),
-            warnings=load_warnings(summary.get("metadata", {}).get("load_report")),
+            warnings=report_warnings(summary.get("metadata", {}).get("load_report")),
             failure=record.failure,
             version=version_of(record.digest) if record.status is Status.READY else None,
-            urls=versioned_urls(record.id, record.digest) if record.status is Status.READY
-            else None,
+            urls=_urls(record), scene=bool(summary.get("scene")), parts=_parts(record),
             created=datetime.fromtimestamp(record.created, timezone.utc),
             updated=datetime.fromtimestamp(record.updated, timezone.utc))
+
+
+def report_warnings(report: dict | None) -> list[str]:
+    """``io.fileset.load_warnings`` of a load report, and a scene's notes (what
+    ``io.scene`` keeps without levels, or leaves out)."""
+    return load_warnings(report) + list((report or {}).get("notes") or ())
+
+
+def _urls(record: MeshRecord) -> dict | None:
+    if record.status is not Status.READY:
+        return None
+    urls = versioned_urls(record.id, record.digest)
+    if urls is not None and record.summary.get("scene"):
+        del urls["splits"]
+    return urls
+
+
+def _parts(record: MeshRecord) -> list[PartPublic]:
+    """The parts of a ready mesh from its row alone: a scene's summary lists them,
+    a single mesh is its own part 0."""
+    summary, version = record.summary, version_of(record.digest)
+    if record.status is not Status.READY or "vertices" not in summary or version is None:
+        return []
+    listed = summary["parts"] if summary.get("scene") else [
+        {**summary, "index": 0, "name": record.name, "mesh": None, "nodes": []}]
+    base = f"/meshes/{record.id}/parts"
+    return [PartPublic(index=part["index"], name=part["name"], mesh=part["mesh"],
+                       nodes=part["nodes"], vertices=part["vertices"], faces=part["faces"],
+                       base_vertices=part["base_vertices"], base_faces=part["base_faces"],
+                       splits=part.get("splits"), max_error=part.get("max_error"),
+                       error_curve=part.get("error_curve", []), bounds=part.get("bounds"),
+                       urls={route: f"{base}/{part['index']}/{route}?v={version}"
+                             for route in ("lod", "splits")})
+            for part in listed]
 
 
 class MeshList(BaseModel):

@@ -37,8 +37,10 @@ import numpy as np
 from ..build import build
 from ..io import LoadReport
 from ..io.limits import DEFAULT_MAX_TRIANGLES, LoadLimits
+from ..io.scene import Scene
 from ..mesh import Mesh, MeshError
 from .parsing import ParsePool, ParserClosed, check_mesh_file
+from .scenes import SceneReport, build_scene
 from .store import (Claim, LeaseLostError, MeshRecord, Store, StorageFullError, StoreError,
                     UnknownMeshError, is_disk_full)
 
@@ -80,7 +82,9 @@ def _prepare_packets(store: Store, mesh_id: str) -> None:
     from ..packets import encode_records
 
     try:
-        encode_records(store.load(mesh_id=mesh_id))
+        artefact = store.load(mesh_id=mesh_id)
+        for part in getattr(artefact, "parts", None) or [None]:
+            encode_records(artefact if part is None else part.pm)
     except Exception:       # the mesh is served either way; its first packet is just slower
         log.exception("could not prepare the packets of mesh %s", mesh_id)
 
@@ -204,8 +208,9 @@ class JobRunner:
 
     # ---- uploads ----------------------------------------------------------------
     def parse(self, source: Path, *, file_type: str, name: str, root=None,
-              admit: bool = True) -> tuple[Mesh, LoadReport]:
-        """Parse and check ``source`` (in the parse pool when there is one).
+              admit: bool = True) -> tuple[Mesh | Scene, LoadReport | SceneReport]:
+        """Parse and check ``source`` (in the parse pool when there is one): a
+        glTF scene (``scenes.scene_reason``) as ``(Scene, SceneReport)``.
 
         Messages name ``name``, never ``source``, ``root`` or the data directory.
         """
@@ -213,9 +218,10 @@ class JobRunner:
         try:
             if self.parser is None:
                 return check_mesh_file(source, file_type=file_type, root=root,
-                                       max_triangles=self.max_triangles, limits=limits)
+                                       max_triangles=self.max_triangles, limits=limits,
+                                       scenes=True)
             return self.parser.parse(source, file_type=file_type, root=root, limits=limits,
-                                     max_triangles=self.max_triangles, admit=admit)
+                                     max_triangles=self.max_triangles, admit=admit, scenes=True)
         except MeshError as exc:
             message = scrub(str(exc), {source: name, root: "the upload",
                                        getattr(self.store, "root", None): "the server"})
@@ -412,6 +418,8 @@ class JobRunner:
                 log.warning("could not record the progress of mesh %s: %s", mesh_id, exc)
 
         options = dict(record.options)
+        if isinstance(mesh, Scene):
+            return self._build_scene(running, mesh, report, options, progress)
         locked = None
         if options.pop("lock_border", False):
             from ..simplify.topology import census
@@ -427,6 +435,28 @@ class JobRunner:
         pm.metadata["source"] = record.name
         pm.metadata["load_report"] = report.as_dict()
         store.put_artefact(mesh_id=mesh_id, pm=pm, attempt=attempt)
+        _prepare_packets(store, mesh_id)
+        return True
+
+    def _build_scene(self, running: _Build, scene: Scene, report: SceneReport, options: dict,
+                     progress) -> bool:
+        """Build every part of a scene, then store them as one artefact (so a part
+        that fails, or a cancel, leaves nothing stored); as :meth:`_build`."""
+        store, record, cancel = self.store, running.claim.record, running.cancel
+        mesh_id, attempt = record.id, running.claim.attempt
+        lock_border = bool(options.pop("lock_border", False))
+        try:
+            asset = build_scene(scene, build=build, options=options, lock_border=lock_border,
+                                progress=progress, cancel=cancel)
+        except MeshError as exc:
+            store.mark_failed(mesh_id=mesh_id, reason=str(exc), attempt=attempt)
+            return True
+        if asset is None or cancel.is_set():
+            return False
+        asset.metadata.update(source=record.name, load_report=report.as_dict(),
+                              options=asset.parts[0].pm.metadata.get("options",
+                                                                     dict(record.options)))
+        store.put_artefact(mesh_id=mesh_id, pm=asset, attempt=attempt)
         _prepare_packets(store, mesh_id)
         return True
 

@@ -23,11 +23,16 @@ from concurrent.futures import ProcessPoolExecutor
 from concurrent.futures.process import BrokenProcessPool
 from contextlib import contextmanager
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from ..io import LoadReport, load_mesh
 from ..io.fileset import DEFAULT_SET_LIMITS, FileSetLimits, open_set
 from ..io.limits import LimitError, LoadLimits, OutOfMemory
 from ..mesh import Mesh, MeshError
+
+if TYPE_CHECKING:       # annotations only: the scene reader is imported when needed
+    from ..io.scene import Scene
+    from .scenes import SceneReport
 
 # Address space of one parse worker by default: its imports (numpy, numba,
 # trimesh) take about 0.5 GB of it before any file is read.
@@ -58,7 +63,9 @@ SET_TYPE = "zip"
 
 def check_mesh_file(path, *, file_type: str, max_triangles: int, root=None,
                     limits: LoadLimits | None = None,
-                    set_limits: FileSetLimits | None = None) -> tuple[Mesh, LoadReport]:
+                    set_limits: FileSetLimits | None = None,
+                    scenes: bool = False
+                    ) -> tuple[Mesh | Scene, LoadReport | SceneReport]:
     """Load a mesh file (or a set of files) and check it against the triangle limit.
 
     Parameters
@@ -77,10 +84,13 @@ def check_mesh_file(path, *, file_type: str, max_triangles: int, root=None,
         What the file may declare (checked before allocating for it).
     set_limits : FileSetLimits, optional
         What a set's archive may hold (default ``FileSetLimits()``).
+    scenes : bool
+        Keep a glTF that is a scene (``scenes.scene_reason``) as one: the
+        result is then ``(io.scene.Scene, scenes.SceneReport)``.
 
     Returns
     -------
-    (Mesh, LoadReport), as ``io.load_mesh``.
+    (Mesh, LoadReport), as ``io.load_mesh``; or (Scene, SceneReport) with ``scenes``.
 
     Raises
     ------
@@ -94,9 +104,16 @@ def check_mesh_file(path, *, file_type: str, max_triangles: int, root=None,
         try:
             main = open_set(path, unpacked, set_limits or DEFAULT_SET_LIMITS)
             return check_mesh_file(main, file_type=main.suffix.lower().lstrip("."),
-                                   max_triangles=max_triangles, root=unpacked, limits=limits)
+                                   max_triangles=max_triangles, root=unpacked, limits=limits,
+                                   scenes=scenes)
         finally:
             shutil.rmtree(unpacked, ignore_errors=True)
+    if scenes and file_type in ("gltf", "glb"):
+        from .scenes import read_scene_upload
+        scene = read_scene_upload(path, root=root, limits=limits,
+                                  max_triangles=max_triangles)
+        if scene is not None:
+            return scene
     mesh, report = load_mesh(path, file_type=file_type, root=root, limits=limits)
     if mesh.face_count > max_triangles:
         raise LimitError(f"the mesh has {mesh.face_count} triangles; this server builds at most "
@@ -126,12 +143,12 @@ def _start_worker(memory_bytes: int, parent: int) -> None:
 
 
 def _parse_in_worker(path: str, file_type: str, root: str | None, max_triangles: int,
-                     limits: LoadLimits | None) -> tuple[Mesh, LoadReport]:
+                     limits: LoadLimits | None, scenes: bool = False):
     """``check_mesh_file`` in a parse worker, with every failure made a picklable
     MeshError naming ``path`` (the caller replaces it with the upload's name)."""
     try:
         return check_mesh_file(path, file_type=file_type, max_triangles=max_triangles,
-                               root=root, limits=limits)
+                               root=root, limits=limits, scenes=scenes)
     except MeshError:
         raise
     except MemoryError:
@@ -209,7 +226,7 @@ class ParsePool:
         return self._admitted >= self.workers + self.queue
 
     def parse(self, path, *, file_type: str, root, max_triangles: int,
-              limits: LoadLimits | None, admit: bool = True) -> tuple[Mesh, LoadReport]:
+              limits: LoadLimits | None, admit: bool = True, scenes: bool = False):
         """``check_mesh_file`` in a worker; see :func:`_parse_in_worker`.
 
         Raises ParserBusy (``admit`` and the queue is full), ParserClosed,
@@ -219,7 +236,7 @@ class ParsePool:
         try:
             return self.call(_parse_in_worker, str(path), file_type,
                              None if root is None else str(root), max_triangles, limits,
-                             admit=admit)
+                             scenes, admit=admit)
         except _WorkerDied:
             raise LimitError(f"cannot load {Path(path).name}: reading it needed more memory "
                              "than this server allows one file, or crashed the reader") from None

@@ -11,8 +11,9 @@ The data directory (one process's alone: it is locked while open) holds
 - ``catalogue.sqlite3`` : the default catalogue (``catalog.py``: one row per
   mesh and the build queue, with leases), in SQLite's WAL mode;
 - ``sources/<id>.<ext>`` : the uploaded file, kept until its build is done, and
-- ``artefacts/<id>.<sha256>.pm`` : the progressive mesh, under a key naming its
-  own digest, written once (atomically) and never changed: both in the default
+- ``artefacts/<id>.<sha256>.pm`` : the progressive mesh (a scene's: every part's
+  and its document in one file, ``scenes.py``), under a key naming its own
+  digest, written once (atomically) and never changed: both in the default
   blob store, the directory itself; with ``LODSERVER_STORE_URL`` they live there;
 - ``tmp/``                : scratch folders (an upload being received, a source
   being parsed, an artefact being written), emptied every time a store opens;
@@ -66,6 +67,7 @@ from .blobs import Blobs, BlobNotFoundError, LocalBlobs, open_blobs, sha256_file
 from .cache import DEFAULT_CACHE_BYTES, ArtefactCache
 from .catalog import MAX_LOST, Catalog, Claim, MeshRecord, Status, new_owner, open_catalog
 from .errors import StorageFullError, StoreError, is_disk_full
+from .scenes import SceneAsset, artefact_summary, load_artefact, save_asset
 
 __all__ = ["CORRUPT_ARTEFACT", "ID_PATTERN", "LOADED_CACHE_SIZE", "Claim", "LeaseLostError",
            "LocalStore", "MeshRecord", "NotReadyError", "SourceLostError", "Status",
@@ -190,14 +192,17 @@ class Store(ABC):
     def mark_failed(self, *, mesh_id: str, reason: str, attempt: int | None = None) -> None: ...
 
     @abstractmethod
-    def put_artefact(self, *, mesh_id: str, pm: ProgressiveMesh,
+    def put_artefact(self, *, mesh_id: str, pm: ProgressiveMesh | SceneAsset,
                      attempt: int | None = None) -> MeshRecord:
-        """Store the built artefact, mark the mesh ready and drop its source."""
+        """Store the built artefact (a progressive mesh, or a scene's parts and
+        document as one file: ``scenes.SceneAsset``), mark the mesh ready and drop
+        its source."""
 
     @abstractmethod
-    def load(self, *, mesh_id: str) -> ProgressiveMesh:
-        """The artefact of a ready mesh; :class:`NotReadyError` otherwise (also for
-        an artefact found corrupt, which is then quarantined and its mesh failed)."""
+    def load(self, *, mesh_id: str) -> ProgressiveMesh | SceneAsset:
+        """The artefact of a ready mesh (a SceneAsset for a scene); :class:`NotReadyError`
+        otherwise (also for an artefact found corrupt, which is then quarantined and
+        its mesh failed)."""
 
     @abstractmethod
     def recover(self) -> list[str]:
@@ -484,14 +489,15 @@ class LocalStore(Store):
                               lease_owner=None, lease_until=None)
         self.blobs.delete(source_key(record))
 
-    def put_artefact(self, *, mesh_id: str, pm: ProgressiveMesh,
+    def put_artefact(self, *, mesh_id: str, pm: ProgressiveMesh | SceneAsset,
                      attempt: int | None = None) -> MeshRecord:
         record = self._row(mesh_id)
         folder = self.scratch(prefix="artefact-")
         try:
             path = folder / "artefact.pm"
             try:
-                save_progressive(pm, path)      # atomic: nothing is left if it fails
+                # atomic: nothing is left if it fails
+                (save_asset if isinstance(pm, SceneAsset) else save_progressive)(pm, path)
                 digest = sha256_file(path)
                 key = artefact_key(mesh_id, digest)
                 self.blobs.put_file(key, path, move=True)
@@ -500,9 +506,7 @@ class LocalStore(Store):
                 raise
         finally:
             shutil.rmtree(folder, ignore_errors=True)
-        summary = {key_: value for key_, value in pm.summary().items() if key_ != "metadata"}
-        summary["metadata"] = {name: pm.metadata[name] for name in ("load_report", "options")
-                               if name in pm.metadata}
+        summary = artefact_summary(pm)
         try:
             ready = self._update(mesh_id, attempt, status=Status.READY.value, progress=1.0,
                                  failure=None, summary=summary, digest=digest,
@@ -573,7 +577,7 @@ class LocalStore(Store):
 
     def _decode(self, record: MeshRecord, key: str, path: Path) -> ProgressiveMesh:
         try:
-            return load_progressive(path)
+            return load_artefact(path, single=load_progressive)
         except ArtefactError as exc:
             cause = exc.__cause__
             if isinstance(cause, OSError) and not isinstance(cause, FileNotFoundError):

@@ -241,8 +241,23 @@ def _instancing_bomb_glb(instances=60_000, grid=24):
     return struct.pack("<4sII", b"glTF", 2, 12 + len(chunks)) + chunks
 
 
+def _primitive_bomb_glb(primitives=4096, grid=64):
+    """A small GLB whose one mesh, placed once, has ``primitives`` primitives all drawing
+    one grid of 2 * grid**2 triangles: 300 kilobytes that decode to ~33 million
+    triangles. (Many nodes placing one mesh, ``_instancing_bomb_glb``, is a scene
+    now, kept as one mesh: no bomb.)"""
+    glb = _instancing_bomb_glb(instances=1, grid=grid)
+    length = struct.unpack_from("<I", glb, 12)[0]
+    document = json.loads(glb[20:20 + length])
+    document["meshes"][0]["primitives"] *= primitives
+    text = json.dumps(document, separators=(",", ":")).encode()
+    text += b" " * (-len(text) % 4)
+    chunks = struct.pack("<I4s", len(text), b"JSON") + text + glb[20 + length:]
+    return struct.pack("<4sII", b"glTF", 2, 12 + len(chunks)) + chunks
+
+
 def test_the_parse_memory_limit_turns_a_bomb_into_413(tmp_path):
-    bomb = _instancing_bomb_glb()
+    bomb = _primitive_bomb_glb()
     assert len(bomb) < 4 * 2**20
     with _client(tmp_path, max_triangles=200_000_000, parse_memory_bytes=2**30) as client:
         response = _upload(client, bomb, "bomb.glb")

@@ -15,7 +15,7 @@ from typing import Annotated, Literal
 
 from fastapi import APIRouter, Query, Request, Response
 
-from ...io.glb import encode_lod_chain
+from ...io.glb import coverage_from_ratios, encode_lod_chain
 from ...packets import MAX_BITS, MIN_BITS, packet_between, prepare_records, records_ready
 from ...pipeline import DEFAULT_LODS, lod_chain, parse_lods
 from ...service.levels import (
@@ -26,6 +26,7 @@ from ...service.levels import (
     encode_level,
     resolve_level,
 )
+from ...service.scenes import SceneAsset, scene_chain_glb, scene_glb, scene_levels_for
 from ..bodies import LIGHT_FACES, BodiesDep
 from ..caching import (
     VersionQuery,
@@ -64,16 +65,36 @@ def get_lod(mesh_id: MeshId, store: StoreDep, bodies: BodiesDep, request: Reques
     ``format=json`` is the quantized form packets start from and end in
     (docs/packets.md); glb, obj and ply carry exact positions. A json level
     names its materials document, at version ``v`` when it is given.
+
+    A scene's level is the whole scene as GLB (``format=glb``), chosen by ratio
+    (of the scene's triangles, one budget over its parts) or error (a fraction
+    of its bounding-box diagonal); each part's glTF mesh says its part in
+    ``extras.lodserver_part``. Its parts' levels: ``/meshes/{id}/parts/{p}/lod``.
     """
-    pm, digest, policy = load_versioned(store, mesh_id, v)
-    level = resolve_level(pm, vertices=vertices, faces=faces, ratio=ratio, error=error)
+    artefact, digest, policy = load_versioned(store, mesh_id, v)
+    if isinstance(artefact, SceneAsset):
+        return _scene_lod(artefact, digest, policy, request, bodies, mesh_id=mesh_id,
+                          vertices=vertices, faces=faces, ratio=ratio, error=error,
+                          format=format)
+    return level_response(artefact, digest, policy, request, bodies, mesh_id=mesh_id,
+                          criterion={"vertices": vertices, "faces": faces, "ratio": ratio,
+                                     "error": error}, format=format, bits=bits, v=v)
+
+
+def level_response(pm, digest: str, policy: str, request: Request, bodies, *, mesh_id: str,
+                   criterion: dict, format: str, bits: int | None, v: str | None,
+                   part: int | None = None) -> Response:
+    """The response of one level of ``pm`` (a mesh, or part ``part`` of a scene:
+    None for a single mesh, whose part 0 is then the mesh's own level, ETag too)."""
+    level = resolve_level(pm, **criterion)
     bits = checked_bits(bits) if format == "json" else None
     if format == "json":
         prepare_records(pm)     # the json form is where packet clients start
     # a json level links its materials the way it was asked for: at its version
     # when it was, else by id; so its ETag tells the two bodies apart
     linked = format == "json" and v is not None
-    etag = etag_for(digest, "lod", level, format, bits, *(["v"] if linked else []))
+    scope = () if part is None else ("part", part)
+    etag = etag_for(digest, *scope, "lod", level, format, bits, *(["v"] if linked else []))
     if is_fresh(request, etag):
         return with_cache_control(immutable(None, media_type=FORMATS[format], etag=etag), policy)
     href = f"/meshes/{mesh_id}/materials" + (f"?v={version_of(digest)}" if linked else "")
@@ -81,7 +102,8 @@ def get_lod(mesh_id: MeshId, store: StoreDep, bodies: BodiesDep, request: Reques
         etag, lambda: encode_level(pm, level, file_type=format, bits=bits,
                                    materials_href=href, copy=False),
         media_type=FORMATS[format],
-        filename=None if format == "json" else f"{mesh_id}-{level}.{format}",
+        filename=None if format == "json" else
+        f"{mesh_id}-{'' if part is None else f'part{part}-'}{level}.{format}",
         weight=int(pm.faces_at_level(level) > LIGHT_FACES)), policy)
 
 
@@ -96,12 +118,24 @@ def get_splits(mesh_id: MeshId, store: StoreDep, bodies: BodiesDep, request: Req
 
     At the default ``bits`` a packet is cut from the mesh's records, encoded once
     per direction; other ``bits`` are encoded for the packet (under the heavy
-    limit), and each such packet once: its body is cached like a level's."""
-    pm, digest, policy = load_versioned(store, mesh_id, v)
+    limit), and each such packet once: its body is cached like a level's.
+    A scene's packets are its parts': ``/meshes/{id}/parts/{p}/splits``."""
+    artefact, digest, policy = load_versioned(store, mesh_id, v)
+    if isinstance(artefact, SceneAsset):
+        raise LevelError(f"mesh {mesh_id} is a scene of {len(artefact.parts)} parts; its "
+                         f"packets are its parts': /meshes/{mesh_id}/parts/{{p}}/splits")
+    return splits_response(artefact, digest, policy, request, bodies, start=start, to=to,
+                           bits=bits)
+
+
+def splits_response(pm, digest: str, policy: str, request: Request, bodies, *, start: int,
+                    to: int, bits: int | None, part: int | None = None) -> Response:
+    """The response of the packet from ``start`` to ``to`` of ``pm`` (``part`` as for
+    :func:`level_response`)."""
     start = check_level(pm, start, name="from")
     to = check_level(pm, to, name="to")
     bits = checked_bits(bits)
-    etag = etag_for(digest, "splits", start, to, bits)
+    etag = etag_for(digest, *(() if part is None else ("part", part)), "splits", start, to, bits)
     if is_fresh(request, etag):
         return with_cache_control(immutable(None, media_type="application/octet-stream",
                                             etag=etag), policy)
@@ -138,11 +172,17 @@ def get_chain(mesh_id: MeshId, store: StoreDep, bodies: BodiesDep, request: Requ
     The encoder holds the whole chain in memory while it builds it (about 700 MB
     at peak for 16 levels of a 1.1M-face mesh), so an uncached chain of more than
     ``LIGHT_FACES`` faces takes every heavy slot; it is then written to a body
-    file and streamed from it."""
+    file and streamed from it.
+
+    A scene's chain is the scene with ``MSFT_lod`` on every node placing a part,
+    level k of every part at scene ratio k (one budget over the parts)."""
     pm, digest, policy = load_versioned(store, mesh_id, v)
     ratios = parse_lods(lods)
     if len(ratios) > MAX_CHAIN_LEVELS:
         raise LevelError(f"a chain holds at most {MAX_CHAIN_LEVELS} levels, got {len(ratios)}")
+    if isinstance(pm, SceneAsset):
+        return _scene_chain(pm, digest, policy, request, bodies, mesh_id=mesh_id, ratios=ratios,
+                            reach=reach)
     faces = sum(pm.faces_at_level(pm.level_for(ratio=ratio)) for ratio in ratios)
     full = pm.faces_at_level(pm.vertex_count)
     if faces > MAX_CHAIN_FACES * full:
@@ -156,3 +196,53 @@ def get_chain(mesh_id: MeshId, store: StoreDep, bodies: BodiesDep, request: Requ
         etag, lambda: encode_lod_chain(*lod_chain(pm, ratios, reach=reach)[:2]),
         media_type=FORMATS["glb"], filename=f"{mesh_id}-lods.glb",
         weight=0 if reach == "none" and faces <= LIGHT_FACES else bodies.heavy.slots), policy)
+
+
+def _scene_levels(asset: SceneAsset, **criterion) -> dict:
+    try:
+        return scene_levels_for(asset, **criterion)
+    except (ValueError, TypeError) as exc:
+        raise LevelError(str(exc)) from exc
+
+
+def _scene_lod(asset: SceneAsset, digest: str, policy: str, request: Request, bodies, *,
+               mesh_id: str, vertices, faces, ratio, error, format: str) -> Response:
+    """The whole scene at one level (``get_lod``), as GLB."""
+    if format != "glb":
+        raise LevelError(f"mesh {mesh_id} is a scene of {len(asset.parts)} parts: its levels "
+                         "are GLB files of the whole scene (format=glb); a part's level in any "
+                         f"format is /meshes/{mesh_id}/parts/{{p}}/lod")
+    if vertices is not None or faces is not None or (ratio is None) == (error is None):
+        raise LevelError("a scene's level is chosen by exactly one of ratio (of the scene's "
+                         "triangles) and error (a fraction of its bounding-box diagonal)")
+    levels = _scene_levels(asset, ratio=ratio, error=error)
+    # named by the levels it holds: two criteria giving the same levels share a body
+    etag = etag_for(digest, "scene-lod", *(levels[p] for p in sorted(levels)))
+    if is_fresh(request, etag):
+        return with_cache_control(immutable(None, media_type=FORMATS["glb"], etag=etag), policy)
+    pms = asset.pms
+    drawn = sum(pms[p].faces_at_level(level) for p, level in levels.items())
+    return with_cache_control(bodies.respond(
+        etag, lambda: scene_glb(asset, levels), media_type=FORMATS["glb"],
+        filename=f"{mesh_id}-scene.glb", weight=int(drawn > LIGHT_FACES)), policy)
+
+
+def _scene_chain(asset: SceneAsset, digest: str, policy: str, request: Request, bodies, *,
+                 mesh_id: str, ratios, reach: str) -> Response:
+    """The ``MSFT_lod`` scene (``get_chain``)."""
+    if reach != "none":
+        raise LevelError("a scene's chain is made by edge collapse only (reach=none)")
+    pms = asset.pms
+    chain = [_scene_levels(asset, ratio=ratio) for ratio in ratios]
+    faces = sum(pms[p].faces_at_level(level) for levels in chain for p, level in levels.items())
+    full = sum(pm.face_count for pm in pms.values()) or 1
+    if faces > MAX_CHAIN_FACES * full:
+        raise LevelError(f"a chain's levels hold at most {MAX_CHAIN_FACES} times the mesh's "
+                         f"faces; these ratios add up to {faces / full:.2f} times")
+    etag = etag_for(digest, "scene-chain", ",".join(map(repr, ratios)))
+    if is_fresh(request, etag):
+        return with_cache_control(immutable(None, media_type=FORMATS["glb"], etag=etag), policy)
+    return with_cache_control(bodies.respond(
+        etag, lambda: scene_chain_glb(asset, ratios, coverage_from_ratios(ratios)),
+        media_type=FORMATS["glb"], filename=f"{mesh_id}-lods.glb",
+        weight=0 if faces <= LIGHT_FACES else bodies.heavy.slots), policy)

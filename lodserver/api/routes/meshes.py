@@ -8,11 +8,11 @@ from fastapi import APIRouter, Query, Response
 from fastapi.concurrency import run_in_threadpool
 from pydantic import ValidationError
 
-from ...io.fileset import load_warnings, unpack_zip
+from ...io.fileset import unpack_zip
 from ...mesh import MeshError
 from ...service.store import Status
 from ..deps import JobsDep, MeshId, StoreDep, TokenDep, UploadDep
-from ..models import MeshCreate, MeshCreated, MeshList, MeshPublic, Message
+from ..models import MeshCreate, MeshCreated, MeshList, MeshPublic, Message, report_warnings
 from ..upload import prepare_source
 
 router = APIRouter(prefix="/meshes", tags=["meshes"])
@@ -74,7 +74,7 @@ async def create_mesh(upload: UploadDep, jobs: JobsDep, response: Response) -> M
     href = f"/meshes/{record.id}"
     response.headers["Location"] = href
     return MeshCreated(id=record.id, status=record.status, href=href, main=source.name,
-                       files=list(source.files), warnings=load_warnings(report.as_dict()))
+                       files=list(source.files), warnings=report_warnings(report.as_dict()))
 
 
 def _public(store, record) -> MeshPublic:
