@@ -39,7 +39,7 @@ from numba import njit
 
 from ..io.animation import joint_matrices, node_weights, node_worlds, sample_times
 from ..mesh import MeshError
-from .quadrics import QUADRIC_SIZE, cross, edge_vectors
+from .quadrics import QUADRIC_SIZE, add_plane, face_plane
 
 # P * n bound of scene_poses (see the module docstring): 2^21 * 96 bytes = 201 MB.
 MAX_POSE_VERTICES = 2**21
@@ -228,33 +228,16 @@ def _accumulate_pose_quadrics(posed, faces, maps, out):
     that corner's row of ``out`` (n, 11)."""
     for f in range(faces.shape[0]):
         i, j, k = faces[f, 0], faces[f, 1], faces[f, 2]
-        ux, uy, uz, vx, vy, vz = edge_vectors(posed, i, j, k)
-        nx, ny, nz = cross(ux, uy, uz, vx, vy, vz)
-        double_area = np.sqrt(nx * nx + ny * ny + nz * nz)
-        if double_area == 0.0:
+        nx, ny, nz, d, area = face_plane(posed, i, j, k)
+        if area == 0.0:
             continue
-        nx /= double_area
-        ny /= double_area
-        nz /= double_area
-        area = 0.5 * double_area
-        d = -(nx * posed[i, 0] + ny * posed[i, 1] + nz * posed[i, 2])
         for v in (i, j, k):
             # plane (n, d) at A x + t is the plane (A^T n, n . t + d) at x
             px = maps[v, 0, 0] * nx + maps[v, 1, 0] * ny + maps[v, 2, 0] * nz
             py = maps[v, 0, 1] * nx + maps[v, 1, 1] * ny + maps[v, 2, 1] * nz
             pz = maps[v, 0, 2] * nx + maps[v, 1, 2] * ny + maps[v, 2, 2] * nz
             pd = maps[v, 0, 3] * nx + maps[v, 1, 3] * ny + maps[v, 2, 3] * nz + d
-            out[v, 0] += area * px * px
-            out[v, 1] += area * px * py
-            out[v, 2] += area * px * pz
-            out[v, 3] += area * py * py
-            out[v, 4] += area * py * pz
-            out[v, 5] += area * pz * pz
-            out[v, 6] += area * pd * px
-            out[v, 7] += area * pd * py
-            out[v, 8] += area * pd * pz
-            out[v, 9] += area * pd * pd
-            out[v, 10] += area
+            add_plane(out, v, area, px, py, pz, pd)
 
 
 # --------------------------------------------------------------------------

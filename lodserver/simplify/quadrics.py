@@ -350,34 +350,49 @@ def best_attributes(wq, w, x, y, z, out):
         out[c] = (wq[w, o] * x + wq[w, o + 1] * y + wq[w, o + 2] * z + wq[w, o + 3]) / area
 
 
+@njit(cache=True, nogil=True, inline="always")
+def face_plane(positions, i, j, k):
+    """The plane of triangle (i, j, k): unit normal (nx, ny, nz), offset d with
+    n . p + d = 0, and area; area 0 (and a zero normal) for a degenerate face."""
+    ux, uy, uz, vx, vy, vz = edge_vectors(positions, i, j, k)
+    nx, ny, nz = cross(ux, uy, uz, vx, vy, vz)
+    double_area = np.sqrt(nx * nx + ny * ny + nz * nz)
+    if double_area == 0.0:
+        return 0.0, 0.0, 0.0, 0.0, 0.0
+    nx /= double_area
+    ny /= double_area
+    nz /= double_area
+    d = -(nx * positions[i, 0] + ny * positions[i, 1] + nz * positions[i, 2])
+    return nx, ny, nz, d, 0.5 * double_area
+
+
+@njit(cache=True, nogil=True, inline="always")
+def add_plane(out, v, area, nx, ny, nz, d):
+    """``out[v] +=`` the quadric of plane (n, d) weighted by ``area`` (a row of 11)."""
+    out[v, 0] += area * nx * nx
+    out[v, 1] += area * nx * ny
+    out[v, 2] += area * nx * nz
+    out[v, 3] += area * ny * ny
+    out[v, 4] += area * ny * nz
+    out[v, 5] += area * nz * nz
+    out[v, 6] += area * d * nx
+    out[v, 7] += area * d * ny
+    out[v, 8] += area * d * nz
+    out[v, 9] += area * d * d
+    out[v, 10] += area
+
+
 @njit(cache=True, nogil=True)
 def _accumulate_face_quadrics(positions, faces, out):
     """Add every face's area-weighted plane quadric to its three vertices' rows
     of ``out`` (n, 11); one pass, no (m, 11) temporary. Zero-area faces add nothing."""
     for f in range(faces.shape[0]):
         i, j, k = faces[f, 0], faces[f, 1], faces[f, 2]
-        ux, uy, uz, vx, vy, vz = edge_vectors(positions, i, j, k)
-        nx, ny, nz = cross(ux, uy, uz, vx, vy, vz)
-        double_area = np.sqrt(nx * nx + ny * ny + nz * nz)
-        if double_area == 0.0:
+        nx, ny, nz, d, area = face_plane(positions, i, j, k)
+        if area == 0.0:
             continue
-        nx /= double_area
-        ny /= double_area
-        nz /= double_area
-        area = 0.5 * double_area
-        d = -(nx * positions[i, 0] + ny * positions[i, 1] + nz * positions[i, 2])
         for v in (i, j, k):
-            out[v, 0] += area * nx * nx
-            out[v, 1] += area * nx * ny
-            out[v, 2] += area * nx * nz
-            out[v, 3] += area * ny * ny
-            out[v, 4] += area * ny * nz
-            out[v, 5] += area * nz * nz
-            out[v, 6] += area * d * nx
-            out[v, 7] += area * d * ny
-            out[v, 8] += area * d * nz
-            out[v, 9] += area * d * d
-            out[v, 10] += area
+            add_plane(out, v, area, nx, ny, nz, d)
 
 
 @njit(cache=True, nogil=True)
