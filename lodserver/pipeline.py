@@ -51,12 +51,16 @@ SOURCE_SUFFIXES = tuple(f".{kind}" for kind in SUPPORTED_INPUT) + (".pm",)
 
 def parse_lods(text: str) -> tuple[float, ...]:
     """Face ratios from ``"1,0.5,0.2"``: finest first, each in (0, 1], decreasing."""
+    return check_lods(_numbers(text, "LOD ratios", "1,0.5,0.2"))
+
+
+def _numbers(text: str, what: str, example: str) -> tuple[float, ...]:
+    """The comma-separated numbers of ``text``; MeshError naming ``what`` otherwise."""
     try:
-        ratios = tuple(float(part) for part in text.split(","))
+        return tuple(float(part) for part in text.split(","))
     except ValueError:
-        raise MeshError(f"LOD ratios must be comma-separated numbers like 1,0.5,0.2, "
+        raise MeshError(f"{what} must be comma-separated numbers like {example}, "
                         f"got {text!r}") from None
-    return check_lods(ratios)
 
 
 def check_lods(ratios) -> tuple[float, ...]:
@@ -69,12 +73,7 @@ def check_lods(ratios) -> tuple[float, ...]:
 
 def parse_errors(text: str) -> tuple[float, ...]:
     """Error bounds from ``"0.001,0.01"``: finest first, each >= 0, increasing."""
-    try:
-        errors = tuple(float(part) for part in text.split(","))
-    except ValueError:
-        raise MeshError(f"LOD errors must be comma-separated numbers like 0.001,0.01, "
-                        f"got {text!r}") from None
-    return check_errors(errors)
+    return check_errors(_numbers(text, "LOD errors", "0.001,0.01"))
 
 
 def check_errors(errors) -> tuple[float, ...]:
