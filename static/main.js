@@ -3,6 +3,7 @@
 // instead of reaching into the others.
 
 import { firstLevel, guessUpAxis } from './framing.js';
+import { createAnimated } from './animated.js';
 import { createGeomorph } from './geomorph.js';
 import { createErrorPlot } from './plot.js';
 import { createScene } from './scene.js';
@@ -85,10 +86,11 @@ async function hashLevel(state) {
 const viewer = createViewer();
 const stream = createStream(viewer);
 const panel = document.getElementById('panel');
-let scene = null;
+let scene = null, animated = null;
 try {
   scene = createScene(viewer, document.getElementById('viewport'), panel);
   stream.attachGeomorph(createGeomorph(viewer, scene));   // after the scene: it draws over it
+  animated = createAnimated(viewer, scene, panel);        // scenes: "scene": true
 } catch (error) {
   document.getElementById('viewport').textContent = `cannot draw: ${error.message}`;
 }
@@ -106,6 +108,9 @@ if (linked.auto !== null) settings.autoByDistance = linked.auto;
 // the framing: the one kept for this mesh, else a guess from its box.
 function chooseFirstLevel(summary) {
   settings.up = storedUp(summary.id) ?? guessUpAxis(summary);
+  if (summary.scene && !(summary.error_curve?.length && summary.bounds)) {
+    return Math.min(summary.vertices, settings.firstLevelMaxVertices);
+  }
   const view = scene ? scene.view() : { fov: settings.fov, width: innerWidth, height: innerHeight };
   let level = firstLevel(summary, { ...view, up: settings.up }, settings.errorBudgetPx);
   const wanted = linked.mesh === summary.id ? linked : null;
@@ -130,6 +135,15 @@ window.lodViewer = {
   settings,
   status() {
     const state = stream.state;
+    const animation = animated?.status() ?? null;
+    if (animation) {       // a scene: its parts' levels added up
+      const sum = (key) => animation.parts.reduce((n, part) => n + (part[key] ?? 0), 0);
+      return { mesh: stream.info?.id ?? null, scene: true, level: sum('level'),
+               faces: sum('faces'), target: sum('target'), bytes: animation.bytes,
+               textureBytes: 0, up: settings.up,
+               busy: animation.parts.some((part) => part.busy),
+               error: animation.parts.find((part) => part.error)?.error ?? null, animation };
+    }
     return { mesh: stream.info?.id ?? null, level: state?.level ?? null,
              faces: state?.faceCount ?? null, target: stream.target, bytes: stream.bytes,
              textureBytes: scene?.textureBytes ?? 0, up: settings.up,
@@ -139,6 +153,7 @@ window.lodViewer = {
   // its textures and the environment, is drawn.
   async settled() {
     await stream.settled();
+    await animated?.settled();
     await scene?.texturesReady();
     await scene?.environmentReady();
     await scene?.rendered();
@@ -147,5 +162,6 @@ window.lodViewer = {
   hash: () => hashLevel(stream.state),
   // for tests: the scene's three.js objects and a pixel read-back
   scene,
+  animated,
   firstLevel,
 };

@@ -2,7 +2,7 @@
 // server summarises are spaced geometrically), with the level shown, the
 // target being moved to, and in auto mode the error the budget allows.
 //
-// Signals in: 'mesh', 'level', 'target', 'budget'.
+// Signals in: 'mesh', 'level', 'target', 'budget', 'scene-shown'.
 
 const MARGIN = { left: 6, right: 6, top: 8, bottom: 16 };
 const COLORS = { curve: '#8fb3ff', point: '#dfe8ff', level: '#ffcf6e', target: '#ffcf6e80',
@@ -71,6 +71,11 @@ export function createErrorPlot(viewer, canvas) {
   });
   viewer.on('level', ({ state }) => {
     level = state.level;
+    draw();
+  });
+  // a scene (animated.js) has a curve per part: none is drawn
+  viewer.on('scene-shown', () => {
+    curve = null;
     draw();
   });
   viewer.on('target', (value) => {

@@ -1,6 +1,7 @@
 // The three.js scene: one mesh drawn from the decoder's arrays, rendered on
-// demand (when the camera, the level, a texture or a setting changes; nothing
-// animates), lit by an image-based environment and a headlight, tone-mapped
+// demand (when the camera, the level, a texture or a setting changes; a glTF
+// scene's animation, animated.js, asks for a frame at a time while it plays:
+// showObject() puts such a scene here in place of the mesh), lit by an image-based environment and a headlight, tone-mapped
 // (materials.js), framed by framing.js. The environment is made once the first
 // frame showing a mesh is drawn and the stream rests (it costs GPU time; a
 // hemisphere light stands in until then).
@@ -74,6 +75,9 @@ export function createScene(viewer, container, panel = null) {
 
   const fallback = defaultMaterial();
   let mesh = null, state = null, info = null, textures = null;
+  // A loaded glTF scene (animated.js) drawn instead of a streamed mesh, and its box.
+  let object = null, objectBox = null;
+  const showing = () => mesh !== null || object !== null;
   let materials = [fallback];     // per draw group: the mesh's materials, then the default
   let groups = null;              // per-material index ranges, when there are several
   let vertexNormals = null;       // computed normals per vertex (wedge meshes without NORMAL)
@@ -100,7 +104,7 @@ export function createScene(viewer, container, panel = null) {
     renderer.render(scene, camera);
     const { calls, triangles } = renderer.info.render;
     viewer.emit('frame', { ms: performance.now() - started, calls, triangles });
-    if (mesh && meshDrawnAt === null) {
+    if (showing() && meshDrawnAt === null) {
       meshDrawnAt = performance.now();
       // a message posted from the frame's callback runs once the frame is
       // shown: the environment's GPU work queues behind it, not before it
@@ -169,7 +173,7 @@ export function createScene(viewer, container, panel = null) {
     if (layout === lastLayout) return;
     lastLayout = layout;
     camera.updateProjectionMatrix();
-    if (mesh && !userMoved) frameMesh();
+    if (showing() && !userMoved) frameMesh();
     emitView();
     render();
   }
@@ -188,6 +192,7 @@ export function createScene(viewer, container, panel = null) {
   // The box to frame: the mesh's full-detail box from its summary, else the
   // current level's (the level's grid coordinates, in world units).
   function boxToFrame() {
+    if (object) return objectBox;
     if (info?.bounds) return info.bounds;
     const { positions, vertexCount } = state;
     const lo = [Infinity, Infinity, Infinity], hi = [-Infinity, -Infinity, -Infinity];
@@ -221,6 +226,8 @@ export function createScene(viewer, container, panel = null) {
   }
 
   function disposeMesh() {
+    if (object) scene.remove(object);
+    object = objectBox = null;
     if (!mesh) return;
     scene.remove(mesh);
     mesh.geometry.dispose();
@@ -449,7 +456,7 @@ export function createScene(viewer, container, panel = null) {
       applyLook();
       if (settings.shading === 'smooth') updateNormals();
       render();
-    } else if (key === 'up' && mesh) {
+    } else if (key === 'up' && showing()) {
       userMoved = false;
       frameMesh();
       emitView();
@@ -467,14 +474,14 @@ export function createScene(viewer, container, panel = null) {
     if (!streaming) environmentSoon();
   });
   viewer.on('reset-view', () => {
-    if (!mesh) return;
+    if (!showing()) return;
     userMoved = false;
     frameMesh();
     emitView();
     render();
   });
   viewer.on('camera-set', ({ position, target }) => {
-    if (!mesh) return;
+    if (!showing()) return;
     userMoved = true;
     camera.position.fromArray(position);
     controls.target.fromArray(target);
@@ -492,7 +499,28 @@ export function createScene(viewer, container, panel = null) {
     rendered: render,
     // Resolves once the image-based light is in place (at once before a mesh
     // is shown: it is made after the first frame showing one).
-    environmentReady: () => (mesh ? environmentReady : Promise.resolve()),
+    environmentReady: () => (showing() ? environmentReady : Promise.resolve()),
+    // Shows `root` (a three.js object: a glTF scene, animated.js draws and
+    // animates it) in place of the streamed mesh, framed by `box` ({ min, max },
+    // world units); the caller owns and disposes it.
+    showObject(root, box) {
+      disposeMesh();
+      mesh = state = info = null;
+      object = root;
+      objectBox = box;
+      scene.add(root);
+      userMoved = false;
+      frameMesh();
+      emitView();
+      render();
+    },
+    // Removes the object showObject() showed, if it is still `root`.
+    removeObject(root) {
+      if (object !== root) return;
+      scene.remove(object);
+      object = objectBox = null;
+      render();
+    },
     // Resolves once every texture asked for so far has arrived.
     texturesReady: () => textures?.ready ?? Promise.resolve(),
     get textureBytes() { return textures?.textureBytes ?? 0; },

@@ -7,10 +7,11 @@
 // the target level packet by packet, forward (splits) or backward (collapses).
 //
 // Fast streaming (issue 13):
-// * Pipelined: up to settings.packetsAhead packets are requested ahead along
-//   the way to the target, each fetched and inflated as it arrives, and
-//   applied strictly in order. A packet that no longer leads to the target
-//   (the target moved back) is aborted.
+// * Pipelined: settings.packetsAhead packets are requested ahead along the
+//   way to the target (more where frames block the main thread for long:
+//   packetsAhead()), each fetched and inflated as it arrives, and applied
+//   strictly in order. A packet that no longer leads to the target (the
+//   target moved back) is aborted.
 // * Adaptive packets: a packet is `size` records, cut at multiples of `size`
 //   (so moving back and forth asks for the same packets again, which the
 //   browser cache answers: the server marks them immutable). `size` starts at
@@ -56,6 +57,8 @@ import { LodState, PacketError } from './vsplit.js';
 
 const POLL_MS = 500;
 const MAX_SPLITS = 1 << 18;        // the largest packet asked for (records)
+const MAX_AHEAD = 32;              // the most packets requested ahead (see packetsAhead)
+const LINK_BODIES = 8;             // packets the link's rate is measured over (see linkOf)
 const RETRY_BASE_MS = 250;
 const RETRY_MAX_MS = 8000;
 // Defaults of the settings this module reads (main.js may set them).
@@ -90,6 +93,35 @@ function yieldTask() {
   });
 }
 
+// The URL of a route of a mesh ('lod', 'splits', 'materials') with
+// `params`: at the mesh's version when its summary hands out versioned URLs
+// (GET /meshes/{id}: urls, `?v=`; the server marks such responses immutable,
+// so any cache keeps them for a year), else unversioned (cached a minute).
+// The summary's URLs are rooted at the API, which serves the viewer at
+// viewer/: they resolve against the page's parent, so a path prefix added by
+// a proxy is kept.
+// A scene's part (GET /meshes/{id}: parts[p].urls) is opened as a mesh whose
+// summary has such urls; a URL that is a template ({from}, {to}, ...) has
+// its named parameters filled in rather than added.
+export function routeUrl(summary, route, params = {}) {
+  const root = new URL('../', window.location.href);
+  let versioned = summary.urls?.[route];
+  const rest = { ...params };
+  if (versioned) {
+    versioned = versioned.replace(/\{(\w+)\}/g, (whole, key) => {
+      if (!(key in rest)) return '';
+      const value = encodeURIComponent(rest[key]);
+      delete rest[key];
+      return value;
+    });
+  }
+  const url = versioned
+    ? new URL(versioned.replace(/^\/+/, ''), root)
+    : new URL(`meshes/${encodeURIComponent(summary.id)}/${route}`, root);
+  for (const [key, value] of Object.entries(rest)) url.searchParams.set(key, value);
+  return url.href;
+}
+
 export function createStream(viewer) {
   const { settings } = viewer;
   const option = (key) => settings[key] ?? DEFAULTS[key];
@@ -113,6 +145,7 @@ export function createStream(viewer) {
   let reportedAt = -Infinity; // performance.now() of the last report
   let frameCostMs = 16;       // what a drawn frame costs the main thread (moving average)
   let rate = 0;               // records applied per ms (see adapt)
+  let bodies = [];            // [responseStart, responseEnd, bytes] of the last packets (linkOf)
   // The next packet waits for the last report's frame: three.js uploads the
   // reported ranges when it draws, from the very arrays the decoder changes.
   const waiting = [];
@@ -159,22 +192,6 @@ export function createStream(viewer) {
     }
   }
 
-  // The URL of a route of the open mesh ('lod', 'splits', 'materials') with
-  // `params`: at the mesh's version when its summary hands out versioned URLs
-  // (GET /meshes/{id}: urls, `?v=`; the server marks such responses immutable,
-  // so any cache keeps them for a year), else unversioned (cached a minute).
-  // The summary's URLs are rooted at the API, which serves the viewer at
-  // viewer/: they resolve against the page's parent, so a path prefix added by
-  // a proxy is kept.
-  function routeUrl(summary, route, params = {}) {
-    const root = new URL('../', window.location.href);
-    const versioned = summary.urls?.[route];
-    const url = versioned
-      ? new URL(versioned.replace(/^\/+/, ''), root)
-      : new URL(`meshes/${encodeURIComponent(summary.id)}/${route}`, root);
-    for (const [key, value] of Object.entries(params)) url.searchParams.set(key, value);
-    return url.href;
-  }
 
   // Opens mesh `id` at `level`: a number of vertices, or a function of the
   // mesh's summary returning one (or a promise of one), e.g. the level a
@@ -184,17 +201,30 @@ export function createStream(viewer) {
   // fetched together, and nothing is drawn until both are in. A packet costs
   // 8-12 bytes a vertex against the json form's ~50 (120 with attributes).
   // Packets then refine it to settings.initialRatio of the vertices.
-  async function open(id, { level } = {}) {
+  //
+  // A mesh whose summary says `"scene": true` is not streamed here: the
+  // stream emits 'scene' ({ info: the summary, level: the first level chosen,
+  // in vertices of the whole scene }) and animated.js takes it from there,
+  // opening one stream per part with open(id, { summary: the part's, ... }):
+  // a summary given is not fetched (nor is it checked for a scene), and
+  // `materials: false` leaves the part's materials to the caller.
+  async function open(id, { level, summary: given = null, materials: withMaterials = true } = {}) {
     const ticket = ++opened;
     stopMoving();
     [info, state, target, bytes, failed, stalled, shown] = [null, null, null, 0, null, null, null];
     size = option('chunkSplits');
     rate = 0;
+    bodies = [];
     try {
-      const summary = await waitUntilReady(id, ticket);
+      const summary = given ?? await waitUntilReady(id, ticket);
       if (!summary) return;
       let first = typeof level === 'function' ? await level(summary) : level;
       if (ticket !== opened) return;
+      if (!given && summary.scene === true) {
+        info = summary;
+        viewer.emit('scene', { info: summary, level: first });
+        return;
+      }
       const base = summary.base_vertices;
       first = Number.isFinite(first)
         ? Math.min(summary.vertices, Math.max(base, Math.round(first))) : base;
@@ -209,7 +239,7 @@ export function createStream(viewer) {
       const document = JSON.parse(new TextDecoder().decode(await baseLevel));
       if (ticket !== opened) return;
       const appearance = { materialFaces: document.material_faces, materials: null };
-      const materials = document.materials
+      const materials = document.materials && withMaterials
         // the glTF records; their image uris are relative to this document
         ? fetchOk(routeUrl(summary, 'materials')).then(async (response) => (
           { document: await response.json(), url: response.url }))
@@ -343,9 +373,20 @@ export function createStream(viewer) {
     abortQueue(keep);
   }
 
+  // Packets in flight: settings.packetsAhead, or, where a drawn frame blocks
+  // the main thread for long (software GL: seconds at a million triangles),
+  // enough to keep the link busy through a frame and its gap (reportGap frames)
+  // at packetPaceMs a packet: no packet is requested while the thread is
+  // blocked, and two packets ahead left the link idle for most of each frame
+  // (bench/viewer: the throttled 1.1M-face bunny). At most MAX_AHEAD.
+  function packetsAhead() {
+    const covered = frameCostMs * (option('reportGap') + 1) / option('packetPaceMs');
+    return Math.max(1, option('packetsAhead'), Math.min(MAX_AHEAD, Math.ceil(covered)));
+  }
+
   function refill(ticket) {
     if (!state || failed || stalled) return;
-    const ahead = Math.max(1, option('packetsAhead'));
+    const ahead = packetsAhead();
     while (queue.length < ahead && planned !== target) {
       const to = nextStop(planned, target);
       queue.push(request(planned, to, ticket));
@@ -384,7 +425,7 @@ export function createStream(viewer) {
 
   // Reports once a frame has run since the last report and the gap has passed.
   function reportSoon() {
-    if (!pending || timer || !framed) return;
+    if (!pending || timer || !framed || restInHand()) return;
     const wait = reportedAt + option('reportGap') * frameCostMs - performance.now();
     if (wait <= 0) report();
     else timer = setTimeout(() => {
@@ -395,14 +436,26 @@ export function createStream(viewer) {
 
   // The link's figures for a fetched URL: { latencyMs, bytesPerMs } from its
   // Resource Timing entry (null when there is none, e.g. the buffer is full).
+  // Packets in flight together share the link, so one body's bytes over its own
+  // time would be a share of the link's rate (and shrink packets the more are
+  // ahead): the rate is the bytes of the last few bodies over the time any of
+  // them was arriving (the union of their intervals).
   function linkOf(url, bytes) {
     const entries = performance.getEntriesByName(new URL(url, window.location.href).href,
                                                  'resource');
     const entry = entries[entries.length - 1];
     if (!entry || !(entry.responseEnd > 0)) return null;
     const latencyMs = Math.max(0, entry.responseStart - entry.requestStart);
-    const bodyMs = Math.max(0.1, entry.responseEnd - entry.responseStart);
-    return { latencyMs, bytesPerMs: bytes / bodyMs };
+    bodies.push([entry.responseStart, entry.responseEnd, bytes]);
+    if (bodies.length > LINK_BODIES) bodies.shift();
+    const sorted = [...bodies].sort((a, b) => a[0] - b[0]);
+    let busyMs = 0, until = -Infinity, total = 0;
+    for (const [start, end, size] of sorted) {
+      busyMs += Math.max(0, end - Math.max(start, until));
+      until = Math.max(until, end);
+      total += size;
+    }
+    return { latencyMs, bytesPerMs: total / Math.max(0.1, busyMs) };
   }
 
   // The packet size after a packet of `records` records, `bytes` bytes,
@@ -424,6 +477,16 @@ export function createStream(viewer) {
     let next = chunk;
     while (next * 2 <= want) next *= 2;
     size = next;
+  }
+
+  // Whether the rest of the way to the target has arrived and applying it should
+  // take less than a drawn frame costs: then a frame of the level between is
+  // not worth its cost (under software GL a frame of a million triangles blocks
+  // the main thread for seconds) and the report waits for the target.
+  function restInHand() {
+    if (planned !== target || !queue.every((entry) => entry.ready) || !(rate > 0)) return false;
+    const records = queue.reduce((n, entry) => n + Math.abs(entry.to - entry.from), 0);
+    return records / rate < frameCostMs;
   }
 
   // Follows `target` (which may change meanwhile), the queued packets in order.
@@ -474,7 +537,7 @@ export function createStream(viewer) {
           report();
         } else {
           pending.morph = morphing;             // the geomorph glides the new vertices out
-          reportSoon();
+          if (!restInHand()) reportSoon();
         }
         if (performance.now() - sliceStart > option('frameBudgetMs')) {
           await yieldTask();
@@ -538,6 +601,13 @@ export function createStream(viewer) {
     open(id, options = {}) {
       opening = open(id, options);
       return opening;
+    },
+    // Stops streaming (a scene's part when the scene is closed): nothing more
+    // is fetched or reported.
+    close() {
+      opened++;
+      stopMoving();
+      [info, state, target, opening] = [null, null, null, null];
     },
     // The geomorph (geomorph.js) that coarsening waits for.
     attachGeomorph(morph) {

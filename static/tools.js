@@ -3,8 +3,10 @@
 // view kept in the URL (level, camera, auto mode) and the up axis kept per
 // mesh (localStorage).
 //
-// Signals in: 'mesh', 'level', 'target', 'frame', 'camera', 'settings'.
+// Signals in: 'mesh', 'scene-shown', 'level', 'target', 'frame', 'camera', 'settings'.
 // Out: 'reset-view', 'settings' (up, through the caller's change()).
+
+import { routeUrl } from './stream.js';
 
 // The frames drawn within this window count towards the fps shown. The scene
 // draws on demand, so an idle view shows 0 fps: the rate is of frames drawn.
@@ -61,6 +63,7 @@ export function createTools(viewer, root) {
   const statsRow = $('#render-stats'), download = $('#download'), reset = $('#reset-view');
   const toggle = $('#panel-toggle');
   let info = null, level = null, target = null, cameraTimer = 0;
+  let sceneRatio = null;         // a scene (animated.js): the ratio of its GLB
   const frames = [];             // draw times within the fps window, ms
   let last = { calls: 0, triangles: 0, ms: 0 };
 
@@ -87,6 +90,13 @@ export function createTools(viewer, root) {
   viewer.on('mesh', (detail) => {
     info = detail.info;
     level = target = detail.state.level;
+    sceneRatio = null;
+    setEnabled();
+  });
+  viewer.on('scene-shown', (detail) => {
+    info = detail.info;
+    level = target = null;
+    sceneRatio = detail.ratio;
     setEnabled();
   });
   viewer.on('level', ({ state }) => {
@@ -117,12 +127,17 @@ export function createTools(viewer, root) {
     viewer.emit('reset-view');
   });
   // The current level, as the server writes it: the same level, byte for byte
-  // the file `lodserver extract` writes.
+  // the file `lodserver extract` writes; a scene at the ratio it was loaded at.
+  // At the mesh's version (an immutable URL), so a download is never of
+  // another version than the one shown.
   download.addEventListener('click', () => {
-    if (!info || level === null) return;
+    if (!info || (level === null && sceneRatio === null)) return;
     const link = document.createElement('a');
-    link.href = `../meshes/${encodeURIComponent(info.id)}/lod?vertices=${level}&format=glb`;
-    link.download = `${info.name.replace(/\.[^.]*$/, '')}-${level}.glb`;
+    const params = sceneRatio === null ? { vertices: level, format: 'glb' }
+      : { ratio: sceneRatio, format: 'glb' };
+    link.href = routeUrl(info, 'lod', params);
+    const stem = info.name.replace(/\.[^.]*$/, '');
+    link.download = sceneRatio === null ? `${stem}-${level}.glb` : `${stem}-${sceneRatio}.glb`;
     document.body.append(link);
     link.click();
     link.remove();

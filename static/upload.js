@@ -13,7 +13,8 @@
 // shown before is hidden, so it is never taken for the new one.
 //
 // Signals out: 'uploaded' (the new mesh's id: ui.js lists and opens it).
-// In: 'open' (the view goes stale), 'mesh' (a mesh is shown: fresh again).
+// In: 'open' (the view goes stale), 'mesh' or 'scene-shown' (a mesh or a
+// scene is shown: fresh again).
 
 const POLL_MS = 500;
 const MESH_TYPES = ['obj', 'ply', 'stl', 'off', 'gltf', 'glb'];
@@ -241,10 +242,12 @@ export function createUpload(viewer, { panel, viewport, note }) {
     note.hidden = false;
     note.textContent = 'loading the mesh…';
   });
-  viewer.on('mesh', () => {
+  const fresh = () => {
     viewport.classList.remove('stale');
     note.hidden = true;
-  });
+  };
+  viewer.on('mesh', fresh);
+  viewer.on('scene-shown', fresh);      // a scene (animated.js)
 
   return { upload: run };
 }

@@ -11,6 +11,10 @@ navigation's start):
 * ``full_detail_ms``: ``lodViewer.settled()`` resolving at the mesh's full
   detail (its textures and the image-based light in place, the frame showing
   it drawn);
+* ``last_geometry_byte_ms``: the last byte of geometry received (the
+  ``/meshes/`` resource that ended last): what the GLB's ``ms`` compares with,
+  the frames drawn after it aside (under software GL, headless Chromium, one
+  frame of the 1.1M-face bunny blocks the main thread for seconds);
 * ``geometry_bytes``: what the page fetched under ``/meshes/`` (resource
   timing's ``transferSize``: on the wire, headers included, compressed if the
   server compressed), ``static_bytes`` what it fetched under ``/viewer/``;
@@ -51,14 +55,17 @@ FULL_DETAIL_JS = """async (full) => {
 }"""
 
 BYTES_JS = """() => {
-  let geometry = 0, statics = 0, requests = 0;
+  let geometry = 0, statics = 0, requests = 0, lastByte = 0;
   for (const entry of performance.getEntriesByType('resource')) {
     const path = new URL(entry.name).pathname;
-    if (path.startsWith('/meshes/')) { geometry += entry.transferSize; requests++; }
-    else if (path.startsWith('/viewer/')) statics += entry.transferSize;
+    if (path.startsWith('/meshes/')) {
+      geometry += entry.transferSize;
+      requests++;
+      lastByte = Math.max(lastByte, entry.responseEnd);
+    } else if (path.startsWith('/viewer/')) statics += entry.transferSize;
   }
   const page = performance.getEntriesByType('navigation')[0];
-  return { geometry, statics: statics + (page ? page.transferSize : 0), requests };
+  return { geometry, statics: statics + (page ? page.transferSize : 0), requests, lastByte };
 }"""
 
 GLB_JS = """async (url) => {
@@ -101,6 +108,7 @@ def stream_once(browser, base_url: str, mesh: dict, *, throttled: bool, viewport
                 "wall_s": round(time.perf_counter() - wall, 2),
                 "level": status["level"], "error": status["error"],
                 "geometry_bytes": sent["geometry"], "geometry_requests": sent["requests"],
+                "last_geometry_byte_ms": round(sent["lastByte"], 1),
                 "static_bytes": sent["statics"], "page_errors": errors[:3]}
     except Exception as error:     # a timeout: the figure is "more than timeout_s"
         return {"failed": f"{type(error).__name__}: {str(error).splitlines()[0]}",

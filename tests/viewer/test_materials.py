@@ -162,23 +162,21 @@ def every_channel_sphere() -> Mesh:
 
 
 def _source(name, tmp_path):
-    """An uploadable file for `name`: a shared mesh (GLB; Avocado's .gltf and
-    its files as one GLB), or the generated every-channel sphere."""
+    """An uploadable file for `name`: a shared mesh read and written again as one
+    GLB of one mesh (Avocado's .gltf and its files; Duck, whose camera, and
+    2CylinderEngine, whose many meshes, would make the server keep the file as a
+    scene, drawn from its GLB by GLTFLoader: tests/viewer/test_scenes.py), or the
+    generated every-channel sphere."""
     if name == "every-channel":
         path = tmp_path / "every_channel.glb"
         path.write_bytes(encode_glb(every_channel_sphere()))
         return path
-    if name == "Avocado":
-        from lodserver.io import load_mesh
-        source = SHARED / "Avocado" / "Avocado.gltf"
-        if not source.is_file():
-            pytest.skip(f"shared mesh not found at {source}")
-        path = tmp_path / "Avocado.glb"
-        path.write_bytes(encode_glb(load_mesh(source)[0]))
-        return path
-    path = SHARED / f"{name}.glb"
-    if not path.is_file():
-        pytest.skip(f"shared mesh not found at {path}")
+    from lodserver.io import load_mesh
+    source = SHARED / "Avocado" / "Avocado.gltf" if name == "Avocado" else SHARED / f"{name}.glb"
+    if not source.is_file():
+        pytest.skip(f"shared mesh not found at {source}")
+    path = tmp_path / f"{name}.glb"
+    path.write_bytes(encode_glb(load_mesh(source)[0]))
     return path
 
 

@@ -328,6 +328,8 @@ def test_download_is_the_current_level_as_glb(chromium, server, meshes):
         download = info.value
         data = open(download.path(), "rb").read()
         assert download.suggested_filename.endswith(f"-{level}.glb")
+        # at the mesh's version: an immutable URL, never another version's level
+        assert f"v={mesh['version']}" in download.url and f"vertices={level}" in download.url
     finally:
         page.close()
     expected = server.get(f"/meshes/{mesh['id']}/lod",
