@@ -44,6 +44,7 @@ build_module = importlib.import_module("lodserver.build")
 
 # (module, function name, phase name): what each phase of a build is
 PHASES = (
+    (collapse, "memory_order", "memory order"),
     (collapse, "census", "topology"),
     (collapse, "classify_vertices", "classify"),
     (collapse, "vertex_quadrics", "quadrics"),

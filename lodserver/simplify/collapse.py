@@ -13,19 +13,24 @@ Pipeline, in the order of this file:
 1. classify vertices (interior, border, locked; ``simplify.rules``);
 2. build vertex quadrics (``quadrics.vertex_quadrics``) and wedge quadrics;
 3. in compiled steps, in passes (``_decimate_kernel``):
-   - *rank* every edge (G&H section 4: the summed quadric, minimised) into
-     the queue (``simplify.queue``), and the close pairs when asked for;
+   - *rank* every edge (G&H section 4: the summed quadric, minimised;
+     ``simplify.rank``) into the queue (``simplify.queue``), and the close
+     pairs when asked for;
    - *pop* the cheapest fresh candidate, re-place it on its volume plane;
    - *check* it against the rules, each refusal a named reason
      (``simplify.legality``, ``simplify.rules.REJECT_*``), counted;
    - *perform* it on the corner lists and *log* it (``simplify.perform``,
      ``simplify.log``);
-   - *re-rank* the edges around the survivor;
+   - *re-rank* the edges around the survivor (``simplify.rank``);
    until no legal collapse is left: a collapse refused now may become legal
    once its neighbourhood has moved, so each pass re-ranks all edges;
    on a large mesh, first in parts at once, one thread each, then on the
    whole mesh (``_run_kernels``, ``simplify.parts``);
 4. return the collapse log as parallel arrays, one row per collapse.
+
+A large mesh is decimated with its vertices renumbered along a Morton curve,
+so that a collapse's neighbours share cache lines (``parts.memory_order``,
+``_in_memory_order``); the log is mapped back to the input's vertex ids.
 
 Positions are rescaled to the unit box inside the kernel so its tolerances
 are scale-free; logged positions are kept in mesh units alongside.
@@ -34,6 +39,7 @@ are scale-free; logged positions are kept in mesh units alongside.
 
 from __future__ import annotations
 
+import dataclasses
 import threading
 from collections import namedtuple
 from concurrent.futures import ThreadPoolExecutor
@@ -43,17 +49,20 @@ import numpy as np
 from numba import njit
 
 from ..mesh import Mesh, MeshError, to_unit_box, unit_box
-from .quadrics import (
-    constrain_to_plane,
-    optimal_position_xyz,
-    quadric_error,
-    vertex_quadrics,
-)
 from .legality import check_legality
 from .log import COLLAPSES, MOVED, CollapseLog, filled, new_log, with_room_for_moves
-from .pairs import MAX_PAIRS_PER_VERTEX, close_pairs
-from .parts import DEFAULT_PARTS, PARALLEL_MIN_VERTICES, TAIL_FRACTION, merge_logs, partition
+from .pairs import MAX_PAIRS_PER_VERTEX
+from .parts import (
+    DEFAULT_PARTS,
+    PARALLEL_MIN_VERTICES,
+    REORDER_MIN_VERTICES,
+    TAIL_FRACTION,
+    memory_order,
+    merge_logs,
+    partition,
+)
 from .perform import perform_collapse
+from .quadrics import vertex_quadrics
 from .queue import (
     CAPACITY,
     EMPTY,
@@ -65,11 +74,9 @@ from .queue import (
     pair_key,
     pop_fresh_from,
     push,
-    push_reservoir,
-    queue_append,
-    reservoir_append,
     with_room,
 )
+from .rank import place_on_volume_plane, rank_all, rank_collapse, rerank_around
 from .rules import (
     BORDER,
     DEFAULT_FLIP_COS,
@@ -79,24 +86,19 @@ from .rules import (
     REASON_COUNT,
     REASON_NAMES,
     REJECT_DEFERRED_BY_VOLUME,
-    REJECT_LOCKED,
     REJECT_REASONS,
-    REJECT_SEAM,
     REJECT_STALE,
-    can_collapse,
-    keeps_position,
     rejected_counts,
 )
-from .state import NO_REFCOUNT, Options, Vertices, new_scratch, new_state, new_topology
+from .state import Options, Vertices, new_scratch, new_state, new_topology
+from .topology import Census, census
 from .wedges import (
     DEFAULT_ATTRIBUTE_WEIGHTS,
-    add_wedge_terms,
     attribute_scales,
     fill_fixed,
     texture_seams,
     wedge_inputs,
 )
-from .topology import Census, census
 
 __all__ = ["decimate", "check_collapse", "classify_vertices", "CollapseLog", "DEFAULT_FLIP_COS",
            "DEFAULT_ATTRIBUTE_WEIGHTS", "REJECT_REASONS", "INTERIOR", "BORDER", "LOCKED",
@@ -111,11 +113,6 @@ _PROGRESS_STRIDE = 1024
 # re-ranking keeps the order cheapest-first to within the factor).
 VOLUME_SLACK = 1.1
 
-# A collapse where both endpoints keep a wedge the other has no partner for
-# (two seams meeting) must drag one of them; its cost is multiplied by this, so
-# such collapses wait until the alternatives cost as much (refusing them
-# outright smears less texture at fine levels but ruins coarse ones).
-SEAM_PENALTY = 4.0
 
 
 # --------------------------------------------------------------------------
@@ -152,178 +149,10 @@ def classify_vertices(found: Census, n, locked=None):
 
 
 # --------------------------------------------------------------------------
-# 2. Rank: cost and placement of one candidate
-#    (the kernel's state is in simplify.state, the check step in
-#    simplify.legality, the perform step in simplify.perform)
+# 2. The passes: rank all, then pop / check / perform / re-rank
+#    (ranking in simplify.rank, the kernel's state in simplify.state, the
+#    check step in simplify.legality, the perform step in simplify.perform)
 # --------------------------------------------------------------------------
-
-@njit(**NO_REFCOUNT)
-def rank_collapse(a, b, pos, quadrics, kind, q, p, pairs, topo, wedges):
-    """Cost of collapsing (a, b): G&H's summed quadric ``Q_a + Q_b`` (plus
-    Hoppe's wedge terms), at its minimiser, or at the survivor when that is
-    locked. ``pos``, ``quadrics``, ``kind`` are the ``Vertices`` columns;
-    writes the summed quadric into ``q`` (11,), the placement into ``p``
-    (3,) and the wedge pairs into ``pairs`` (2, 2).
-
-    The hottest step (about ten calls a collapse) takes its arrays one by
-    one: reading them out of the namedtuples here, on every call, made it
-    twice as slow. ``topo`` and ``wedges`` are only read for a mesh with
-    attributes. Compiled without reference counting (``state.NO_REFCOUNT``):
-    with it, taking the two namedtuples as arguments counted a reference to
-    each of their arrays on every call, 60% of the step's time (1.67M
-    edges of the 1.1M bunny: 0.53 s against 0.19 s of CPU).
-
-    Returns (cost, survivor, wedge pair count, seams meet, reason): cost is
-    inf, with the reason, when the collapse is never legal.
-    """
-    # The survivor is the endpoint the other may vanish into (CAN_COLLAPSE):
-    # a border vertex outlives an interior one, a locked one anything; a when
-    # both ways are open.
-    if can_collapse(kind[b], kind[a]):
-        s = a
-    elif can_collapse(kind[a], kind[b]):
-        s = b
-    else:
-        return np.inf, a, 0, False, REJECT_LOCKED
-    for j in range(11):
-        q[j] = quadrics[a, j] + quadrics[b, j]
-    n_pairs = 0
-    seams_meet = False
-    if wedges.quadric.shape[0] > 0:
-        legal, n_pairs, seams_meet = add_wedge_terms(a, b, q, topo, wedges, pairs)
-        if not legal:
-            return np.inf, a, 0, False, REJECT_SEAM
-    if keeps_position(kind[s]):
-        p[0] = pos[s, 0]; p[1] = pos[s, 1]; p[2] = pos[s, 2]
-        cost = quadric_error(q, p[0], p[1], p[2])
-    else:
-        cost = optimal_position_xyz(q, pos[a, 0], pos[a, 1], pos[a, 2], pos[b, 0], pos[b, 1],
-                                    pos[b, 2], p)
-    if seams_meet:
-        cost *= SEAM_PENALTY
-    return max(cost, 0.0), s, n_pairs, seams_meet, LEGAL
-
-
-@njit(inline="always", **NO_REFCOUNT)
-def _volume_plane(a, b, pos, topo, out):
-    """The plane ``N . p = h`` on which collapsing (a, b) to ``p`` keeps the
-    enclosed volume (signed tetrahedra against ``a``'s position, so a's own
-    faces add nothing before the move). Writes (Nx, Ny, Nz, h) into ``out``."""
-    faces, vhead, cnext, face_alive = topo.faces, topo.vhead, topo.cnext, topo.face_alive
-    ox = pos[a, 0]; oy = pos[a, 1]; oz = pos[a, 2]
-    nx = 0.0; ny = 0.0; nz = 0.0; h = 0.0
-    for v, other in ((a, b), (b, a)):
-        c = vhead[v]
-        while c >= 0:
-            f = c // 3
-            if face_alive[f]:
-                slot = c - 3 * f
-                x = faces[f, (slot + 1) % 3]
-                y = faces[f, (slot + 2) % 3]
-                if x != other and y != other:
-                    xx = pos[x, 0] - ox; xy = pos[x, 1] - oy; xz = pos[x, 2] - oz
-                    yx = pos[y, 0] - ox; yy = pos[y, 1] - oy; yz = pos[y, 2] - oz
-                    cx = xy * yz - xz * yy
-                    cy = xz * yx - xx * yz
-                    cz = xx * yy - xy * yx
-                    nx += cx; ny += cy; nz += cz
-                    if v == b:
-                        h += (pos[b, 0] - ox) * cx + (pos[b, 1] - oy) * cy + (pos[b, 2] - oz) * cz
-            c = cnext[c]
-    out[0] = nx; out[1] = ny; out[2] = nz
-    out[3] = h + nx * ox + ny * oy + nz * oz
-
-
-@njit(**NO_REFCOUNT)
-def place_on_volume_plane(a, b, seams_meet, verts, topo, scratch):
-    """Move the placement ``scratch.p`` of the ranked (a, b) onto its volume
-    plane (Lindstrom & Turk 1998; Hoppe 1999 section 4) along the quadric's
-    metric. Returns the new cost, or -1.0 when there is no such plane (``p``
-    is then left alone)."""
-    plane = scratch.plane
-    p = scratch.p
-    _volume_plane(a, b, verts.pos, topo, plane)
-    if not constrain_to_plane(scratch.q, plane[0], plane[1], plane[2], plane[3], p):
-        return -1.0
-    cost = max(quadric_error(scratch.q, p[0], p[1], p[2]), 0.0)
-    if seams_meet:
-        cost *= SEAM_PENALTY
-    return cost
-
-
-# --------------------------------------------------------------------------
-# 3. The passes: rank all, then pop / check / perform / re-rank
-# --------------------------------------------------------------------------
-
-@njit(cache=True, nogil=True)
-def _rank_all(verts, topo, wedges, scratch, queue, stamp, pair_radius, label, me):
-    """Rank every live edge of part ``me`` once (both ends labelled ``me`` in
-    ``label``, see ``simplify.parts``), and every close pair, into the
-    reservoir. Returns (queue, stamp): the queue's arrays may have grown."""
-    faces, vhead, cnext, face_alive = topo.faces, topo.vhead, topo.cnext, topo.face_alive
-    vertex_alive, face_count = topo.vertex_alive, topo.face_count
-    pos, quadrics, kind, version = verts.pos, verts.quadrics, verts.kind, verts.version
-    q, p, wedge_pairs, mark = scratch.q, scratch.p, scratch.pairs, scratch.mark
-    rk, rab, rvs, size = queue.key, queue.pair, queue.version, queue.size
-    for a in range(pos.shape[0]):
-        if not vertex_alive[a] or label[a] != me:
-            continue
-        stamp += 1
-        if size[CAPACITY] + 2 * face_count[a] > rk.shape[0]:
-            queue = with_room(queue, np.int64(0), 2 * face_count[a])
-            rk, rab, rvs = queue.key, queue.pair, queue.version
-        c = vhead[a]
-        while c >= 0:
-            f = c // 3
-            if face_alive[f]:
-                slot = c - 3 * f
-                for t in range(1, 3):
-                    b = np.int64(faces[f, (slot + t) % 3])    # one signature for rank_collapse
-                    if b > a and label[b] == me and mark[b] != stamp:
-                        mark[b] = stamp
-                        cost = rank_collapse(a, b, pos, quadrics, kind, q, p, wedge_pairs, topo,
-                                             wedges)[0]
-                        if cost < np.inf:
-                            reservoir_append(rk, rab, rvs, size, cost, pair_key(a, b),
-                                             version[a] + version[b], version, vertex_alive)
-            c = cnext[c]
-    if pair_radius > 0.0:
-        pairs, stamp = close_pairs(pos, topo, pair_radius, mark, stamp)
-        queue = with_room(queue, np.int64(0), np.int64(pairs.shape[0]))
-        for i in range(pairs.shape[0]):
-            a = pairs[i, 0]
-            b = pairs[i, 1]
-            cost = rank_collapse(a, b, pos, quadrics, kind, q, p, wedge_pairs, topo, wedges)[0]
-            if cost < np.inf:
-                push_reservoir(queue, cost, pair_key(a, b), version[a] + version[b], version,
-                               vertex_alive)
-    return queue, stamp
-
-
-@njit(**NO_REFCOUNT)
-def _rerank_around(s, verts, topo, wedges, scratch, queue, stamp, label, me):
-    """Queue every edge of part ``me`` at s anew: its quadric and position
-    changed (the queue must have room for two entries per face of s)."""
-    faces, cnext, vertex_alive = topo.faces, topo.cnext, topo.vertex_alive
-    pos, quadrics, kind, version = verts.pos, verts.quadrics, verts.kind, verts.version
-    q, p, pairs, mark = scratch.q, scratch.p, scratch.pairs, scratch.mark
-    hk, hab, hvs = queue.heap_key, queue.heap_pair, queue.heap_version
-    rk, rab, rvs, size, tau = queue.key, queue.pair, queue.version, queue.size, queue.tau
-    c = topo.vhead[s]
-    while c >= 0:
-        f = c // 3
-        slot = c - 3 * f
-        for t in range(1, 3):
-            w = np.int64(faces[f, (slot + t) % 3])
-            if mark[w] != stamp and label[w] == me:
-                mark[w] = stamp
-                cost = rank_collapse(s, w, pos, quadrics, kind, q, p, pairs, topo, wedges)[0]
-                if cost < np.inf:
-                    e_ab = pair_key(s, w) if s < w else pair_key(w, s)
-                    queue_append(hk, hab, hvs, rk, rab, rvs, size, tau, cost, e_ab,
-                                 version[s] + version[w], version, vertex_alive)
-        c = cnext[c]
-
 
 @njit(cache=True, nogil=True)
 def _decimate_kernel(verts, topo, wedges, scratch, options, label, me, progress):
@@ -382,7 +211,7 @@ def _decimate_kernel(verts, topo, wedges, scratch, options, label, me, progress)
         passes += 1
         collapses_before = count[COLLAPSES]
         clear_queue(queue)
-        queue, stamp = _rank_all(verts, topo, wedges, scratch, queue, stamp, pair_radius, label,
+        queue, stamp = rank_all(verts, topo, wedges, scratch, queue, stamp, pair_radius, label,
                                  me)
         # the heap's and reservoir's arrays, read again whenever the queue grows
         hk, hab, hvs, rk = queue.heap_key, queue.heap_pair, queue.heap_version, queue.key
@@ -443,7 +272,7 @@ def _decimate_kernel(verts, topo, wedges, scratch, options, label, me, progress)
                 queue = with_room(queue, k, k)      # has_room, on the arrays held
                 hk, hab, hvs, rk = queue.heap_key, queue.heap_pair, queue.heap_version, queue.key
             stamp += 1
-            _rerank_around(s, verts, topo, wedges, scratch, queue, stamp, label, me)
+            rerank_around(s, verts, topo, wedges, scratch, queue, stamp, label, me)
         if stop or count[COLLAPSES] == collapses_before:
             break
     progress[0] = log.count[COLLAPSES]
@@ -514,7 +343,7 @@ def _run_kernels(verts, faces, wedges, options, parts, states):
 
 
 # --------------------------------------------------------------------------
-# 4. Public entry points
+# 3. Public entry points
 # --------------------------------------------------------------------------
 
 def _prepare(mesh: Mesh, *, boundary_weight, locked, flip_cos, pair_threshold,
@@ -558,6 +387,28 @@ def _prepare(mesh: Mesh, *, boundary_weight, locked, flip_cos, pair_threshold,
     options = Options(int(min_vertices), n if limit is None else int(limit), float(flip_cos),
                       radius, bool(preserve_volume))
     return verts, faces, wedges, options, scales, scale
+
+
+def _in_memory_order(mesh: Mesh, locked, poses):
+    """``mesh`` with its vertices renumbered along a Morton curve when it has
+    ``parts.REORDER_MIN_VERTICES`` or more (``parts.memory_order``; faces keep
+    their rows, so face, corner and wedge ids are unchanged), with ``locked``
+    (n,) and ``poses`` (P, n, 3, 4) permuted to match. Returns (mesh, order,
+    locked, poses); ``order`` (n,) maps the new ids back (``order[new] =
+    old``), None when the mesh is left as it is. Arguments of the wrong shape
+    are passed on untouched, for ``_prepare`` to report."""
+    n = len(mesh.positions)
+    order = memory_order(mesh.positions) if n >= REORDER_MIN_VERTICES else None
+    if order is None:
+        return mesh, None, locked, poses
+    inverse = np.empty(n, dtype=np.int64)
+    inverse[order] = np.arange(n)
+    mesh = dataclasses.replace(mesh, positions=mesh.positions[order], faces=inverse[mesh.faces])
+    if locked is not None and np.shape(locked) == (n,):
+        locked = np.asarray(locked)[order]
+    if poses is not None and np.ndim(poses) >= 2 and np.shape(poses)[1] == n:
+        poses = np.asarray(poses)[:, order]
+    return mesh, order, locked, poses
 
 
 def decimate(mesh: Mesh, *, boundary_weight: float = 1.0, locked=None, min_vertices: int = 0,
@@ -621,6 +472,9 @@ def decimate(mesh: Mesh, *, boundary_weight: float = 1.0, locked=None, min_verti
     CollapseLog
         ``rejected`` counts the refused candidates by ``REJECT_REASONS``.
     """
+    # The kernel runs on the renumbered mesh; the log's vertex ids are mapped
+    # back at the end (its face and corner ids need nothing: faces keep their rows).
+    mesh, order, locked, poses = _in_memory_order(mesh, locked, poses)
     verts, faces, wedges, options, scales, scale = _prepare(
         mesh, boundary_weight=boundary_weight, locked=locked, flip_cos=flip_cos,
         pair_threshold=pair_threshold, attribute_weights=attribute_weights,
@@ -659,6 +513,8 @@ def decimate(mesh: Mesh, *, boundary_weight: float = 1.0, locked=None, min_verti
     (s, r, p, cost, area, killed_off, killed, moved_off, moved,
      merge_off, merge_s, merge_r, merge_v) = columns
 
+    if order is not None:
+        s, r = order[s], order[r]
     error = np.sqrt(cost / np.maximum(area, np.finfo(float).tiny)) * scale
     merges = {}
     if mesh.attributes is not None:

@@ -23,6 +23,10 @@ vertices.
 
 The result depends on ``parts``, not on the number of threads that run them:
 the same mesh gives the same artefact on every machine.
+
+``memory_order`` is the other half of locality: a Morton renumbering of a
+large mesh's vertices, so that the rows a collapse reads lie close in memory
+(and a part's vertices in a few ranges of it).
 """
 
 from __future__ import annotations
@@ -41,6 +45,51 @@ PARALLEL_MIN_VERTICES = 100_000
 TAIL_FRACTION = 0.15
 # Label of a frozen vertex (in no part).
 FROZEN = -1
+# Meshes with this many vertices or more are decimated with their vertices
+# renumbered along a Morton curve (``memory_order``): past a few tens of MB
+# the kernel's per-vertex rows (quadrics, positions, corner lists) no longer
+# fit in cache, and the neighbours a collapse reads then sit on the same or
+# nearby cache lines and pages (1.1M bunny: about 15% less CPU time).
+# Smaller meshes fit in cache and keep the artefacts they always had.
+REORDER_MIN_VERTICES = 100_000
+# Bits per axis of the Morton code (3 x 21 = 63 bits of an int64).
+_MORTON_BITS = 21
+
+
+def _spread_bits(x):
+    """(k,) uint64 with the low 21 bits of ``x`` moved to every third bit."""
+    x = x.astype(np.uint64) & np.uint64(0x1FFFFF)
+    for shift, mask in ((32, 0x1F00000000FFFF), (16, 0x1F0000FF0000FF), (8, 0x100F00F00F00F00F),
+                        (4, 0x10C30C30C30C30C3), (2, 0x1249249249249249)):
+        x = (x | (x << np.uint64(shift))) & np.uint64(mask)
+    return x
+
+
+def memory_order(positions):
+    """A renumbering of the vertices along a Morton (Z-order) curve.
+
+    Parameters
+    ----------
+    positions : (n, 3) float64
+
+    Returns
+    -------
+    order : (n,) int64 or None
+        ``order[new] = old``: vertices close in space get close ids. Ties keep
+        the input order, so the result is deterministic. None when a
+        position is not finite (nothing to order by; the caller's checks
+        report it).
+    """
+    positions = np.asarray(positions, dtype=np.float64)
+    if len(positions) == 0 or not np.isfinite(positions).all():
+        return None
+    lo = positions.min(axis=0)
+    span = float((positions.max(axis=0) - lo).max())
+    scale = (2**_MORTON_BITS - 1) / span if span > 0 else 0.0
+    cells = ((positions - lo) * scale).astype(np.int64)
+    code = (_spread_bits(cells[:, 0]) | (_spread_bits(cells[:, 1]) << np.uint64(1))
+            | (_spread_bits(cells[:, 2]) << np.uint64(2)))
+    return np.argsort(code, kind="stable")
 
 
 def partition(positions, faces, alive, parts):
