@@ -54,6 +54,38 @@ def accessor_floats(carried: dict, index: int) -> np.ndarray:
     return values.astype(np.float64)
 
 
+def _index(value, count: int, what: str) -> int:
+    """``value`` as an index into ``count`` items, else a MeshError "{what} {value}, which
+    does not exist" (a bool, a string or a float is no index)."""
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) \
+            or not 0 <= value < count:
+        raise MeshError(f"{what} {value!r:.40}, which does not exist")
+    return int(value)
+
+
+def keyframe_times(carried: dict, index, what: str) -> np.ndarray:
+    """(k,) float64 keyframe times of a sampler's ``input`` accessor: finite and never
+    decreasing (the spec asks for strictly increasing; repeated times, which some
+    exporters write, sample as a step), else a MeshError naming ``what``."""
+    times = accessor_floats(carried, index).ravel()
+    if not np.isfinite(times).all():
+        raise MeshError(f"{what} has keyframe times that are not finite numbers")
+    if (np.diff(times) < 0).any():
+        raise MeshError(f"{what} has keyframe times that are not increasing")
+    return times
+
+
+def skin_joints(skin: dict, number: int, nodes: int) -> np.ndarray:
+    """(J,) int64 node indices of ``skin``'s joints (skin ``number`` of a document of
+    ``nodes`` nodes), else a MeshError: none, or one that is not a node."""
+    joints = skin.get("joints") if isinstance(skin, dict) else None
+    if not isinstance(joints, list) or not joints:
+        raise MeshError(f"skin {number} has no list of joints")
+    for joint in joints:
+        _index(joint, nodes, f"skin {number} names as a joint node")
+    return np.asarray(joints, dtype=np.int64)
+
+
 def quaternion_matrix(q) -> np.ndarray:
     """(3, 3) rotation of the quaternion ``q`` (x, y, z, w), normalised first
     (the identity for a zero quaternion)."""
@@ -174,14 +206,17 @@ def clip_channels(document: dict, carried: dict, time: float, clip) -> dict:
         return {}
     animation = _animation(document, clip)
     samplers = animation.get("samplers", ())
+    nodes = document.get("nodes", ())
     found = {}
-    for channel in animation.get("channels", ()):
+    for number, channel in enumerate(animation.get("channels", ())):
         target = channel.get("target", {})
         node, path = target.get("node"), target.get("path")
         if node is None or path not in (*_PATH_WIDTHS, "weights"):
             continue        # no node (an extension's target) or pointer paths: nothing to pose
-        sampler = samplers[channel["sampler"]]
-        times = accessor_floats(carried, sampler["input"]).ravel()
+        _index(node, len(nodes), f"channel {number} of animation {clip} targets node")
+        sampler = samplers[_index(channel.get("sampler"), len(samplers),
+                                  f"channel {number} of animation {clip} uses sampler")]
+        times = keyframe_times(carried, sampler["input"], f"animation {clip}")
         values = accessor_floats(carried, sampler["output"])
         interpolation = sampler.get("interpolation", "LINEAR")
         if path == "weights":
@@ -206,10 +241,59 @@ def _parents(nodes: list) -> np.ndarray:
     parent = np.full(len(nodes), -1, dtype=np.int64)
     for index, node in enumerate(nodes):
         for child in node.get("children", ()):
-            if not 0 <= child < len(nodes) or parent[child] != -1 or child == index:
-                raise MeshError(f"node {child!r} is a child twice, of itself, or does not exist")
+            if isinstance(child, bool) or not isinstance(child, (int, np.integer)) \
+                    or not 0 <= child < len(nodes) or parent[child] != -1 or child == index:
+                raise MeshError(f"node {child!r:.40} is a child twice, of itself, or does "
+                                "not exist")
             parent[child] = index
     return parent
+
+
+def check_scene(document: dict, carried: dict) -> None:
+    """MeshError (one sentence) unless what the poses and the writer evaluate is sound:
+    the node tree (children that are nodes, each with one parent, no cycle), finite
+    node transforms, every skin (joints that are nodes, one finite inverse bind
+    matrix a joint), node and mesh ``weights`` (one a morph target) and every
+    animation channel (a sampler and node that exist, finite increasing times,
+    outputs matching them and, for ``weights``, the node's targets), sampled at its
+    first keyframe.
+    Called by :func:`lodserver.io.scene.load_scene`, so a hostile document is refused
+    at upload, not at build."""
+    worlds = node_worlds(document, carried)
+    if not np.isfinite(worlds).all():
+        raise MeshError("a node's transform is not finite")
+    for number, skin in enumerate(document.get("skins", ())):
+        joints = skin_joints(skin, number, len(worlds))
+        if "inverseBindMatrices" in skin:
+            flat = accessor_floats(carried, skin["inverseBindMatrices"])
+            if flat.shape != (len(joints), 16):
+                raise MeshError(f"skin {number} has {flat.shape[0]} inverse bind matrices "
+                                f"for {len(joints)} joints")
+            if not np.isfinite(flat).all():
+                raise MeshError(f"skin {number} has inverse bind matrices that are not finite")
+    nodes, meshes = document.get("nodes", ()), document.get("meshes", ())
+    targets = {}        # node -> its mesh's morph target count, for nodes whose mesh has some
+    for number, node in enumerate(nodes):
+        if "mesh" in node:
+            mesh = meshes[_index(node["mesh"], len(meshes), f"node {number} uses mesh")]
+            count = max((len(p.get("targets") or ()) for p in mesh.get("primitives", ())),
+                        default=0)
+            for owner, weights in ((f"node {number}", node.get("weights")),
+                                   (f"mesh {node['mesh']}", mesh.get("weights"))):
+                if weights is None:
+                    continue
+                given = len(weights) if isinstance(weights, list) else "no list of"
+                if given != count:
+                    raise MeshError(f"{owner} has {given} morph weights for {count} targets")
+            if count:
+                targets[number] = count
+    for clip in range(len(document.get("animations", ()))):
+        first, _ = clip_range(document, carried, clip)
+        for (node, path), value in clip_channels(document, carried, first, clip).items():
+            # a weights channel of a node whose mesh has no targets moves nothing: ignored
+            if path == "weights" and node in targets and len(value) != targets[node]:
+                raise MeshError(f"animation {clip} gives node {node} {len(value)} morph "
+                                f"weights for {targets[node]} targets")
 
 
 def node_worlds(document: dict, carried: dict, time: float = 0.0, clip=None) -> np.ndarray:
@@ -273,14 +357,14 @@ def joint_matrices(document: dict, carried: dict, skin: int, mesh_node: int,
     skins = document.get("skins", ())
     if not 0 <= skin < len(skins):
         raise MeshError(f"skin {skin!r} does not exist")
-    joints = np.asarray(skins[skin].get("joints", ()), dtype=np.int64)
-    if len(joints) == 0 or joints.min() < 0 or joints.max() >= len(worlds):
-        raise MeshError(f"skin {skin} has no joints or a joint that is not a node")
+    joints = skin_joints(skins[skin], skin, len(worlds))
     if "inverseBindMatrices" in skins[skin]:
         flat = accessor_floats(carried, skins[skin]["inverseBindMatrices"])
         if flat.shape != (len(joints), 16):
             raise MeshError(f"skin {skin} has {flat.shape[0]} inverse bind matrices for "
                             f"{len(joints)} joints")
+        if not np.isfinite(flat).all():
+            raise MeshError(f"skin {skin} has inverse bind matrices that are not finite")
         inverse_bind = flat.reshape(-1, 4, 4).transpose(0, 2, 1)   # column-major
     else:
         inverse_bind = np.broadcast_to(np.eye(4), (len(joints), 4, 4))
@@ -292,7 +376,7 @@ def clip_range(document: dict, carried: dict, clip: int) -> tuple[float, float]:
     animation = _animation(document, clip)
     first, last = np.inf, -np.inf
     for sampler in animation.get("samplers", ()):
-        times = accessor_floats(carried, sampler["input"])
+        times = keyframe_times(carried, sampler["input"], f"animation {clip}")
         if times.size:
             first, last = min(first, float(times.min())), max(last, float(times.max()))
     return (first, last) if first <= last else (0.0, 0.0)

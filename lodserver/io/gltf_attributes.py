@@ -43,7 +43,7 @@ import re
 
 import numpy as np
 
-from ..mesh import MeshError, attribute_rule
+from ..mesh import MAX_ATTRIBUTES, MeshError, attribute_rule
 from .gltf_document import record
 from .limits import LimitError
 
@@ -66,6 +66,10 @@ _TYPES = {"NORMAL": ("VEC3",), "TEXCOORD": ("VEC2",), "COLOR": ("VEC3", "VEC4"),
 # At most this many attribute floats per corner on average at the triangle limit: a
 # document declaring 500 morph targets on a large mesh would otherwise need tens of GB.
 FLOATS_PER_LIMIT_CORNER = 16
+
+# The longest attribute name kept (what a packet record can name, packets.format.MAX_NAME);
+# a custom _NAME is held to 63 characters by its rule, but TEXCOORD_000...1 is not.
+MAX_NAME = 64
 
 
 def _order_key(name: str):
@@ -117,7 +121,10 @@ def attribute_layout(document: dict, primitives: list, every: bool) -> tuple[tup
         found, lost = _sources(primitive, every)
         dropped.update(lost)
         for name, index in found:
-            accessor = record(document, "accessors", index, f"primitive {name}")
+            if len(name) > MAX_NAME:
+                dropped.add(name)       # a packet names an attribute in at most 64 bytes
+                continue
+            accessor = record(document, "accessors", index, f"primitive {_shown(name)}")
             kind = accessor.get("type")
             if kind not in _TYPE_WIDTHS:
                 raise MeshError(f"its {_label(name)} accessor has type {kind!r}")
@@ -145,8 +152,18 @@ def attribute_layout(document: dict, primitives: list, every: bool) -> tuple[tup
         for t in range(count):
             if not any(name.startswith(f"TARGET{t}_") for name in widths):
                 widths[f"TARGET{t}_POSITION"] = 3
+    if len(widths) > MAX_ATTRIBUTES:
+        # refused from the declarations, before (faces, 3, width) corners are allocated
+        raise MeshError(f"it has {len(widths)} vertex attributes; at most {MAX_ATTRIBUTES} "
+                        "are supported")
     layout = tuple((name, widths[name]) for name in sorted(widths, key=_order_key))
-    return layout, sorted(dropped - set(widths))
+    return layout, sorted({_shown(name) for name in dropped - set(widths)})
+
+
+def _shown(name: str) -> str:
+    """``name`` cut to 64 characters: a dropped attribute's name is echoed in notes and
+    reports, and a document may name one by ten kilobytes."""
+    return name if len(name) <= 64 else f"{name[:48]}... ({len(name)} characters)"
 
 
 def check_attribute_size(limits, corners: int, layout: tuple) -> None:
@@ -216,16 +233,22 @@ def primitive_corners(document, primitive, linear, triangles, world, layout, acc
 def _label(name: str) -> str:
     """``name`` as glTF spells it: ``TARGET1_NORMAL`` is morph target 1's NORMAL."""
     morph = re.fullmatch(r"TARGET(\d+)_(\w+)", name)
-    return f"morph target {morph[1]}'s {morph[2]}" if morph else name
+    return f"morph target {morph[1]}'s {morph[2]}" if morph else _shown(name)
 
 
 def check_joints(document: dict, mesh_index: int, layout: tuple, corner_values) -> None:
     """MeshError unless every joint index of ``corner_values`` (m, 3, d) exists in the
-    skin of every node that uses mesh ``mesh_index`` with a skin."""
+    skin of every node that uses mesh ``mesh_index`` with a skin, and no skin weight
+    is negative."""
     start, largest = 0, -1
     for name, width in layout:
         if name.startswith("JOINTS_") and len(corner_values):
             largest = max(largest, int(corner_values[:, :, start:start + width].max()))
+        if name.startswith("WEIGHTS_") and len(corner_values) \
+                and (corner_values[:, :, start:start + width] < 0).any():
+            # the spec: joint weights MUST be non-negative (a negative one turns a
+            # blend of rigid joints into an extrapolation that tears the mesh)
+            raise MeshError(f"mesh {mesh_index} has negative skin weights ({name})")
         start += width
     if largest < 0:
         return

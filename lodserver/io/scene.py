@@ -27,6 +27,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from ..mesh import Materials, MeshError
+from .animation import check_scene
 from .clean import clean_mesh
 from .gltf import read_gltf_meshes
 from .limits import LimitError, LoadLimits
@@ -113,7 +114,11 @@ def load_scene(path, *, root=None, limits: LoadLimits | None = None) -> Scene:
     MeshError
         For what :func:`load_mesh` refuses, and for an ``extensionsRequired``
         entry lodserver cannot honour (e.g. ``KHR_draco_mesh_compression``),
-        one sentence naming the file by its name only.
+        one sentence naming the file by its name only; and for a node tree, skin,
+        morph weights or animation that cannot be evaluated
+        (:func:`.animation.check_scene`: cycles, joints or channel targets that are
+        no nodes, non-finite or decreasing keyframe times, ...) or animation and
+        skin data without bytes behind it.
     LimitError
         If the file declares more than ``limits`` allow.
     """
@@ -140,8 +145,9 @@ def load_scene(path, *, root=None, limits: LoadLimits | None = None) -> Scene:
         raise MeshError(f"cannot load {path.name}: {exc}") from exc
     except OSError as exc:
         raise MeshError(f"cannot load {path.name}: {exc.strerror or type(exc).__name__}") from exc
-    except (KeyError, IndexError, TypeError, ValueError) as exc:
-        # a malformed record of the parts this module reads (animations, nodes)
+    except (KeyError, IndexError, TypeError, ValueError, AttributeError) as exc:
+        # a malformed record of the parts this module reads (animations, nodes; a
+        # string where an object belongs has no .get)
         raise MeshError(f"cannot load {path.name}: it could not be parsed as "
                         f"{kind.upper()} ({type(exc).__name__}: {exc})") from exc
 
@@ -188,6 +194,20 @@ def carried_accessors(document: dict, as_is=()) -> dict:
     return found
 
 
+def _check_backed(accessor: dict, index: int) -> None:
+    """MeshError for a carried accessor whose values no bytes of the file give: one
+    without a bufferView reads as zeros (bar its sparse values), so a few bytes of JSON
+    could declare ten million keyframes or inverse bind matrices (the rule
+    ``gltf_document.check_geometry_has_data`` applies to geometry)."""
+    count = accessor.get("count") if isinstance(accessor, dict) else None
+    sparse = accessor.get("sparse") if isinstance(accessor, dict) else None
+    sparse_count = sparse.get("count") if isinstance(sparse, dict) else 0
+    if isinstance(accessor, dict) and "bufferView" not in accessor and count \
+            and sparse_count != count:
+        raise MeshError(f"its animation or skin accessor {index} has {count!r:.20} values "
+                        f"without a bufferView (only {sparse_count!r:.20} given)")
+
+
 def _scene(parts: dict) -> Scene:
     document, arrays = parts["document"], parts["meshes"]
     scene = Scene(document, materials=parts["materials"])
@@ -197,7 +217,11 @@ def _scene(parts: dict) -> Scene:
         if isinstance(index, bool) or not isinstance(index, int) or not 0 <= index < len(accessors):
             raise MeshError(f"its animation, skin, mesh or instancing data refers to accessor "
                             f"{index!r}, which does not exist")
+        if role == OTHER:
+            _check_backed(accessors[index], index)
         scene.carried[index] = (parts["accessor"](index), accessors[index], role)
+    # the node tree, skins and animations the poses and the writer evaluate
+    check_scene(document, scene.carried)
     for index, mesh_arrays in arrays.items():
         if index in scene.as_is:
             scene.notes.append(f"mesh {index} is written as it is, one level: "

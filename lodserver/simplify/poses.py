@@ -306,6 +306,16 @@ def scene_poses(scene, mesh_index: int, mesh, count: int = DEFAULT_POSES):
         - neither: None.
         ``P * n`` is capped at :data:`MAX_POSE_VERTICES` (poses kept evenly).
     """
+    try:
+        return _scene_poses(scene, mesh_index, mesh, count)
+    except (KeyError, IndexError, TypeError, ValueError) as exc:
+        # load_scene checks the tree, skins and channels (io.animation.check_scene);
+        # whatever else of the JSON is malformed is the file's fault, not a crash
+        raise MeshError(f"its skin or animation data is malformed ({type(exc).__name__}: "
+                        f"{str(exc)[:120]})") from exc
+
+
+def _scene_poses(scene, mesh_index: int, mesh, count: int):
     document, carried = scene.document, scene.carried
     users = scene.mesh_nodes.get(mesh_index, [])
     nodes = document.get("nodes", [])
