@@ -17,7 +17,10 @@ directory, uploads the meshes, and in headless Chromium (Debian's
    for the Stanford bunny and the 1.1M-face bunny (``--large``, an .npz of
    ``positions``/``faces`` as ``bench/simplify.py`` writes it, uploaded as PLY),
    with default settings, plain and throttled (50 ms, 20 Mbit/s), beside
-   fetching the full-detail GLB (``streaming.py``); ``--static DIR`` serves
+   fetching the full-detail GLB, and fetching, parsing and drawing it with
+   three.js's GLTFLoader (``glb.html``/``glb.js``, served from a temporary copy
+   of the viewer's folder as ``/viewer/bench-glb.html``), ``--runs`` times
+   each, in turn (``streaming.py``); ``--static DIR`` serves
    another copy of the viewer (e.g. ``git archive HEAD static`` unpacked), so
    two versions are measured side by side in one run (``--static`` twice with
    ``--label`` twice).
@@ -49,7 +52,8 @@ from pathlib import Path
 import httpx
 from playwright.sync_api import sync_playwright
 
-ROOT = Path(__file__).resolve().parents[2]
+HERE = Path(__file__).resolve().parent
+ROOT = HERE.parents[1]
 sys.path.insert(0, str(ROOT))
 from tests.server import serve
 
@@ -196,6 +200,20 @@ def write_ply(npz: Path, out: Path) -> Path:
     return out
 
 
+BENCH_PAGE = {"bench-glb.html": HERE / "glb.html", "bench-glb.js": HERE / "glb.js"}
+
+
+def with_bench_page(static: Path, work: Path) -> Path:
+    """A copy of the viewer's folder ``static`` under ``work`` with the GLB
+    baseline page added (``BENCH_PAGE``), so one server serves both, the same
+    three.js files under the same headers."""
+    copy = work / f"static-{len(list(work.glob('static-*')))}"
+    shutil.copytree(static, copy)
+    for name, source in BENCH_PAGE.items():
+        shutil.copyfile(source, copy / name)
+    return copy
+
+
 def run_streaming(args, browser_factory, out: Path) -> dict:
     """--streaming: one server per viewer copy (``--static``), the same meshes."""
     statics = args.static or [ROOT / "static"]
@@ -208,14 +226,15 @@ def run_streaming(args, browser_factory, out: Path) -> dict:
             sources["bunny_1.1M"] = write_ply(args.large, Path(work) / "bunny_loop2.ply")
         for label, static in zip(labels, statics):
             data = Path(work) / f"data-{label}"
-            env = {"LODSERVER_STATIC_DIR": str(Path(static).resolve())}
+            served = with_bench_page(Path(static).resolve(), Path(work))
+            env = {"LODSERVER_STATIC_DIR": str(served)}
             with serve(data, warm_kernels=True, timeout=300, env=env) as client:
                 meshes = {name: upload(client, path) for name, path in sources.items()}
                 browser = browser_factory()
                 try:
                     results[label] = measure_streaming(
                         browser, client, meshes, viewport=VIEWPORT, timeout_s=args.timeout,
-                        out=out, label=label)
+                        out=out, label=label, runs=args.runs)
                 finally:
                     browser.close()
     return results
@@ -272,6 +291,8 @@ def main() -> None:
     parser.add_argument("--label", action="append", help="a name per --static")
     parser.add_argument("--geomorph", action="store_true",
                         help="only: per-frame pixel change of a level change, geomorphs off/on")
+    parser.add_argument("--runs", type=int, default=1,
+                        help="--streaming: runs of each (viewer, GLB fetch, GLB drawn) in turn")
     parser.add_argument("--timeout", type=float, default=600,
                         help="seconds a streaming run may take before it counts as failed")
     args = parser.parse_args()

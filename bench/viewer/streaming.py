@@ -19,7 +19,16 @@ navigation's start):
   timing's ``transferSize``: on the wire, headers included, compressed if the
   server compressed), ``static_bytes`` what it fetched under ``/viewer/``;
 * ``glb``: a fresh context fetching ``/lod?vertices=FULL&format=glb`` (bytes and
-  time to its last byte: no parsing or drawing counted, the GLB's best case).
+  time to its last byte: no parsing or drawing counted, the GLB's best case);
+* ``glb_drawn``: the fair baseline, a fresh context opening
+  ``/viewer/bench-glb.html`` (``glb.html``/``glb.js``, which ``run.py`` adds to
+  the served copy of ``static/``): the same three.js fetches that GLB, parses it
+  with GLTFLoader and draws it once with the viewer's look; ``first_frame_ms``
+  (= ``full_detail_ms``: a GLB has one level) from the navigation's start, as
+  the viewer's, and its steps (``marks``).
+
+``next_frame_ms`` (viewer and ``glb_drawn``): the animation frame after the one
+drawing full detail, which waits for that frame's software-GL work.
 
 Throttled runs use the DevTools protocol's ``Network.emulateNetworkConditions``
 (latency per request, throughput shared by the page's requests).
@@ -28,6 +37,9 @@ Throttled runs use the DevTools protocol's ``Network.emulateNetworkConditions``
 from __future__ import annotations
 
 import time
+from urllib.parse import quote
+
+from playwright.sync_api import Error as PlaywrightError
 
 # 50 ms latency, 20 Mbit/s both ways (the issue's throttled link)
 THROTTLE = {"offline": False, "latency": 50, "downloadThroughput": 20e6 / 8,
@@ -49,7 +61,11 @@ window.benchFirstFrame = null;
 FULL_DETAIL_JS = """async (full) => {
   for (;;) {
     const status = await lodViewer.settled();
-    if (status.level === full || status.error) return { ...status, at: performance.now() };
+    if (status.level === full || status.error) {
+      const at = performance.now();
+      await new Promise((resolve) => requestAnimationFrame(resolve));
+      return { ...status, at, next: performance.now() };
+    }
     await new Promise((resolve) => setTimeout(resolve, 20));
   }
 }"""
@@ -77,8 +93,8 @@ GLB_JS = """async (url) => {
 }"""
 
 
-def _context(browser, viewport, throttled: bool):
-    context = browser.new_context(viewport=viewport)
+def _context(browser, viewport, throttled: bool, bypass_csp: bool = False):
+    context = browser.new_context(viewport=viewport, bypass_csp=bypass_csp)
     page = context.new_page()
     if throttled:
         cdp = context.new_cdp_session(page)
@@ -105,6 +121,7 @@ def stream_once(browser, base_url: str, mesh: dict, *, throttled: bool, viewport
             page.screenshot(path=str(shot))
         return {"first_frame_ms": round(first, 1) if first is not None else None,
                 "full_detail_ms": round(status["at"], 1),
+                "next_frame_ms": round(status["next"], 1),
                 "wall_s": round(time.perf_counter() - wall, 2),
                 "level": status["level"], "error": status["error"],
                 "geometry_bytes": sent["geometry"], "geometry_requests": sent["requests"],
@@ -130,9 +147,42 @@ def fetch_glb(browser, base_url: str, mesh: dict, *, throttled: bool, viewport: 
         context.close()
 
 
+def draw_glb(browser, base_url: str, mesh: dict, *, throttled: bool, viewport: dict,
+             timeout_s: float, shot=None) -> dict:
+    """The full-detail GLB fetched, parsed by GLTFLoader and drawn once, in a
+    fresh context (``glb.js``); times in ms from the navigation's start."""
+    # the page's import map is inline: the viewer's CSP only hashes index.html's
+    context, page = _context(browser, viewport, throttled, bypass_csp=True)
+    errors = []
+    page.on("pageerror", lambda error: errors.append(str(error)))
+    page.set_default_timeout(timeout_s * 1000)
+    try:
+        url = f"/meshes/{mesh['id']}/lod?vertices={mesh['vertices']}&format=glb"
+        page.goto(f"{base_url}/viewer/bench-glb.html?glb={quote(url, safe='')}")
+        page.wait_for_function("() => window.bench?.done")
+        raw = page.evaluate("window.bench")
+        if raw["error"]:
+            return {"failed": raw["error"], "page_errors": errors[:3]}
+        if shot is not None:
+            page.screenshot(path=str(shot))
+        marks = {name: round(ms, 1) for name, ms in raw["marks"].items()}
+        return {"first_frame_ms": marks["drawn"], "full_detail_ms": marks["drawn"],
+                "next_frame_ms": marks["next_frame"], "marks": marks,
+                "glb_bytes": raw["bytes"], "triangles": raw["triangles"],
+                "page_errors": errors[:3]}
+    except PlaywrightError as error:     # a timeout: the figure is "more than timeout_s"
+        return {"failed": f"{type(error).__name__}: {str(error).splitlines()[0]}",
+                "page_errors": errors[:3]}
+    finally:
+        context.close()
+
+
 def measure_streaming(browser, client, meshes: dict, *, viewport: dict, timeout_s: float,
-                      out, label: str, throttle_modes=(False, True)) -> dict:
-    """For each named mesh, plain and throttled: the viewer's run and the GLB's."""
+                      out, label: str, throttle_modes=(False, True), runs: int = 1) -> dict:
+    """For each named mesh, plain and throttled, ``runs`` times in turn: the
+    viewer's run, the GLB's fetch, and the GLB fetched and drawn. Each mode's
+    row holds the first run's figures and, with ``runs`` > 1, all of them
+    (``runs``)."""
     result = {}
     for name, mesh in meshes.items():
         # warm the server's caches once, untimed: the GLB body, and the packet
@@ -147,13 +197,22 @@ def measure_streaming(browser, client, meshes: dict, *, viewport: dict, timeout_
         rows = {}
         for throttled in throttle_modes:
             mode = "throttled" if throttled else "plain"
-            shot = out / f"stream-{label}-{name}-{mode}.png"
-            rows[mode] = {
-                "viewer": stream_once(browser, str(client.base_url), mesh, throttled=throttled,
-                                      viewport=viewport, timeout_s=timeout_s, shot=shot),
-                "glb": fetch_glb(browser, str(client.base_url), mesh, throttled=throttled,
-                                 viewport=viewport)}
-            print(f"{label} {name} {mode}: {rows[mode]}", flush=True)
+            done = []
+            for run in range(runs):
+                shot = out / f"stream-{label}-{name}-{mode}.png" if run == 0 else None
+                glb_shot = out / f"glb-{label}-{name}-{mode}.png" if run == 0 else None
+                row = {
+                    "viewer": stream_once(browser, str(client.base_url), mesh,
+                                          throttled=throttled, viewport=viewport,
+                                          timeout_s=timeout_s, shot=shot),
+                    "glb": fetch_glb(browser, str(client.base_url), mesh, throttled=throttled,
+                                     viewport=viewport),
+                    "glb_drawn": draw_glb(browser, str(client.base_url), mesh,
+                                          throttled=throttled, viewport=viewport,
+                                          timeout_s=timeout_s, shot=glb_shot)}
+                print(f"{label} {name} {mode} run {run}: {row}", flush=True)
+                done.append(row)
+            rows[mode] = {**done[0], **({"runs": done} if runs > 1 else {})}
         result[name] = {"vertices": mesh["vertices"], "faces": mesh["faces"],
                         "base_vertices": mesh["base_vertices"], **rows}
     return result
