@@ -54,6 +54,7 @@ import math
 import numpy as np
 from numba import njit
 
+from .io.animation import node_worlds
 from .mesh import MeshError
 
 # the viewport height, in pixels, the screen coverage hints are made for (1080p)
@@ -365,29 +366,6 @@ def _largest_scale(matrices: np.ndarray) -> np.ndarray:
     return np.linalg.norm(matrices[:, :3, :3], ord=2, axis=(1, 2))
 
 
-def _world_matrices(document: dict) -> list:
-    """(4, 4) world transform of every node (its ancestors' transforms applied),
-    whether or not a scene lists it."""
-    from .io.gltf import _local_matrix
-
-    nodes = document.get("nodes", [])
-    parent = {}
-    for index, node in enumerate(nodes):
-        for child in node.get("children", ()):
-            parent.setdefault(child, index)
-    world = [None] * len(nodes)
-    for index in range(len(nodes)):
-        chain, at = [], index
-        while at is not None and world[at] is None and at not in chain:
-            chain.append(at)
-            at = parent.get(at)
-        above = world[at] if at is not None and world[at] is not None else np.eye(4)
-        for node in reversed(chain):     # from the highest ancestor down
-            above = above @ _local_matrix(nodes[node])
-            world[node] = above
-    return world
-
-
 def _carried_float(scene, index):
     from .io.gltf import _as_float
 
@@ -450,7 +428,8 @@ def scene_instances(scene, pms: dict | None = None) -> tuple[dict, float]:
         box, transformed), world units.
     """
     parts = sorted(pms if pms is not None else scene.meshes)
-    world = _world_matrices(scene.document)
+    # every node's rest-pose world transform, whether or not a scene lists it
+    world = node_worlds(scene.document, scene.carried)
     users = scene.mesh_nodes
     instances, low, high = {}, np.full(3, np.inf), np.full(3, -np.inf)
     for p in parts:
