@@ -28,6 +28,7 @@
 
 import * as THREE from 'three';
 import { GLTFLoader } from 'three/addons/loaders/GLTFLoader.js';
+import { createBus } from './bus.js';
 import { nearestPoints } from './nearest.js';
 import { createStream, routeUrl } from './stream.js';
 import { dequantize } from './vsplit.js';
@@ -40,19 +41,6 @@ const MORPH = /^TARGET(\d+)_(POSITION|NORMAL|TANGENT)$/;
 // Frames drawn for the scrubber: at most this often is its text rewritten.
 const LABEL_MS = 100;
 
-// A private signal bus for one part's stream, sharing the viewer's settings.
-function createBus(settings) {
-  const signals = new EventTarget();
-  return {
-    settings,
-    emit(type, detail) {
-      signals.dispatchEvent(new CustomEvent(type, { detail }));
-    },
-    on(type, listener) {
-      signals.addEventListener(type, (event) => listener(event.detail));
-    },
-  };
-}
 
 // attribute's rows picked by `rows` (an index per new vertex): a new attribute
 // of the same type, width and normalisation.

@@ -2,6 +2,7 @@
 // Each part (scene, stream, ui, plot) listens to and emits named signals
 // instead of reaching into the others.
 
+import { createBus } from './bus.js';
 import { firstLevel, guessUpAxis } from './framing.js';
 import { createAnimated } from './animated.js';
 import { createGeomorph } from './geomorph.js';
@@ -29,16 +30,7 @@ const settings = {
 };
 
 function createViewer() {
-  const signals = new EventTarget();
-  return {
-    settings,
-    emit(type, detail) {
-      signals.dispatchEvent(new CustomEvent(type, { detail }));
-    },
-    on(type, listener) {
-      signals.addEventListener(type, (event) => listener(event.detail));
-    },
-  };
+  return createBus(settings);
 }
 
 // Auto mode: the coarsest level whose error projects to at most the budget.
