@@ -3,8 +3,8 @@
 // scene's animation, animated.js, asks for a frame at a time while it plays:
 // showObject() puts such a scene here in place of the mesh), lit by an image-based environment and a headlight, tone-mapped
 // (materials.js), framed by framing.js. The environment is made once the first
-// frame showing a mesh is drawn and the stream rests (it costs GPU time; a
-// hemisphere light stands in until then).
+// frame showing a mesh is drawn and the stream rests, or at once if the stream
+// has a long way to go (it costs GPU time; a hemisphere light stands in until then).
 //
 // The buffers are allocated at full detail once per mesh. A level is a prefix
 // of the vertices and of the faces (the prefix layout), so showing one is a
@@ -35,6 +35,11 @@ import { fitBox, freeArea, pixelsPerUnit } from './framing.js';
 
 // The longest the environment waits for the stream to come to rest (see createScene).
 const ENVIRONMENT_WAIT_MS = 5000;
+// The stream's estimate of the rest of its bytes' time on the link (ms) beyond
+// which the environment is made at once instead: its GPU work (0.4-1 s under
+// software GL) then overlaps the download rather than delaying the
+// full-detail frame after it.
+const ENVIRONMENT_AHEAD_MS = 1500;
 
 // three.js attribute names of glTF's.
 const ATTRIBUTE_NAMES = { NORMAL: 'normal', TANGENT: 'tangent', TEXCOORD_0: 'uv',
@@ -56,12 +61,17 @@ export function createScene(viewer, container, panel = null) {
   // is drawn and the stream has come to rest (or ENVIRONMENT_WAIT_MS after
   // that frame, if it is still streaming): a frame it delays would otherwise
   // also space the stream's reports (stream.js measures what frames cost).
-  // Until then a hemisphere light stands in for it (the same shading, without
-  // reflections).
+  // But when the stream estimates the rest of its bytes at more than
+  // ENVIRONMENT_AHEAD_MS on the link (a slow link, a large mesh), it is made at once, as a
+  // GLB viewer does while its bytes arrive: made at rest it would delay the
+  // full-detail frame by its GPU work (bench/viewer: throttled 1.1M-face
+  // bunny). Until then a hemisphere light stands in for it (the same shading,
+  // without reflections).
   const fill = new THREE.HemisphereLight(LOOK.fill.sky, LOOK.fill.ground, LOOK.fill.intensity);
   scene.add(fill);
   let environmentDue = false, environmentMade = null, meshDrawnAt = null, streaming = true;
   let environmentTimer = 0;
+  let streamRestMs = null;        // the stream's estimate of its rest on the link, ms (or null)
   const environmentReady = new Promise((resolve) => { environmentMade = resolve; });
   const camera = new THREE.PerspectiveCamera(settings.fov, 1, 0.01, 100);
   // A light that follows the camera keeps the side facing the viewer lit; the
@@ -117,7 +127,8 @@ export function createScene(viewer, container, panel = null) {
   function environmentSoon() {
     if (environmentDue || meshDrawnAt === null) return;
     const waited = performance.now() - meshDrawnAt;
-    if (streaming && waited < ENVIRONMENT_WAIT_MS) {
+    const longWay = streamRestMs !== null && streamRestMs > ENVIRONMENT_AHEAD_MS;
+    if (streaming && !longWay && waited < ENVIRONMENT_WAIT_MS) {
       clearTimeout(environmentTimer);
       environmentTimer = setTimeout(environmentSoon, ENVIRONMENT_WAIT_MS - waited);
       return;
@@ -469,9 +480,10 @@ export function createScene(viewer, container, panel = null) {
   viewer.on('mesh', showMesh);
   viewer.on('level', showLevel);
   viewer.on('settings', applySettings);
-  viewer.on('stream', ({ state: now }) => {
+  viewer.on('stream', ({ state: now, restMs = null }) => {
     streaming = now === 'moving' || now === 'retrying';
-    if (!streaming) environmentSoon();
+    streamRestMs = now === 'moving' ? restMs : null;
+    environmentSoon();
   });
   viewer.on('reset-view', () => {
     if (!showing()) return;

@@ -49,7 +49,8 @@
 // Signals out: 'mesh' (a new mesh is shown), 'level' (the state moved: { state, bytes,
 // records, applyMs, morph (glide it: geomorph.js), dirty }),
 // 'target' (the level being moved to), 'status' (text for the user),
-// 'stream' (the stream's state: { state: 'moving'|'retrying'|'stalled'|'idle'|'failed', ... }).
+// 'stream' (the stream's state: { state: 'moving'|'retrying'|'stalled'|'idle'|'failed', ... };
+// 'moving' has restMs, the rest of the way's estimated time on the link: see restEstimateMs).
 // Signals in: 'open' (a mesh id, or { id, level }: see open()), 'goto' (a level).
 
 import { ErrorCurve } from './curve.js';
@@ -145,6 +146,10 @@ export function createStream(viewer) {
   let reportedAt = -Infinity; // performance.now() of the last report
   let frameCostMs = 16;       // what a drawn frame costs the main thread (moving average)
   let rate = 0;               // records applied per ms (see adapt)
+  let lastLink = null;        // the link's figures at the last packet (linkOf)
+  let receivedBytes = 0, receivedRecords = 0;   // packets' bytes and records so far (this mesh)
+  let holdUntil = null;       // a report held for the rest arriving, until then (restInHand)
+  let holdTimer = 0;
   let bodies = [];            // [responseStart, responseEnd, bytes] of the last packets (linkOf)
   // The next packet waits for the last report's frame: three.js uploads the
   // reported ranges when it draws, from the very arrays the decoder changes.
@@ -215,6 +220,7 @@ export function createStream(viewer) {
     size = option('chunkSplits');
     rate = 0;
     bodies = [];
+    [lastLink, receivedBytes, receivedRecords] = [null, 0, 0];
     try {
       const summary = given ?? await waitUntilReady(id, ticket);
       if (!summary) return;
@@ -403,6 +409,7 @@ export function createStream(viewer) {
     if (!pending || !state) return;
     const { records, applyMs, morph = false } = pending;
     pending = null;
+    holdUntil = null;
     shown = state.level;
     reportedAt = performance.now();
     framed = false;
@@ -483,10 +490,47 @@ export function createStream(viewer) {
   // take less than a drawn frame costs: then a frame of the level between is
   // not worth its cost (under software GL a frame of a million triangles blocks
   // the main thread for seconds) and the report waits for the target.
+  // Also while the rest is still arriving, if it should arrive (at the link's
+  // rate, bytesPerRecord of the packets so far) and be applied within a drawn
+  // frame's cost: a frame drawn meanwhile would only delay the full level
+  // (throttled, the 1.1M-face bunny spent seconds on such frames after its
+  // last byte). Held at most twice as long as estimated (holdUntil), so a
+  // stalling link still shows what has arrived.
   function restInHand() {
-    if (planned !== target || !queue.every((entry) => entry.ready) || !(rate > 0)) return false;
-    const records = queue.reduce((n, entry) => n + Math.abs(entry.to - entry.from), 0);
-    return records / rate < frameCostMs;
+    if (planned !== target || !(rate > 0)) return false;
+    let records = 0, missing = 0;
+    for (const entry of queue) {
+      const count = Math.abs(entry.to - entry.from);
+      records += count;
+      if (!entry.ready) missing += count;
+    }
+    if (missing === 0) return records / rate < frameCostMs;
+    if (!lastLink || !(receivedRecords > 0)) return false;
+    const arriveMs = lastLink.latencyMs
+      + missing * (receivedBytes / receivedRecords) / lastLink.bytesPerMs;
+    const restMs = arriveMs + records / rate;
+    const now = performance.now();
+    if (restMs >= frameCostMs) return false;
+    if (holdUntil === null) holdUntil = now + 2 * restMs;
+    if (now < holdUntil) {
+      // look again then, in case no packet arrives to trigger a report
+      if (!holdTimer) holdTimer = setTimeout(() => { holdTimer = 0; reportSoon(); },
+                                             holdUntil - now + 1);
+      return true;
+    }
+    return false;
+  }
+
+  // How long the rest of the way to the target should take to cross the link,
+  // ms: its bytes (a record's as in the packets so far) over the link's rate;
+  // null before a packet has been measured. Time the page spends waiting on
+  // the link, not on its own work (decoding competes with the GPU's for the
+  // cores under software GL): scene.js makes the environment at once when
+  // this is long enough to hide its GPU work.
+  function restEstimateMs() {
+    if (!state || target === null || !(receivedRecords > 0) || !lastLink) return null;
+    const records = Math.abs(target - state.level);
+    return records * (receivedBytes / receivedRecords) / lastLink.bytesPerMs;
   }
 
   // Follows `target` (which may change meanwhile), the queued packets in order.
@@ -500,7 +544,7 @@ export function createStream(viewer) {
         if (!head) break;
         const verb = head.to > head.from ? 'refining' : 'coarsening';
         viewer.emit('status', `${info.name}: ${verb} to ${target}`);
-        emitStream('moving');
+        emitStream('moving', { restMs: restEstimateMs() });
         let got;
         try {
           got = await head.result;
@@ -525,7 +569,10 @@ export function createStream(viewer) {
         stats.largest = Math.max(stats.largest, records);
         pending = { records: (pending?.records ?? 0) + records,
                     applyMs: (pending?.applyMs ?? 0) + applyMs, morph: pending?.morph ?? false };
-        adapt(records, got.bytes, applyMs, linkOf(got.url, got.bytes));
+        lastLink = linkOf(got.url, got.bytes) ?? lastLink;
+        receivedBytes += got.bytes;
+        receivedRecords += records;
+        adapt(records, got.bytes, applyMs, lastLink);
         const backward = head.to < head.from;
         const morphing = geomorph && !run.opening && geomorph.enabled();
         if (backward && morphing) {
@@ -577,6 +624,8 @@ export function createStream(viewer) {
     pending = null;
     if (timer) clearTimeout(timer);
     timer = 0;
+    if (holdTimer) clearTimeout(holdTimer);
+    [holdTimer, holdUntil] = [0, null];
     framed = true;
     for (const resolve of waiting.splice(0)) resolve();
   }
