@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import os
 import struct
+from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
@@ -24,8 +25,13 @@ from .clean import LoadReport, clean_mesh
 from .gltf import read_gltf
 from .limits import LimitError, LoadLimits, OutOfMemory
 from .obj import read_obj
-from .ply import (checked_ply_header, ply_attributes, ply_columns, ply_triangle_rows,
-                  read_ply_tristrips)
+from .ply import (
+    checked_ply_header,
+    ply_attributes,
+    ply_columns,
+    ply_triangle_rows,
+    read_ply_tristrips,
+)
 
 __all__ = ["SUPPORTED_INPUT", "LoadReport", "load_mesh"]
 
@@ -81,7 +87,7 @@ def load_mesh(path, *, file_type: str | None = None, root=None,
     if limits is None:
         limits = LoadLimits() if root is not None else LoadLimits.unbounded()
     root = Path(root) if root is not None else None
-    try:
+    with file_errors(path):
         if not path.exists():
             raise MeshError("no such file")
         if not path.is_file():
@@ -108,6 +114,15 @@ def load_mesh(path, *, file_type: str | None = None, root=None,
         mesh, report = clean_mesh(**arrays)
         report.dropped_attributes, report.missing_files = list(dropped), list(missing)
         return mesh, report
+
+
+@contextmanager
+def file_errors(path: Path):
+    """Whatever reading ``path`` raises, as one sentence naming the file by its name
+    only: ``cannot load NAME: ...`` (MeshError, LimitError, or OutOfMemory when the
+    process ran out of memory, so a parse worker knows to retire)."""
+    try:
+        yield
     except LimitError as exc:
         raise LimitError(f"cannot load {path.name}: {exc}") from exc
     except MeshError as exc:

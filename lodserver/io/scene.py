@@ -30,7 +30,8 @@ from ..mesh import Materials, MeshError
 from .animation import check_scene
 from .clean import clean_mesh
 from .gltf import read_gltf_meshes
-from .limits import LimitError, LoadLimits
+from .limits import LoadLimits
+from .load import file_errors
 
 # Extensions a document may require: carried as they are (materials, textures,
 # lights, metadata) or decoded by the reader (quantized attributes).
@@ -129,27 +130,24 @@ def load_scene(path, *, root=None, limits: LoadLimits | None = None) -> Scene:
     if limits is None:
         limits = LoadLimits() if root is not None else LoadLimits.unbounded()
     root = Path(root) if root is not None else None
-    try:
+    with file_errors(path):
         if not path.is_file():
             raise MeshError("no such file" if not path.exists() else "it is not a regular file")
         size = path.stat().st_size
         if size == 0:
             raise MeshError("the file is empty")
         limits.check("max_file_bytes", size, "bytes (the file's size)")
-        parts = read_gltf_meshes(path, kind, root=root, limits=limits,
-                                 honoured=HONOURED_REQUIRED)
-        return _scene(parts)
-    except LimitError as exc:
-        raise LimitError(f"cannot load {path.name}: {exc}") from exc
-    except MeshError as exc:
-        raise MeshError(f"cannot load {path.name}: {exc}") from exc
-    except OSError as exc:
-        raise MeshError(f"cannot load {path.name}: {exc.strerror or type(exc).__name__}") from exc
-    except (KeyError, IndexError, TypeError, ValueError, AttributeError) as exc:
-        # a malformed record of the parts this module reads (animations, nodes; a
-        # string where an object belongs has no .get)
-        raise MeshError(f"cannot load {path.name}: it could not be parsed as "
-                        f"{kind.upper()} ({type(exc).__name__}: {exc})") from exc
+        try:
+            parts = read_gltf_meshes(path, kind, root=root, limits=limits,
+                                     honoured=HONOURED_REQUIRED)
+            return _scene(parts)
+        except MeshError:       # a ValueError too, already one sentence
+            raise
+        except (KeyError, IndexError, TypeError, ValueError, AttributeError) as exc:
+            # a malformed record of the parts this module reads (animations, nodes; a
+            # string where an object belongs has no .get)
+            raise MeshError(f"it could not be parsed as {kind.upper()} "
+                            f"({type(exc).__name__}: {exc})") from exc
 
 
 def kept_as_is(document: dict, meshes: dict) -> dict:
