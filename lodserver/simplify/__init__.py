@@ -10,5 +10,7 @@
 - ``perform``: the collapse on the corner lists and its record;
 - ``pairs``: close pairs (Garland & Heckbert's pairs that share no edge);
 - ``parts``: partitioned runs (parts decimated at once, logs merged by key);
+- ``submesh``: a part copied out dense for its kernel, and written back;
+- ``prefetch``: cache hints for the kernel's random reads;
 - ``log``: the collapse log, one row per collapse (``CollapseLog``).
 """

@@ -24,8 +24,9 @@ Pipeline, in the order of this file:
    - *re-rank* the edges around the survivor (``simplify.rank``);
    until no legal collapse is left: a collapse refused now may become legal
    once its neighbourhood has moved, so each pass re-ranks all edges;
-   on a large mesh, first in parts at once, one thread each, then on the
-   whole mesh (``_run_kernels``, ``simplify.parts``);
+   on a large mesh, first in phases of parts at once, each part on its
+   own dense copy, then on a dense copy of the whole mesh (``_run_kernels``,
+   ``simplify.parts``, ``simplify.submesh``);
 4. return the collapse log as parallel arrays, one row per collapse.
 
 A large mesh is decimated with its vertices renumbered along a Morton curve,
@@ -55,13 +56,17 @@ from .pairs import MAX_PAIRS_PER_VERTEX
 from .parts import (
     DEFAULT_PARTS,
     PARALLEL_MIN_VERTICES,
+    PHASES,
     REORDER_MIN_VERTICES,
-    TAIL_FRACTION,
+    join_logs,
+    kernel_count,
     memory_order,
     merge_logs,
     partition,
+    phase_parts,
 )
 from .perform import perform_collapse
+from .prefetch import prefetch, prefetch2
 from .quadrics import vertex_quadrics
 from .queue import (
     CAPACITY,
@@ -90,7 +95,8 @@ from .rules import (
     REJECT_STALE,
     rejected_counts,
 )
-from .state import Options, Vertices, new_scratch, new_state, new_topology
+from .state import NO_REFCOUNT, Options, Vertices, new_scratch, new_state, new_topology
+from .submesh import extract, group_faces, map_log, write_back
 from .topology import Census, census
 from .wedges import (
     DEFAULT_ATTRIBUTE_WEIGHTS,
@@ -153,6 +159,18 @@ def classify_vertices(found: Census, n, locked=None):
 #    (ranking in simplify.rank, the kernel's state in simplify.state, the
 #    check step in simplify.legality, the perform step in simplify.perform)
 # --------------------------------------------------------------------------
+
+@njit(inline="always", **NO_REFCOUNT)
+def _warm_candidate(e_ab, pos, quadrics, topo):
+    """Start loading the rows the next candidate (queue entry ``e_ab``) is
+    ranked and checked on (``simplify.prefetch``): it lies anywhere in the
+    mesh, and this collapse's work hides the wait."""
+    for v in (e_ab >> 32, e_ab & 0xFFFFFFFF):
+        prefetch(pos, v)
+        prefetch(quadrics, v)
+        prefetch2(quadrics, v, 8)
+        prefetch(topo.vhead, v)
+
 
 @njit(cache=True, nogil=True)
 def _decimate_kernel(verts, topo, wedges, scratch, options, label, me, progress):
@@ -230,6 +248,8 @@ def _decimate_kernel(verts, topo, wedges, scratch, options, label, me, progress)
                 queue = with_room(queue, size[RESERVOIR], np.int64(0))
                 hk, hab, hvs, rk = queue.heap_key, queue.heap_pair, queue.heap_version, queue.key
                 continue
+            if size[HEAP] > 0:
+                _warm_candidate(hab[0], pos, quadrics, topo)
             cost, s, n_pairs, seams_meet, reason = rank_collapse(a, b, pos, quadrics, kind, q, p,
                                                                  pairs, topo, wedges)
             if reason != LEGAL:
@@ -308,38 +328,61 @@ def _new_topology(faces, n, wedges):
 
 
 def _run_kernels(verts, faces, wedges, options, parts, states):
-    """Run the decimation: ``parts`` parts at once (``simplify.parts``), then
-    the whole mesh; or the whole mesh alone when ``parts`` is 1. ``states``
-    are the kernels' progress counters, one per kernel. Returns (the log
-    columns, rejections (REASON_COUNT,), passes)."""
+    """Run the decimation: the whole mesh in one kernel when ``parts`` is 1;
+    else every phase of ``parts.PHASES`` (the parts of the live mesh, each
+    on its own dense copy, ``simplify.submesh``, as many at once as there are
+    threads), then the whole live mesh on a dense copy. ``states`` are the
+    kernels' progress counters, one per kernel (``parts.kernel_count``).
+    Returns (the log columns, rejections (REASON_COUNT,), passes)."""
     n = len(verts.pos)
-    topo = _new_topology(faces, n, wedges)
-    whole = np.zeros(n, dtype=np.int32)
     if parts == 1:
+        topo = _new_topology(faces, n, wedges)
         columns, _, rejected, passes = _decimate_kernel(
-            verts, topo, wedges, new_scratch(n), options, whole, 0, states[0])
+            verts, topo, wedges, new_scratch(n), options, np.zeros(n, dtype=np.int32), 0,
+            states[0])
         return columns, rejected, passes
-    label = partition(verts.pos, faces, topo.vertex_alive, parts)
-    sizes = np.bincount(label[label >= 0], minlength=parts)
-    results = [None] * parts
+    # the mesh as the phases leave it; each phase copies its parts out of these
+    faces = faces.astype(np.int32)
+    face_alive = np.ones(len(faces), dtype=bool)
+    vertex_alive = np.bincount(faces.ravel(), minlength=n) > 0
+    counters = iter(states)
+    logs, rejected, passes = [], np.zeros(REASON_COUNT, np.int64), 0
 
-    def run_part(part):
-        # each kernel its own scratch and wedge marks; the rest is shared
-        own = wedges._replace(mark=np.zeros_like(wedges.mark), stamp=np.zeros(1, np.int64),
-                              merged=np.empty_like(wedges.merged))
-        stop = max(int(TAIL_FRACTION * sizes[part]), options.min_vertices * sizes[part] // n)
-        results[part] = _decimate_kernel(verts, topo, own, new_scratch(n),
-                                         options._replace(min_vertices=stop), label, part,
-                                         states[part])
+    def run(sub, stop, state):
+        """Decimate a copy down to ``stop`` of its own vertices, write it back."""
+        columns, keys, refused, runs = _decimate_kernel(
+            sub.verts, sub.topo, sub.wedges, new_scratch(len(sub.vertex_ids)),
+            options._replace(min_vertices=stop), sub.label, 0, state)
+        write_back(sub, verts, faces, face_alive, vertex_alive, wedges)
+        return map_log(columns, sub), keys, refused, runs
 
-    threads = min(parts, numba.get_num_threads())
-    with ThreadPoolExecutor(threads) as pool:
-        list(pool.map(run_part, range(parts)))
-    tail = _decimate_kernel(verts, topo, wedges, new_scratch(n), options, whole, 0, states[-1])
-    columns = merge_logs([result[0] for result in results], [result[1] for result in results],
-                         tail[0])
-    rejected = sum(result[2] for result in results) + tail[2]
-    return columns, rejected, sum(result[3] for result in results) + tail[3]
+    with ThreadPoolExecutor(min(parts, numba.get_num_threads())) as pool:
+        for turned, fraction, divisor in PHASES:
+            count = phase_parts(parts, divisor)
+            live = faces[face_alive]
+            label = partition(verts.pos, live, vertex_alive, count, turned)
+            face_ids, offsets = group_faces(faces, face_alive, label, count)
+            face_count = np.bincount(live.ravel(), minlength=n)
+            sizes = np.bincount(label[label >= 0], minlength=count)
+            alive = int(np.count_nonzero(vertex_alive))
+
+            def run_part(part, state):
+                sub = extract(verts, faces, face_alive, face_count, wedges, label, part,
+                              face_ids[offsets[part]:offsets[part + 1]], np.full(n, -1))
+                stop = max(int(fraction * sizes[part]),
+                           options.min_vertices * int(sizes[part]) // max(alive, 1))
+                return run(sub, stop, state)
+
+            results = list(pool.map(run_part, range(count), [next(counters) for _ in range(count)]))
+            logs.append(merge_logs([r[0] for r in results], [r[1] for r in results]))
+            rejected += sum(r[2] for r in results)
+            passes += sum(r[3] for r in results)
+    # the rest of the hierarchy, on one dense copy of what is left
+    sub = extract(verts, faces, face_alive, None, wedges, None, 0, np.flatnonzero(face_alive),
+                  np.full(n, -1))
+    tail, _, refused, runs = run(sub, options.min_vertices, next(counters))
+    logs.append(tail)
+    return join_logs(logs), rejected + refused, passes + runs
 
 
 # --------------------------------------------------------------------------
@@ -457,9 +500,9 @@ def decimate(mesh: Mesh, *, boundary_weight: float = 1.0, locked=None, min_verti
     cancel : threading.Event, optional
         When set, the kernel stops at the next progress check.
     parts : int, optional
-        Decimate this many parts of the mesh at once first, one thread each
-        (a power of two, ``simplify.parts``); 1 decimates the whole mesh in
-        one thread. Default: ``parts.DEFAULT_PARTS`` for meshes of
+        Decimate the mesh in phases of this many parts first, as many at
+        once as numba has threads (a power of two, ``simplify.parts``); 1
+        decimates the whole mesh in one thread. Default: ``parts.DEFAULT_PARTS`` for meshes of
         ``parts.PARALLEL_MIN_VERTICES`` vertices or more, else 1. Ignored
         (1) with close pairs or ``max_collapses``.
     poses : (P, n, 3, 4) float64, optional
@@ -486,7 +529,7 @@ def decimate(mesh: Mesh, *, boundary_weight: float = 1.0, locked=None, min_verti
     if parts > 1 and (options.pair_radius > 0 or options.max_collapses < n):
         parts = 1       # close pairs cross parts; a collapse limit is a prefix of the whole order
     # one progress counter (and stop flag) per kernel: each part's, then the whole mesh's
-    states = [np.zeros(2, dtype=np.int64) for _ in range(parts + (parts > 1))]
+    states = [np.zeros(2, dtype=np.int64) for _ in range(kernel_count(parts))]
     result = {}
 
     def run():

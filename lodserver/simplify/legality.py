@@ -16,6 +16,7 @@ from .rules import (DEGENERATE_AREA, LEGAL, REJECT_DEGENERATE, REJECT_FLIP, REJE
                     REJECT_PAIR_SHARES_NEIGHBOURS, REJECT_PAIR_TOO_FAR, REJECT_PINCH,
                     REJECT_TETRAHEDRON, on_border)
 from .quadrics import cross, edge_vectors
+from .prefetch import prefetch, prefetch2
 from .state import NO_REFCOUNT
 
 
@@ -43,6 +44,18 @@ def _face_turn(v, x, y, p, pos, flip_cos):
 
 
 @njit(inline="always", **NO_REFCOUNT)
+def _warm_neighbour(x, verts):
+    """Start loading what re-ranking the edge to neighbour ``x`` will read
+    (its quadric's two cache lines and its version; ``simplify.prefetch``):
+    the scans are the first to meet the collapse's neighbours, and the
+    re-rank after the collapse reads them all. Each ring vertex is the ``x``
+    of one face of the ring, so every neighbour is met once."""
+    prefetch(verts.quadrics, x)
+    prefetch2(verts.quadrics, x, 8)
+    prefetch(verts.version, x)
+
+
+@njit(inline="always", **NO_REFCOUNT)
 def _scan_survivor(s, r, p, flip_cos, verts, topo, scratch, stamp):
     """Walk s's faces: mark its neighbours with ``stamp``, find the faces on
     the edge (s, r) and the vertex opposite it in each (into
@@ -63,6 +76,7 @@ def _scan_survivor(s, r, p, flip_cos, verts, topo, scratch, stamp):
             slot = c - 3 * f
             x = faces[f, (slot + 1) % 3]
             y = faces[f, (slot + 2) % 3]
+            _warm_neighbour(x, verts)
             mark[x] = stamp
             mark[y] = stamp
             if x == r or y == r:
@@ -94,6 +108,7 @@ def _scan_removed(s, r, p, o0, o1, flip_cos, turned, verts, topo, scratch, stamp
             slot = c - 3 * f
             x = faces[f, (slot + 1) % 3]
             y = faces[f, (slot + 2) % 3]
+            _warm_neighbour(x, verts)
             if x != s and y != s:
                 if (x == o0 and y == o1) or (x == o1 and y == o0):
                     on_opposite = True

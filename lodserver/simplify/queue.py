@@ -31,6 +31,8 @@ from collections import namedtuple
 import numpy as np
 from numba import njit
 
+from .prefetch import prefetch
+
 REFILL_SAMPLE = 4096       # reservoir keys sampled to choose the next tau
 REFILL_MIN = 8192          # smallest slice moved into the heap at a refill
 
@@ -297,6 +299,12 @@ def pop_fresh_from(hk, hab, hvs, size, queue, version, vertex_alive, rejected, s
         e_ab = hab[0]
         e_vs = hvs[0]
         size[HEAP] = _heap_pop(hk, hab, hvs, size[HEAP])
+        # Most entries popped are stale (about 8 to each fresh one), and the
+        # freshness test reads two random versions: start those reads for the
+        # next root now, so that they overlap this entry's work.
+        if size[HEAP] > 0:
+            prefetch(version, hab[0] >> 32)
+            prefetch(version, hab[0] & 0xFFFFFFFF)
         if _fresh(e_ab, e_vs, version, vertex_alive):
             return e_ab >> 32, e_ab & 0xFFFFFFFF, e_vs
         rejected[stale] += 1
