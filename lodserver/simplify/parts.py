@@ -214,14 +214,24 @@ def _freeze(faces, label):
             label[c] = FROZEN
 
 
+@njit(cache=True, nogil=True)
 def _gather_blocks(values, offsets, order):
     """Blocks ``values[offsets[i]:offsets[i+1]]`` in the row order ``order``:
-    (values, offsets) of the reordered blocks."""
-    counts = np.diff(offsets)[order]
-    new_offsets = np.zeros(len(order) + 1, dtype=np.int64)
-    np.cumsum(counts, out=new_offsets[1:])
-    index = np.repeat(offsets[:-1][order] - new_offsets[:-1], counts) + np.arange(new_offsets[-1])
-    return values[index], new_offsets
+    (values, offsets) of the reordered blocks; ``values`` is 1-D. One pass
+    and no temporaries (numpy's repeat-and-index took 0.1 s at 1M faces)."""
+    new_offsets = np.empty(order.shape[0] + 1, np.int64)
+    new_offsets[0] = 0
+    for i in range(order.shape[0]):
+        row = order[i]
+        new_offsets[i + 1] = new_offsets[i] + offsets[row + 1] - offsets[row]
+    out = np.empty(new_offsets[-1], values.dtype)
+    for i in range(order.shape[0]):
+        row = order[i]
+        at = new_offsets[i]
+        for x in range(offsets[row], offsets[row + 1]):
+            out[at] = values[x]
+            at += 1
+    return out, new_offsets
 
 
 def merge_logs(columns, keys, tail=None):
@@ -242,24 +252,26 @@ def merge_logs(columns, keys, tail=None):
     -------
     The merged columns, in the same layout.
     """
-    logs = list(columns) + ([tail] if tail is not None else [])
-    # a running maximum keeps each part's own order under a stable sort
-    envelope = [np.maximum.accumulate(k) if len(k) else k for k in keys]
-    order = np.argsort(np.concatenate(envelope), kind="stable")
+    return merge_phases([(columns, keys)], tail)
+
+
+def merge_phases(phases, tail=None):
+    """One log from phases run one after another: each phase's parts' logs
+    merged by key (as ``merge_logs``), the phases in order, then ``tail``.
+    ``phases`` is a list of (columns, keys) as ``merge_logs`` takes them.
+    One gather of every column, whatever the number of phases."""
+    logs, order, start = [], [], 0
+    for columns, keys in phases:
+        # a running maximum keeps each part's own order under a stable sort
+        envelope = [np.maximum.accumulate(k) if len(k) else k for k in keys]
+        merged = np.argsort(np.concatenate(envelope), kind="stable") if envelope else []
+        order.append(start + np.asarray(merged, dtype=np.int64))
+        logs += list(columns)
+        start += sum(len(k) for k in keys)
     if tail is not None:
-        order = np.concatenate([order, len(order) + np.arange(len(tail[0]))])
-    return _take(logs, order)
-
-
-def join_logs(logs):
-    """One log from ``logs`` (columns as ``merge_logs`` takes), one after another."""
-    rows = [np.concatenate([log[i] for log in logs]) for i in range(5)]
-    killed_offsets, killed = _concatenate_blocks(logs, 5, 6)[::-1]
-    moved_offsets, moved = _concatenate_blocks(logs, 7, 8)[::-1]
-    merge_offsets, merge_s = _concatenate_blocks(logs, 9, 10)[::-1]
-    merge_r, merge_v = (np.concatenate([log[i] for log in logs]) for i in (11, 12))
-    return (*rows, killed_offsets, killed, moved_offsets, moved, merge_offsets, merge_s, merge_r,
-            merge_v)
+        order.append(start + np.arange(len(tail[0])))
+        logs.append(tail)
+    return _take(logs, np.concatenate(order))
 
 
 def _take(logs, order):

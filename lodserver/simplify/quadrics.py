@@ -134,13 +134,13 @@ def vertex_quadrics(positions, faces, *, boundary_weight=1.0, boundary=None, sea
             from .topology import census
             found = census(faces, len(positions))
             boundary = (found.boundary_edges, found.boundary_faces)
-        _add_edge_planes(q, positions, faces, *boundary, boundary_weight)
+        add_edge_planes(q, positions, faces, *boundary, boundary_weight)
     if seams is not None and seam_weight > 0:
-        _add_edge_planes(q, positions, faces, *seams, seam_weight)
+        add_edge_planes(q, positions, faces, *seams, seam_weight)
     return q
 
 
-def _add_edge_planes(q, positions, faces, edges, edge_faces, weight):
+def add_edge_planes(q, positions, faces, edges, edge_faces, weight):
     """Add to both ends of every edge the plane through it perpendicular to its face."""
     if not len(edges):
         return

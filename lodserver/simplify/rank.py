@@ -21,10 +21,10 @@ from .pairs import close_pairs
 from .quadrics import constrain_to_plane, optimal_position_xyz, quadric_error
 from .queue import (
     CAPACITY,
+    RESERVOIR,
     pair_key,
     push_reservoir,
     queue_append,
-    reservoir_append,
     with_room,
 )
 from .rules import LEGAL, REJECT_LOCKED, REJECT_SEAM, can_collapse, keeps_position
@@ -142,11 +142,17 @@ def rank_all(verts, topo, wedges, scratch, queue, stamp, pair_radius, label, me)
     pos, quadrics, kind, version = verts.pos, verts.quadrics, verts.kind, verts.version
     q, p, wedge_pairs, mark = scratch.q, scratch.p, scratch.pairs, scratch.mark
     rk, rab, rvs, size = queue.key, queue.pair, queue.version, queue.size
+    # The reservoir's fill and capacity are kept in locals: as array cells,
+    # their load and store on every edge took 40% of this step. Nothing in
+    # the reservoir is stale during a ranking, so when it is full it doubles,
+    # as ``reservoir_append`` would do.
+    rsize, capacity = size[RESERVOIR], size[CAPACITY]
     for a in range(pos.shape[0]):
         if not vertex_alive[a] or label[a] != me:
             continue
         stamp += 1
-        if size[CAPACITY] + 2 * face_count[a] > rk.shape[0]:
+        if capacity + 2 * face_count[a] > rk.shape[0]:
+            size[RESERVOIR], size[CAPACITY] = rsize, capacity
             queue = with_room(queue, np.int64(0), 2 * face_count[a])
             rk, rab, rvs = queue.key, queue.pair, queue.version
         c = vhead[a]
@@ -161,9 +167,14 @@ def rank_all(verts, topo, wedges, scratch, queue, stamp, pair_radius, label, me)
                         cost = rank_collapse(a, b, pos, quadrics, kind, q, p, wedge_pairs, topo,
                                              wedges)[0]
                         if cost < np.inf:
-                            reservoir_append(rk, rab, rvs, size, cost, pair_key(a, b),
-                                             version[a] + version[b], version, vertex_alive)
+                            if rsize == capacity:
+                                capacity = max(rsize + 1, 2 * capacity)
+                            rk[rsize] = cost
+                            rab[rsize] = pair_key(a, b)
+                            rvs[rsize] = version[a] + version[b]
+                            rsize += 1
             c = cnext[c]
+    size[RESERVOIR], size[CAPACITY] = rsize, capacity
     if pair_radius > 0.0:
         pairs, stamp = close_pairs(pos, topo, pair_radius, mark, stamp)
         queue = with_room(queue, np.int64(0), np.int64(pairs.shape[0]))

@@ -69,9 +69,10 @@ def group_faces(faces, face_alive, label, parts):
 
 @njit(cache=True, nogil=True)
 def _dense_faces(faces, face_ids, seen):
-    """The vertices on ``face_ids`` in ascending id order and the faces
-    renumbered onto them. ``seen`` (n,) int64 must hold -1 on entry and
-    holds it again on return (it is the caller's, reused between parts)."""
+    """The vertices on ``face_ids`` in ascending id order, the faces in the
+    copy's order (ids of the mesh) and renumbered onto the vertices. ``seen``
+    (n,) int64 must hold -1 on entry and holds it again on return (it is the
+    caller's, reused between parts)."""
     k = face_ids.shape[0]
     count = 0
     for i in range(k):
@@ -92,13 +93,30 @@ def _dense_faces(faces, face_ids, seen):
     vertex_ids.sort()
     for j in range(count):
         seen[vertex_ids[j]] = j
+    # The faces in the order of their first vertex (a counting sort, stable),
+    # so that the faces around a vertex lie together as its neighbours do:
+    # the mesh's own face order need not be spatial (Loop subdivision writes
+    # a face's four children a quarter of the array apart).
+    start = np.zeros(count + 1, np.int64)
+    for i in range(k):
+        f = face_ids[i]
+        start[min(seen[faces[f, 0]], seen[faces[f, 1]], seen[faces[f, 2]]) + 1] += 1
+    for j in range(count):
+        start[j + 1] += start[j]
+    order = np.empty(k, np.int64)
     local = np.empty((k, 3), np.int64)
     for i in range(k):
-        for t in range(3):
-            local[i, t] = seen[faces[face_ids[i], t]]
+        f = face_ids[i]
+        a, b, c = seen[faces[f, 0]], seen[faces[f, 1]], seen[faces[f, 2]]
+        at = start[min(a, b, c)]
+        start[min(a, b, c)] += 1
+        order[at] = f
+        local[at, 0] = a
+        local[at, 1] = b
+        local[at, 2] = c
     for j in range(count):
         seen[vertex_ids[j]] = -1
-    return vertex_ids, local
+    return vertex_ids, order, local
 
 
 @njit(cache=True, nogil=True)
@@ -136,7 +154,8 @@ def extract(verts, faces, face_alive, face_count, wedges, label, part, face_ids,
     part : int
         The part to copy.
     face_ids : (j,) int64
-        Its faces (``group_faces``).
+        Its faces (``group_faces``); the copy holds them in another order
+        (``SubMesh.face_ids``).
     seen : (n,) int64
         Scratch holding -1 (left so).
 
@@ -144,7 +163,7 @@ def extract(verts, faces, face_alive, face_count, wedges, label, part, face_ids,
     -------
     SubMesh
     """
-    vertex_ids, local = _dense_faces(faces, face_ids, seen)
+    vertex_ids, face_ids, local = _dense_faces(faces, face_ids, seen)
     k = len(vertex_ids)
     if label is None:
         local_label = np.zeros(k, np.int32)
