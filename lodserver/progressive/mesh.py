@@ -43,7 +43,6 @@ Face materials ride on the faces (``face_material``, renumbered with them).
 
 from __future__ import annotations
 
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
@@ -51,6 +50,7 @@ import numpy as np
 from numba import njit
 
 from ..mesh import Attributes, Materials, Mesh
+from ..overlap import both
 from .renumber import (
     hierarchy,
     renumbered_faces,
@@ -322,19 +322,21 @@ class ProgressiveMesh:
     # ---- derived arrays -------------------------------------------------
     def _derive(self):
         n, n0 = self.vertex_count, self.base_vertices
-        # The hierarchy's values and the faces' birth corners are independent
-        # passes of random reads (50 ms each at 1M faces) in compiled code
-        # that releases the GIL: the first runs in a second thread.
-        with ThreadPoolExecutor(1) as pool:
-            values = pool.submit(hierarchy, self.parent, n0, self.positions, self.coarse_position)
-            # birth_faces: each face's corners at the first level it appears in.
+        m0 = int(self.face_counts[0])
+        owner = np.repeat(np.arange(n0, n), np.diff(self.face_counts))
+
+        def birth_faces():
+            """Each face's corners at the first level it appears in."""
             birth = np.empty_like(self.faces)
-            m0 = int(self.face_counts[0])
             _faces_at(self.faces, self.parent, m0, n0, birth)
-            owner = np.repeat(np.arange(n0, n), np.diff(self.face_counts))
             # faces of split t live at level t+1: climb while >= t+1
             _faces_at_levels(self.faces, self.parent, m0, owner + 1, birth)
-            fine, new = values.result()
+            return birth
+
+        # two independent passes of random reads (50 ms each at 1M faces) in
+        # compiled code that releases the GIL: at once (``overlap``)
+        birth, (fine, new) = both(
+            birth_faces, lambda: hierarchy(self.parent, n0, self.positions, self.coarse_position))
 
         derived = dict(fine_position=fine, new_position=new, birth_faces=birth,
                        level_error=_level_error(self.error))
@@ -616,11 +618,10 @@ def from_collapse_log(mesh: Mesh, log: CollapseLog, metadata=None) -> Progressiv
     moved_counts = np.diff(log.moved_offsets)
     moved_offsets = np.concatenate([[0], np.cumsum(moved_counts[::-1])]).astype(np.int64)
     # two independent gathers at random (50 ms each at 1M faces), compiled
-    # and free of the GIL: the corners in a second thread
-    with ThreadPoolExecutor(1) as pool:
-        corners = pool.submit(reversed_corners, log.moved_corners, log.moved_offsets, new_face)
-        faces = renumbered_faces(mesh.faces, face_order, new_id)
-        moved_corners = corners.result()
+    # and free of the GIL: at once (``overlap``)
+    faces, moved_corners = both(
+        lambda: renumbered_faces(mesh.faces, face_order, new_id),
+        lambda: reversed_corners(log.moved_corners, log.moved_offsets, new_face))
 
     appearance = {}
     if mesh.attributes is not None:

@@ -94,7 +94,7 @@ def test_merged_logs_keep_each_order_and_follow_the_keys():
     np.testing.assert_array_equal(merged[7], 2 * np.arange(8))
 
 
-@pytest.mark.parametrize("parts", [2, 4])
+@pytest.mark.parametrize("parts", [2, 4, 8])
 @pytest.mark.parametrize("name", GEOMETRY)
 def test_every_level_is_exact(name, parts):
     m, pm = _pm(name, parts)
@@ -117,9 +117,10 @@ def test_every_level_is_exact(name, parts):
         assert len(np.unique(np.sort(faces, axis=1), axis=0)) == len(faces)
 
 
+@pytest.mark.parametrize("parts", [2, 8])
 @pytest.mark.parametrize("name", TEXTURED)
-def test_every_level_is_exact_with_attributes(name):
-    m, pm = _pm(name, 2)
+def test_every_level_is_exact_with_attributes(name, parts):
+    m, pm = _pm(name, parts)
     assert pm.has_attributes and pm.split_count > 0.9 * m.vertex_count
     full = pm.at(pm.vertex_count)
     np.testing.assert_array_equal(corner_rows(full), corner_rows(m))
