@@ -55,10 +55,9 @@ from .legality import check_legality
 from .log import COLLAPSES, MOVED, CollapseLog, filled, new_log, with_room_for_moves
 from .pairs import MAX_PAIRS_PER_VERTEX
 from .parts import (
-    DEFAULT_PARTS,
-    PARALLEL_MIN_VERTICES,
     PHASES,
     REORDER_MIN_VERTICES,
+    default_parts,
     kernel_count,
     memory_order,
     merge_phases,
@@ -405,8 +404,8 @@ def _prepare(mesh: Mesh, *, boundary_weight, locked, flip_cos, pair_threshold,
     unit = to_unit_box(positions, lo, scale)
     # The census and the face quadrics read the same faces, write nothing in
     # common and release the GIL, so they run at once (``overlap``; 1.1M
-    # bunny: 0.11 s and 0.07 s). The planes are added in the
-    # order they always were (faces, borders, seams): the sums are the same bits.
+    # bunny: 0.11 s and 0.07 s). The planes are added in the order they
+    # always were (faces, borders, seams): the sums are the same bits.
     quadrics, found = both(lambda: vertex_quadrics(unit, faces, boundary_weight=0.0),
                            lambda: census(faces, n))
     kind = classify_vertices(found, n, locked)
@@ -507,9 +506,10 @@ def decimate(mesh: Mesh, *, boundary_weight: float = 1.0, locked=None, min_verti
     parts : int, optional
         Decimate the mesh in phases of this many parts first, as many at
         once as numba has threads (a power of two, ``simplify.parts``); 1
-        decimates the whole mesh in one thread. Default: ``parts.DEFAULT_PARTS`` for meshes of
-        ``parts.PARALLEL_MIN_VERTICES`` vertices or more, else 1. Ignored
-        (1) with close pairs or ``max_collapses``.
+        decimates the whole mesh in one thread. Default:
+        ``parts.default_parts``, one part per ``PART_VERTICES`` vertices
+        from ``PARALLEL_MIN_VERTICES`` on, else 1. Ignored (1) with close
+        pairs or ``max_collapses``.
     poses : (P, n, 3, 4) float64, optional
         Per pose, the affine map of every vertex from its bind position to its
         posed one (mesh units; ``simplify.poses``): the error of a collapse is
@@ -530,7 +530,7 @@ def decimate(mesh: Mesh, *, boundary_weight: float = 1.0, locked=None, min_verti
         limit=max_collapses, poses=poses)
     n = len(verts.pos)
     if parts is None:
-        parts = DEFAULT_PARTS if n >= PARALLEL_MIN_VERTICES else 1
+        parts = default_parts(n)
     if parts > 1 and (options.pair_radius > 0 or options.max_collapses < n):
         parts = 1       # close pairs cross parts; a collapse limit is a prefix of the whole order
     # one progress counter (and stop flag) per kernel: each part's, then the whole mesh's

@@ -11,7 +11,7 @@ import pytest
 
 from lodserver.progressive.artefact import encode_progressive
 from lodserver.progressive.mesh import from_collapse_log
-from lodserver.simplify import collapse
+from lodserver.simplify import collapse, parts
 from lodserver.simplify.collapse import decimate
 from lodserver.simplify.parts import FROZEN, merge_logs, partition
 
@@ -157,9 +157,9 @@ def test_parts_are_the_default_only_for_large_meshes(monkeypatch):
 
     built = build(m)
     assert encode_progressive(built) == artefact(built, 1)
-    monkeypatch.setattr(collapse, "PARALLEL_MIN_VERTICES", 10)
+    monkeypatch.setattr(parts, "PARALLEL_MIN_VERTICES", 10)
     split = build(m)
-    assert encode_progressive(split) == artefact(split, collapse.DEFAULT_PARTS)
+    assert encode_progressive(split) == artefact(split, parts.default_parts(m.vertex_count))
     assert encode_progressive(split) != artefact(split, 1)
 
 
@@ -170,6 +170,17 @@ def test_a_collapse_limit_or_close_pairs_run_whole():
         whole = decimate(m, parts=1, **options)
         np.testing.assert_array_equal(limited.removed, whole.removed)
         np.testing.assert_array_equal(limited.position, whole.position)
+
+
+def test_the_part_count_follows_the_mesh_not_the_machine():
+    assert parts.default_parts(parts.PARALLEL_MIN_VERTICES - 1) == 1
+    assert parts.default_parts(parts.PARALLEL_MIN_VERTICES) == 2
+    assert parts.default_parts(556_051) == 8              # the 1.1M-face bunny
+    assert parts.default_parts(4_704_258) == 64           # the 9.4M-face brain
+    assert parts.default_parts(10**9) == parts.MAX_PARTS
+    counts = [parts.default_parts(n) for n in range(100_000, 20_000_000, 77_777)]
+    assert all(a <= b for a, b in zip(counts, counts[1:]))
+    assert all(c & (c - 1) == 0 for c in counts)
 
 
 def test_min_vertices_holds_across_parts():
