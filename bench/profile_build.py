@@ -9,7 +9,9 @@ Phases are timed by wrapping the functions ``build`` calls (the wrappers only
 read the clock), so the build measured is the one users get. A warm-up build
 of a small tube comes first (compile time is not counted). Builds and
 meshoptimizer calls alternate, and the medians are reported with their ratio:
-timings from a loaded machine are only comparable side by side.
+timings from a loaded machine are only comparable side by side, and each
+build is also paired with the meshoptimizer call right after it
+(``paired_ratio_median``).
 
 Prints one JSON document (also written to ``--out`` if given).
 """
@@ -138,6 +140,11 @@ def main(argv=None):
         report["meshoptimizer_s"] = statistics.median(peer)
         report["meshoptimizer_runs_s"] = peer
         report["build_over_meshoptimizer"] = median["build"] / report["meshoptimizer_s"]
+        # each build over the meshoptimizer call right after it: on a machine
+        # whose speed drifts, the pairs see the same drift
+        paired = [run["build"] / t for run, t in zip(runs, peer)]
+        report["paired_ratios"] = paired
+        report["paired_ratio_median"] = statistics.median(paired)
     text = json.dumps(report, indent=1)
     print(text)
     if args.out:

@@ -24,7 +24,7 @@ other one along a turned frame so that its cuts cross the last phase's
 strips instead of lying on them; a level taken during a phase has the last
 strips already decimated and the phase's own at most a few times finer than
 the mesh around them. One whole-mesh kernel, on a dense copy too, builds the
-last ``TAIL_FRACTION`` of the hierarchy.
+last 3% or so of the hierarchy (0.6 x 0.25 x 0.2, and the last strips).
 
 The result depends on ``parts``, not on the number of threads that run them:
 the same mesh gives the same artefact on every machine.
@@ -65,8 +65,6 @@ PARALLEL_MIN_VERTICES = 100_000
 # 15%). With 8 parts throughout, its 10% level measured 3% more RMS error
 # than a whole-mesh run's; with the last phase in 2 parts, under 1%.
 PHASES = ((False, 0.6, 1), (True, 0.25, 1), (False, 0.2, 4))
-# The part of the hierarchy the whole-mesh kernel builds (after the phases).
-TAIL_FRACTION = 0.6 * 0.25 * 0.2
 # Label of a frozen vertex (in no part).
 FROZEN = -1
 # Meshes with this many vertices or more are decimated with their vertices
