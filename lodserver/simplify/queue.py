@@ -299,7 +299,7 @@ def pop_fresh_from(hk, hab, hvs, size, queue, version, vertex_alive, rejected, s
         e_ab = hab[0]
         e_vs = hvs[0]
         size[HEAP] = _heap_pop(hk, hab, hvs, size[HEAP])
-        # Most entries popped are stale (about 8 to each fresh one), and the
+        # Most entries popped are stale (4 to 8 to each fresh one), and the
         # freshness test reads two random versions: start those reads for the
         # next root now, so that they overlap this entry's work.
         if size[HEAP] > 0:
