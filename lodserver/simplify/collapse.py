@@ -161,7 +161,7 @@ def classify_vertices(found: Census, n, locked=None):
 # --------------------------------------------------------------------------
 
 @njit(inline="always", **NO_REFCOUNT)
-def _warm_candidate(e_ab, pos, quadrics, topo):
+def _warm_candidate(e_ab, pos, quadrics, vhead):
     """Start loading the rows the next candidate (queue entry ``e_ab``) is
     ranked and checked on (``simplify.prefetch``): it lies anywhere in the
     mesh, and this collapse's work hides the wait."""
@@ -169,7 +169,7 @@ def _warm_candidate(e_ab, pos, quadrics, topo):
         prefetch(pos, v)
         prefetch(quadrics, v)
         prefetch2(quadrics, v, 8)
-        prefetch(topo.vhead, v)
+        prefetch(vhead, v)
 
 
 @njit(cache=True, nogil=True)
@@ -216,7 +216,7 @@ def _decimate_kernel(verts, topo, wedges, scratch, options, label, me, progress)
     # fields read once: every read of a namedtuple field inside the loop
     # would take and drop a reference
     pos, quadrics, kind, version = verts.pos, verts.quadrics, verts.kind, verts.version
-    face_count = topo.face_count
+    face_count, vhead = topo.face_count, topo.vhead
     q, p, pairs = scratch.q, scratch.p, scratch.pairs
     count = log.count           # the same array even when log's columns grow
     min_vertices, max_collapses = options.min_vertices, min(options.max_collapses, room)
@@ -249,7 +249,7 @@ def _decimate_kernel(verts, topo, wedges, scratch, options, label, me, progress)
                 hk, hab, hvs, rk = queue.heap_key, queue.heap_pair, queue.heap_version, queue.key
                 continue
             if size[HEAP] > 0:
-                _warm_candidate(hab[0], pos, quadrics, topo)
+                _warm_candidate(hab[0], pos, quadrics, vhead)
             cost, s, n_pairs, seams_meet, reason = rank_collapse(a, b, pos, quadrics, kind, q, p,
                                                                  pairs, topo, wedges)
             if reason != LEGAL:
@@ -349,11 +349,10 @@ def _run_kernels(verts, faces, wedges, options, parts, states):
     phases, rejected, passes = [], np.zeros(REASON_COUNT, np.int64), 0
 
     def run(sub, stop, state):
-        """Decimate a copy down to ``stop`` of its own vertices, write it back."""
+        """Decimate a copy down to ``stop`` of its own vertices."""
         columns, keys, refused, runs = _decimate_kernel(
             sub.verts, sub.topo, sub.wedges, new_scratch(len(sub.vertex_ids)),
             options._replace(min_vertices=stop), sub.label, 0, state)
-        write_back(sub, verts, faces, face_alive, vertex_alive, wedges)
         return map_log(columns, sub), keys, refused, runs
 
     threads = min(parts, numba.get_num_threads())
@@ -381,13 +380,17 @@ def _run_kernels(verts, faces, wedges, options, parts, states):
                     spare.put(seen)
                 stop = max(int(fraction * sizes[part]),
                            options.min_vertices * int(sizes[part]) // max(alive, 1))
-                return run(sub, stop, state)
+                result = run(sub, stop, state)
+                # the next phase copies its parts out of the mesh's arrays
+                write_back(sub, verts, faces, face_alive, vertex_alive, wedges)
+                return result
 
             results = list(pool.map(run_part, range(count), [next(counters) for _ in range(count)]))
             phases.append(([r[0] for r in results], [r[1] for r in results]))
             rejected += sum(r[2] for r in results)
             passes += sum(r[3] for r in results)
-    # the rest of the hierarchy, on one dense copy of what is left
+    # the rest of the hierarchy, on one dense copy of what is left (nothing
+    # reads the mesh's arrays after it: no write-back)
     sub = extract(verts, faces, face_alive, None, wedges, None, 0, np.flatnonzero(face_alive),
                   spare.get())
     tail, _, refused, runs = run(sub, options.min_vertices, next(counters))

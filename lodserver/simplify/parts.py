@@ -41,10 +41,10 @@ from numba import njit
 
 # Parts of a partitioned run: as many as give each part about PART_VERTICES
 # vertices (a power of two, at least 2, at most MAX_PARTS), so that a part's
-# dense copy (about 300 bytes a vertex with its queue and log) stays within a
-# core's share of the last-level cache whatever the mesh's size: with 8 parts
-# throughout, the 9.4M-face brain took 1.34x the time per face of the 1.1M
-# bunny. The count depends on the mesh alone, never on the machine's cores,
+# dense copy stays about as large, near cache size, whatever the mesh's
+# size (a 35k-vertex mesh decimates at about 4.7 us a collapse, the 1.1M
+# bunny's shared arrays at 6.5-7.6 us): with 8 parts throughout, the
+# 9.4M-face brain took 1.34x the time per face of the 1.1M bunny. The count depends on the mesh alone, never on the machine's cores,
 # so the artefact is the same everywhere.
 PART_VERTICES = 70_000
 MAX_PARTS = 256
@@ -63,7 +63,8 @@ PARALLEL_MIN_VERTICES = 100_000
 # the live mesh wide, so the coarser the mesh, the more of it a strip holds
 # (8 parts freeze 3% of the 1.1M bunny at full resolution, about 8% of it at
 # 15%). With 8 parts throughout, its 10% level measured 3% more RMS error
-# than a whole-mesh run's; with the last phase in 2 parts, under 1%.
+# than the earlier 2 parts and whole-mesh tail gave; with the last phase in
+# 2 parts, under 1% more (bench/before_after.py).
 PHASES = ((False, 0.6, 1), (True, 0.25, 1), (False, 0.2, 4))
 # Label of a frozen vertex (in no part).
 FROZEN = -1

@@ -143,7 +143,8 @@ def rank_all(verts, topo, wedges, scratch, queue, stamp, pair_radius, label, me)
     q, p, wedge_pairs, mark = scratch.q, scratch.p, scratch.pairs, scratch.mark
     rk, rab, rvs, size = queue.key, queue.pair, queue.version, queue.size
     # The reservoir's fill and capacity are kept in locals: as array cells,
-    # their load and store on every edge took 40% of this step. Nothing in
+    # their load and store on every edge took about 30% of this step
+    # (a part of the 1.1M bunny: 151 -> 108 ns an edge). Nothing in
     # the reservoir is stale during a ranking, so when it is full it doubles,
     # as ``reservoir_append`` would do.
     rsize, capacity = size[RESERVOIR], size[CAPACITY]
