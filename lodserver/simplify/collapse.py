@@ -64,6 +64,8 @@ from .parts import (
     merge_phases,
     partition,
     phase_parts,
+    renumbered,
+    take_rows,
 )
 from .perform import perform_collapse
 from .prefetch import prefetch, prefetch2
@@ -464,7 +466,8 @@ def _in_memory_order(mesh: Mesh, locked, poses):
         return mesh, None, locked, poses
     inverse = np.empty(n, dtype=np.int64)
     inverse[order] = np.arange(n)
-    mesh = dataclasses.replace(mesh, positions=mesh.positions[order], faces=inverse[mesh.faces])
+    mesh = dataclasses.replace(mesh, positions=take_rows(mesh.positions, order),
+                               faces=renumbered(np.ascontiguousarray(mesh.faces), inverse))
     if locked is not None and np.shape(locked) == (n,):
         locked = np.asarray(locked)[order]
     if poses is not None and np.ndim(poses) >= 2 and np.shape(poses)[1] == n:

@@ -79,13 +79,46 @@ REORDER_MIN_VERTICES = 100_000
 _MORTON_BITS = 21
 
 
+@njit(cache=True, nogil=True, inline="always")
 def _spread_bits(x):
-    """(k,) uint64 with the low 21 bits of ``x`` moved to every third bit."""
-    x = x.astype(np.uint64) & np.uint64(0x1FFFFF)
-    for shift, mask in ((32, 0x1F00000000FFFF), (16, 0x1F0000FF0000FF), (8, 0x100F00F00F00F00F),
-                        (4, 0x10C30C30C30C30C3), (2, 0x1249249249249249)):
-        x = (x | (x << np.uint64(shift))) & np.uint64(mask)
+    """The low 21 bits of ``x`` (uint64) moved to every third bit."""
+    x &= np.uint64(0x1FFFFF)
+    x = (x | (x << np.uint64(32))) & np.uint64(0x1F00000000FFFF)
+    x = (x | (x << np.uint64(16))) & np.uint64(0x1F0000FF0000FF)
+    x = (x | (x << np.uint64(8))) & np.uint64(0x100F00F00F00F00F)
+    x = (x | (x << np.uint64(4))) & np.uint64(0x10C30C30C30C30C3)
+    x = (x | (x << np.uint64(2))) & np.uint64(0x1249249249249249)
     return x
+
+
+@njit(cache=True, nogil=True)
+def _bounds(positions):
+    """(lo (3,), hi (3,), all finite) of ``positions`` (n, 3), n > 0, in one
+    pass (numpy's column reductions of an (n, 3) array read it six times)."""
+    lo = positions[0].copy()
+    hi = positions[0].copy()
+    finite = True
+    for i in range(positions.shape[0]):
+        for j in range(3):
+            x = positions[i, j]
+            finite &= np.isfinite(x)
+            lo[j] = min(lo[j], x)
+            hi[j] = max(hi[j], x)
+    return lo, hi, finite
+
+
+@njit(cache=True, nogil=True)
+def _morton_codes(positions, lo, scale):
+    """(n,) uint64 Morton code of every position: its cell ``(p - lo) * scale``
+    (truncated), the bits of x, y and z interleaved."""
+    code = np.empty(positions.shape[0], np.uint64)
+    for i in range(positions.shape[0]):
+        c = np.uint64(0)
+        for j in range(3):
+            cell = np.uint64(np.int64((positions[i, j] - lo[j]) * scale))
+            c |= _spread_bits(cell) << np.uint64(j)
+        code[i] = c
+    return code
 
 
 def memory_order(positions):
@@ -103,16 +136,36 @@ def memory_order(positions):
         position is not finite (nothing to order by; the caller's checks
         report it).
     """
-    positions = np.asarray(positions, dtype=np.float64)
-    if len(positions) == 0 or not np.isfinite(positions).all():
+    positions = np.ascontiguousarray(positions, dtype=np.float64)
+    if len(positions) == 0:
         return None
-    lo = positions.min(axis=0)
-    span = float((positions.max(axis=0) - lo).max())
+    lo, hi, finite = _bounds(positions)
+    if not finite:
+        return None
+    span = float((hi - lo).max())
     scale = (2**_MORTON_BITS - 1) / span if span > 0 else 0.0
-    cells = ((positions - lo) * scale).astype(np.int64)
-    code = (_spread_bits(cells[:, 0]) | (_spread_bits(cells[:, 1]) << np.uint64(1))
-            | (_spread_bits(cells[:, 2]) << np.uint64(2)))
-    return np.argsort(code, kind="stable")
+    return np.argsort(_morton_codes(positions, lo, scale), kind="stable")
+
+
+@njit(cache=True, nogil=True)
+def renumbered(faces, new_id):
+    """``new_id[faces]`` (m, 3) int64, in one compiled pass."""
+    out = np.empty((faces.shape[0], 3), np.int64)
+    for f in range(faces.shape[0]):
+        for k in range(3):
+            out[f, k] = new_id[faces[f, k]]
+    return out
+
+
+@njit(cache=True, nogil=True)
+def take_rows(values, order):
+    """``values[order]`` for (n, d) ``values``: one compiled gather (numpy's
+    fancy indexing of rows took twice as long)."""
+    out = np.empty((order.shape[0], values.shape[1]), values.dtype)
+    for i in range(order.shape[0]):
+        for j in range(values.shape[1]):
+            out[i, j] = values[order[i], j]
+    return out
 
 
 # The turned frame of a ``turned`` phase: a rotation by 45 degrees about z,

@@ -51,6 +51,27 @@ def test_the_order_is_a_deterministic_permutation_that_keeps_neighbours_close():
     np.testing.assert_array_equal(memory_order(np.zeros((4, 3))), np.arange(4))
 
 
+def _interleaved(cells):
+    """Morton codes of (k, 3) cells of 21 bits, bit by bit (the definition)."""
+    code = np.zeros(len(cells), np.uint64)
+    for bit in range(21):
+        for axis in range(3):
+            code |= ((cells[:, axis].astype(np.uint64) >> np.uint64(bit)) & np.uint64(1)) \
+                << np.uint64(3 * bit + axis)
+    return code
+
+
+def test_the_order_sorts_by_the_interleaved_bits_of_the_cells():
+    rng = np.random.default_rng(3)
+    for positions in (rng.normal(size=(2000, 3)) * 1e3, rng.random((500, 3)) * 1e-200,
+                      np.array([[0.0, -0.0, 1.0], [1.0, 2.0, -3.0], [0.0, 0.0, 0.0]])):
+        lo = positions.min(axis=0)
+        scale = (2**21 - 1) / (positions.max(axis=0) - lo).max()
+        cells = ((positions - lo) * scale).astype(np.int64)
+        expected = np.argsort(_interleaved(cells), kind="stable")
+        np.testing.assert_array_equal(memory_order(positions), expected)
+
+
 def test_only_large_meshes_are_renumbered(monkeypatch):
     m = mesh("spot")
     assert m.vertex_count < REORDER_MIN_VERTICES
