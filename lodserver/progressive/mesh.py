@@ -49,7 +49,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 from numba import njit
 
-from ..mesh import Attributes, Materials, Mesh
+from ..mesh import Attributes, Materials, Mesh, take_rows
 from ..overlap import both
 from .renumber import (
     hierarchy,
@@ -629,7 +629,7 @@ def from_collapse_log(mesh: Mesh, log: CollapseLog, metadata=None) -> Progressiv
     if mesh.face_material is not None:
         appearance["face_material"] = mesh.face_material[face_order]
     return ProgressiveMesh(
-        positions=np.ascontiguousarray(mesh.positions[order]),
+        positions=take_rows(mesh.positions, order),
         faces=faces,
         parent=parent, base_vertices=n0, coarse_position=coarse_position, error=error,
         face_counts=face_counts.astype(np.int64, copy=False), moved_offsets=moved_offsets,
@@ -657,7 +657,7 @@ def _renumber_wedges(attributes: Attributes, log: CollapseLog, face_order) -> di
     per_split = np.diff(log.merge_offsets)[::-1]
     counts = np.concatenate([[w0], w0 + np.cumsum(per_split)]).astype(np.int64)
     return dict(attribute_layout=attributes.layout,
-                wedge_values=np.ascontiguousarray(attributes.values[order]),
+                wedge_values=take_rows(attributes.values, order),
                 corner_wedges=renumbered_faces(attributes.corners, face_order, new_id),
                 wedge_parent=parent, wedge_coarse_value=np.ascontiguousarray(value),
                 wedge_counts=counts)

@@ -50,7 +50,7 @@ import numba
 import numpy as np
 from numba import njit
 
-from ..mesh import Mesh, MeshError, to_unit_box, unit_box
+from ..mesh import Mesh, MeshError, take_rows, to_unit_box, unit_box
 from ..overlap import both
 from .legality import check_legality
 from .log import COLLAPSES, MOVED, CollapseLog, filled, new_log, with_room_for_moves
@@ -58,6 +58,7 @@ from .pairs import MAX_PAIRS_PER_VERTEX
 from .parts import (
     PHASES,
     REORDER_MIN_VERTICES,
+    concatenate_logs,
     default_parts,
     kernel_count,
     memory_order,
@@ -65,7 +66,6 @@ from .parts import (
     partition,
     phase_parts,
     renumbered,
-    take_rows,
 )
 from .perform import perform_collapse
 from .prefetch import prefetch, prefetch2
@@ -391,12 +391,20 @@ def _run_kernels(verts, faces, wedges, options, parts, states):
             phases.append(([r[0] for r in results], [r[1] for r in results]))
             rejected += sum(r[2] for r in results)
             passes += sum(r[3] for r in results)
-    # the rest of the hierarchy, on one dense copy of what is left (nothing
-    # reads the mesh's arrays after it: no write-back)
-    sub = extract(verts, faces, face_alive, None, wedges, None, 0, np.flatnonzero(face_alive),
-                  spare.get())
-    tail, _, refused, runs = run(sub, options.min_vertices, next(counters))
-    return merge_phases(phases, tail), rejected + refused, passes + runs
+
+        def run_tail():
+            """The rest of the hierarchy, on one dense copy of what is left
+            (nothing reads the mesh's arrays after it: no write-back)."""
+            sub = extract(verts, faces, face_alive, None, wedges, None, 0,
+                          np.flatnonzero(face_alive), spare.get())
+            return run(sub, options.min_vertices, next(counters))
+
+        # the tail is one kernel: the phases' logs are merged on this thread
+        # meanwhile (1.1M bunny: 0.11 s beside its 0.2 s)
+        pending = pool.submit(run_tail)
+        merged = merge_phases(phases)
+        tail, _, refused, runs = pending.result()
+    return concatenate_logs([merged, tail]), rejected + refused, passes + runs
 
 
 # --------------------------------------------------------------------------

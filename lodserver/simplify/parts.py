@@ -157,17 +157,6 @@ def renumbered(faces, new_id):
     return out
 
 
-@njit(cache=True, nogil=True)
-def take_rows(values, order):
-    """``values[order]`` for (n, d) ``values``: one compiled gather (numpy's
-    fancy indexing of rows took twice as long)."""
-    out = np.empty((order.shape[0], values.shape[1]), values.dtype)
-    for i in range(order.shape[0]):
-        for j in range(values.shape[1]):
-            out[i, j] = values[order[i], j]
-    return out
-
-
 # The turned frame of a ``turned`` phase: a rotation by 45 degrees about z,
 # then by atan(1/sqrt(2)) about x, so that no cut plane of one frame is
 # parallel to a cut plane of the other.
@@ -331,7 +320,9 @@ def merge_phases(phases, tail=None):
     """One log from phases run one after another: each phase's parts' logs
     merged by key (as ``merge_logs``), the phases in order, then ``tail``.
     ``phases`` is a list of (columns, keys) as ``merge_logs`` takes them.
-    One gather of every column, whatever the number of phases."""
+    One gather of every column, whatever the number of phases; the tail is
+    appended (``concatenate_logs``), so that the phases can be merged while
+    the tail is still being built."""
     logs, order, start = [], [], 0
     for columns, keys in phases:
         # a running maximum keeps each part's own order under a stable sort
@@ -340,10 +331,19 @@ def merge_phases(phases, tail=None):
         order.append(start + np.asarray(merged, dtype=np.int64))
         logs += list(columns)
         start += sum(len(k) for k in keys)
-    if tail is not None:
-        order.append(start + np.arange(len(tail[0])))
-        logs.append(tail)
-    return _take(logs, np.concatenate(order))
+    merged = _take(logs, np.concatenate(order))
+    return merged if tail is None else concatenate_logs([merged, tail])
+
+
+def concatenate_logs(logs):
+    """The logs ``logs`` (tuples of filled columns, ``merge_logs``) one after another."""
+    rows = [np.concatenate([log[i] for log in logs]) for i in range(5)]
+    killed, killed_offsets = _concatenate_blocks(logs, 5, 6)
+    moved, moved_offsets = _concatenate_blocks(logs, 7, 8)
+    merge_s, merge_offsets = _concatenate_blocks(logs, 9, 10)
+    merge_r, merge_v = (np.concatenate([log[i] for log in logs]) for i in (11, 12))
+    return (*rows, killed_offsets, killed, moved_offsets, moved, merge_offsets, merge_s, merge_r,
+            merge_v)
 
 
 def _take(logs, order):
