@@ -83,7 +83,7 @@ from .queue import (
     push,
     with_room,
 )
-from .rank import place_on_volume_plane, rank_all, rank_collapse, rerank_around
+from .rank import place_on_volume_plane, rank_all, rank_collapse, rank_geometry, rerank_around
 from .rules import (
     BORDER,
     DEFAULT_FLIP_COS,
@@ -93,6 +93,7 @@ from .rules import (
     REASON_COUNT,
     REASON_NAMES,
     REJECT_DEFERRED_BY_VOLUME,
+    REJECT_LOCKED,
     REJECT_REASONS,
     REJECT_STALE,
     rejected_counts,
@@ -218,8 +219,8 @@ def _decimate_kernel(verts, topo, wedges, scratch, options, label, me, progress)
     # fields read once: every read of a namedtuple field inside the loop
     # would take and drop a reference
     pos, quadrics, kind, version = verts.pos, verts.quadrics, verts.kind, verts.version
-    face_count, vhead = topo.face_count, topo.vhead
-    q, p, pairs = scratch.q, scratch.p, scratch.pairs
+    face_count, vhead, cnext = topo.face_count, topo.vhead, topo.cnext
+    q, p, pairs, plane = scratch.q, scratch.p, scratch.pairs, scratch.plane
     count = log.count           # the same array even when log's columns grow
     min_vertices, max_collapses = options.min_vertices, min(options.max_collapses, room)
     volume, pair_radius = options.volume, options.pair_radius
@@ -252,13 +253,18 @@ def _decimate_kernel(verts, topo, wedges, scratch, options, label, me, progress)
                 continue
             if size[HEAP] > 0:
                 _warm_candidate(hab[0], pos, quadrics, vhead)
-            cost, s, n_pairs, seams_meet, reason = rank_collapse(a, b, pos, quadrics, kind, q, p,
-                                                                 pairs, topo, wedges)
+            if has_wedges:
+                cost, s, n_pairs, seams_meet, reason = rank_collapse(a, b, pos, quadrics, kind, q,
+                                                                     p, pairs, topo, wedges)
+            else:
+                cost, s = rank_geometry(a, b, pos, quadrics, kind, q, p)
+                n_pairs, seams_meet, reason = 0, False, LEGAL if s >= 0 else REJECT_LOCKED
             if reason != LEGAL:
                 rejected[reason] += 1
                 continue
             if volume and kind[a] == INTERIOR and kind[b] == INTERIOR:
-                placed = place_on_volume_plane(a, b, seams_meet, verts, topo, scratch)
+                placed = place_on_volume_plane(a, b, seams_meet, pos, faces, vhead, cnext,
+                                               face_alive, q, p, plane)
                 if placed >= 0.0:
                     cost = placed
                     if cost > VOLUME_SLACK * (hk[0] if size[HEAP] > 0 else tau[0]):
@@ -313,7 +319,9 @@ def _check_kernel(a, b, verts, faces, wedges, options):
     if reason != LEGAL:
         return reason, s, cost, scratch.p.copy()
     if options.volume and verts.kind[a] == INTERIOR and verts.kind[b] == INTERIOR:
-        placed = place_on_volume_plane(a, b, seams_meet, verts, topo, scratch)
+        placed = place_on_volume_plane(a, b, seams_meet, verts.pos, topo.faces, topo.vhead,
+                                       topo.cnext, topo.face_alive, scratch.q, scratch.p,
+                                       scratch.plane)
         if placed >= 0.0:
             cost = placed
     r = b if s == a else a
