@@ -310,3 +310,37 @@ def test_every_edge_gets_the_reference_verdict(name, seed, flip_cos, locked_shar
         first = decimate(m, max_collapses=1, preserve_volume=False, flip_cos=flip_cos,
                          locked=locked)
         assert (first.survivor[0], first.removed[0]) == legal[0][1:]
+
+
+def test_the_geometry_only_rank_is_the_full_rank_bit_for_bit():
+    """``rank_geometry`` (meshes without attributes) computes what
+    ``rank_collapse`` does: the same cost, survivor and placement bits, on
+    every edge of a mesh with borders and locked vertices."""
+    from lodserver.simplify.collapse import _prepare
+    from lodserver.simplify.rank import rank_collapse, rank_geometry
+    from lodserver.simplify.state import new_scratch, new_topology
+
+    m = mesh("grid")
+    locked = _mask(m.vertex_count, *range(40, 80))
+    verts, faces, wedges, _, _, _ = _prepare(
+        m, boundary_weight=1.0, locked=locked, flip_cos=rules.DEFAULT_FLIP_COS,
+        pair_threshold=0.0, attribute_weights=None, preserve_volume=True, seam_weight=1.0)
+    topo = new_topology(faces.astype(np.int32), m.vertex_count)
+    full, lean = new_scratch(m.vertex_count), new_scratch(m.vertex_count)
+    edges = np.unique(np.sort(np.r_[m.faces[:, :2], m.faces[:, 1:], m.faces[:, ::2]], axis=1),
+                      axis=0)
+    locked_pairs = 0
+    for a, b in edges:
+        cost, s, _, _, reason = rank_collapse(a, b, verts.pos, verts.quadrics, verts.kind,
+                                              full.q, full.p, full.pairs, topo, wedges)
+        lean_cost, lean_s = rank_geometry(a, b, verts.pos, verts.quadrics, verts.kind, lean.q,
+                                          lean.p)
+        assert lean_cost == cost or (np.isinf(lean_cost) and np.isinf(cost))
+        if reason == rules.REJECT_LOCKED:
+            assert lean_s == -1
+            locked_pairs += 1
+            continue
+        assert lean_s == s
+        np.testing.assert_array_equal(lean.p, full.p)
+        np.testing.assert_array_equal(lean.q, full.q)
+    assert locked_pairs > 0
