@@ -327,8 +327,8 @@ def merge_phases(phases, tail=None):
     for columns, keys in phases:
         # a running maximum keeps each part's own order under a stable sort
         envelope = [np.maximum.accumulate(k) if len(k) else k for k in keys]
-        merged = np.argsort(np.concatenate(envelope), kind="stable") if envelope else []
-        order.append(start + np.asarray(merged, dtype=np.int64))
+        by_key = np.argsort(np.concatenate(envelope), kind="stable") if envelope else []
+        order.append(start + np.asarray(by_key, dtype=np.int64))
         logs += list(columns)
         start += sum(len(k) for k in keys)
     merged = _take(logs, np.concatenate(order))

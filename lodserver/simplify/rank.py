@@ -3,6 +3,7 @@ ranking steps (``simplify.collapse``'s pass loop calls them).
 
 - ``rank_collapse``: Garland & Heckbert's summed quadric ``Q_a + Q_b`` (plus
   Hoppe 1999's wedge terms, ``simplify.wedges``) at its minimiser;
+  ``rank_geometry`` the same for a mesh without attributes, in a leaner call;
 - ``place_on_volume_plane``: the placement moved onto the plane that keeps
   the enclosed volume (Lindstrom & Turk 1998);
 - ``rank_all``: every edge of a part (and the close pairs) into the queue,
