@@ -2,7 +2,7 @@
 steps share, and how the steps that run per candidate are compiled.
 
 Every array is allocated once per run (``new_state``, or in
-``decimate._prepare``) and edited in place by the steps.
+``collapse._prepare``) and edited in place by the steps.
 """
 
 from __future__ import annotations
