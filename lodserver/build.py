@@ -14,9 +14,9 @@ from .progressive.mesh import ProgressiveMesh, from_collapse_log
 
 __all__ = ["build", "BuildOptions", "METHODS", "distance_from", "kernels_cold"]
 
-# What the first build on a machine spends compiling the kernels numba has not
-# cached yet, measured on 2 cores (spot, an empty NUMBA_CACHE_DIR): told to the
-# user so the first run does not look hung.
+# About what the first build on a small machine spends compiling the kernels
+# numba has not cached yet (an empty NUMBA_CACHE_DIR): told to the user so the
+# first run does not look hung.
 COLD_COMPILE_SECONDS = 40
 
 

@@ -1,7 +1,7 @@
 """The viewer's files as a browser should get them: versioned, compressed, cached.
 
 ``ViewerFiles(folder)`` reads every file of the viewer's folder into memory
-once (2.3 MB, most of it three.js), with its SHA-256 and, for text types worth
+once (a few MB, most of it three.js), with its SHA-256 and, for text types worth
 it, a gzip body made at start (level 9: done once, so the slowest level costs
 nothing per request). The folder's *version* is a digest of all its files'
 paths and contents. Then:
