@@ -8,7 +8,7 @@ morph targets, animations, cameras: :func:`scene_reason`) is read with
 :class:`~lodserver.progressive.mesh.ProgressiveMesh`, in glTF mesh order
 (part ``p`` is the ``p``-th such mesh). A single mesh (OBJ, PLY, STL, OFF, or a
 glTF holding one mesh placed once, without skin, morph targets, animations or
-cameras: its static transform is baked in, as before) stays a plain
+cameras: its static transform is baked in) stays a plain
 progressive mesh; the API calls it a scene of one part.
 
 The asset is stored as ONE artefact (:func:`encode_asset`), so that everything

@@ -12,7 +12,7 @@ paths and contents. Then:
   load), its quoted ``./`` URLs, the import map's included, pointing into
   ``./v/<version>/``. Relative module imports then resolve inside the
   versioned path, while the page keeps its URL (its ``../meshes`` fetches
-  and ``?mesh=`` links work as before). The CSP's import-map hash is computed
+  and ``?mesh=`` links resolve as from ``/viewer/``). The CSP's import-map hash is computed
   from this served page (``headers.ViewerPolicy``).
 * ``/viewer/<path>``: the current file, unversioned, ``no-cache`` with an ETag
   (for old links and for pages that import a module by its plain path).
