@@ -494,8 +494,9 @@ export function createStream(viewer) {
   // Also while the rest is still arriving, if it should arrive (at the link's
   // rate, bytesPerRecord of the packets so far) and be applied within a drawn
   // frame's cost: a frame drawn meanwhile would only delay the full level
-  // (on a throttled large mesh, by seconds after its last byte). Held at most twice as long as estimated (holdUntil), so a
-  // stalling link still shows what has arrived.
+  // (on a throttled large mesh, by seconds after its last byte). Held at most
+  // twice as long as estimated (holdUntil), so a stalling link still shows
+  // what has arrived.
   function restInHand() {
     if (planned !== target || !(rate > 0)) return false;
     let records = 0, missing = 0;

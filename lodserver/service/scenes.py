@@ -325,7 +325,8 @@ def encode_asset(asset: SceneAsset) -> bytes:
             "materials": None if materials is None else materials.gltf,
             "images": 0 if materials is None else len(materials.images),
             "metadata": asset.metadata}
-    # the instances are stored, not derived on load: seconds for 60,000 nodes
+    # the instances are stored, not derived on load: deriving them walks every
+    # node of the scene, which for tens of thousands of nodes is slow
     instances, diagonal = _instances(asset)
     head["instances"] = {str(p): scales for p, scales in instances.items()}
     head["diagonal"] = diagonal
