@@ -117,7 +117,7 @@ def kernels_cold(method: str = "qem") -> bool:
     (``__pycache__`` beside the module, or ``NUMBA_CACHE_DIR``); an index made
     for an older copy of the source counts as cold, as numba treats it. Answers
     False when caching is off or numba's layout is not the expected one (then
-    nothing is announced, which is the old behaviour).
+    nothing is announced; the build itself is the same either way).
     """
     try:
         if method == "cluster":
