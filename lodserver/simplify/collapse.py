@@ -437,7 +437,7 @@ def _prepare(mesh: Mesh, *, boundary_weight, locked, flip_cos, pair_threshold,
     # The census and the face quadrics read the same faces, write nothing in
     # common and release the GIL, so they run at once (``overlap``). The
     # planes are added in one fixed order (faces, borders, seams), so the
-    # sums are the same bits whichever finishes first.
+    # sums, and the artefact, are the same bits on every run.
     quadrics, found = both(lambda: vertex_quadrics(unit, faces, boundary_weight=0.0),
                            lambda: census(faces, n))
     kind = classify_vertices(found, n, locked)
