@@ -1,7 +1,8 @@
 """lodserver: decimate once, serve every level of detail.
 
-Data flow: ``io.load_mesh`` -> ``quadrics`` -> ``decimate`` -> ``progressive``
--> ``codec`` (the stored ``.pm`` artefact) -> ``store`` -> ``api`` -> ``static/``
+Data flow: ``io`` (``load_mesh``) -> ``simplify`` (quadrics, edge collapse,
+the collapse log) -> ``progressive`` (``ProgressiveMesh``, the stored ``.pm``
+artefact) -> ``packets`` -> ``service`` (store, jobs) -> ``api`` -> ``static/``
 (the viewer); ``pipeline`` turns files and folders into LOD chains (GLB).
 ``options.BuildOptions`` holds every build option once, for ``build``, the
 command line and the HTTP form alike.

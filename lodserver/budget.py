@@ -28,13 +28,12 @@ every distance by it, a non-uniform one by at most its largest singular value.
   never raises the worst error to do it. What is left then buys finer levels of
   the same error (the curve's plateaus: :func:`_fill_plateaus`), worst parts
   first. One round costs at most 64 x parts x log2(levels) comparisons in a
-  compiled loop: 135 parts of 100k levels take 0.1-0.3 s on 2 loaded cores
-  (``tests/test_scene_budget.py`` prints it), a good part of it copying the
-  curves into one array.
+  compiled loop, after one copy of the curves into one array
+  (``tests/test_scene_budget.py`` prints how long a large scene takes).
 - ``error``: each part at its coarsest level whose world error is at most
   ``error`` times the scene's bounding-box diagonal.
 - ``per_mesh``: each part at ``ratio`` of its own faces (``pm.level_for(ratio=)``),
-  what ``export --lods`` meant before scenes had one budget.
+  what ``export --lods --per-mesh`` asks for.
 
 A part's level never leaves its range: a part that cannot go lower keeps its
 base mesh, and a budget below the sum of the base meshes leaves every part at

@@ -14,9 +14,9 @@ from .progressive.mesh import ProgressiveMesh, from_collapse_log
 
 __all__ = ["build", "BuildOptions", "METHODS", "distance_from", "kernels_cold"]
 
-# What the first build on a machine spends compiling the kernels numba has not
-# cached yet, measured on 2 cores (spot, an empty NUMBA_CACHE_DIR): told to the
-# user so the first run does not look hung.
+# About what the first build on a small machine spends compiling the kernels
+# numba has not cached yet (an empty NUMBA_CACHE_DIR): told to the user so the
+# first run does not look hung.
 COLD_COMPILE_SECONDS = 40
 
 
@@ -117,7 +117,7 @@ def kernels_cold(method: str = "qem") -> bool:
     (``__pycache__`` beside the module, or ``NUMBA_CACHE_DIR``); an index made
     for an older copy of the source counts as cold, as numba treats it. Answers
     False when caching is off or numba's layout is not the expected one (then
-    nothing is announced, which is the old behaviour).
+    nothing is announced; the build itself is the same either way).
     """
     try:
         if method == "cluster":

@@ -1,4 +1,4 @@
-// Scenes (issue 12; GET /meshes/{id} says "scene": true): the whole glTF scene
+// Scenes (GET /meshes/{id} says "scene": true): the whole glTF scene
 // at the first level chosen for the view, as the server writes it (one GLB:
 // node tree, skins, morph targets, cameras, lights, materials, animations),
 // loaded by three.js's GLTFLoader and played by an AnimationMixer, then each

@@ -14,7 +14,7 @@
 // morphed: stream.js does not ask for it). Normals glide too, from the ones
 // shown to the new level's (a new vertex's from its ancestor's; a vanishing
 // one's into its ancestor's new normal): without that the shading pops when
-// the level lands, which measured as most of the popping left.
+// the level lands, the most visible pop left once positions glide.
 //
 // Ancestors come from the decoder's parent array (LodState.parent: the vertex
 // each vertex was split from, the same s in both directions). For a mesh

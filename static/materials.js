@@ -32,7 +32,7 @@ const FILTER = { 9728: THREE.NearestFilter, 9729: THREE.LinearFilter,
 // The room at full strength with a headlight washes a light material out to
 // white under ACES; half of it keeps shading and texture contrast.
 // environmentSize: the PMREM's cube face, pixels. three.js makes them at least
-// 256 px, which under software GL (SwiftShader, headless Chromium) costs 2-6 s
+// 256 px, which under software GL (SwiftShader, headless Chromium) costs seconds
 // of GPU time before anything can be drawn: its GGX passes sample 256 times a
 // pixel. The room is blurred by environmentSigma (0.04 rad, 2.3 degrees)
 // anyway, and a 64 px face resolves 1.4 degrees a texel, so 64 loses little

@@ -46,7 +46,7 @@ export class PacketError extends Error {
 
 // A cursor over one stream; `name` is only for error messages. The readers are
 // methods, not functions of another module taking the cursor: the record loops
-// call them for every value, and method calls on one class measured faster.
+// call them for every value, and method calls on one class are the cheaper call.
 class StreamReader {
   constructor(data, name) {
     this.data = data;

@@ -36,7 +36,7 @@ import { fitBox, freeArea, pixelsPerUnit } from './framing.js';
 // The longest the environment waits for the stream to come to rest (see createScene).
 const ENVIRONMENT_WAIT_MS = 5000;
 // The stream's estimate of the rest of its bytes' time on the link (ms) beyond
-// which the environment is made at once instead: its GPU work (0.4-1 s under
+// which the environment is made at once instead: its GPU work (long under
 // software GL) then overlaps the download rather than delaying the
 // full-detail frame after it.
 const ENVIRONMENT_AHEAD_MS = 1500;
@@ -64,8 +64,8 @@ export function createScene(viewer, container, panel = null) {
   // But when the stream estimates the rest of its bytes at more than
   // ENVIRONMENT_AHEAD_MS on the link (a slow link, a large mesh), it is made at once, as a
   // GLB viewer does while its bytes arrive: made at rest it would delay the
-  // full-detail frame by its GPU work (bench/viewer: throttled 1.1M-face
-  // bunny). Until then a hemisphere light stands in for it (the same shading,
+  // full-detail frame by its GPU work (bench/viewer measures it on a throttled
+  // large mesh). Until then a hemisphere light stands in for it (the same shading,
   // without reflections).
   const fill = new THREE.HemisphereLight(LOOK.fill.sky, LOOK.fill.ground, LOOK.fill.intensity);
   scene.add(fill);

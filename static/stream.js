@@ -6,7 +6,7 @@
 // The client never refetches a level: it holds one LodState and moves it to
 // the target level packet by packet, forward (splits) or backward (collapses).
 //
-// Fast streaming (issue 13):
+// Fast streaming:
 // * Pipelined: settings.packetsAhead packets are requested ahead along the
 //   way to the target (more where frames block the main thread for long:
 //   packetsAhead()), each fetched and inflated as it arrives, and applied
@@ -26,8 +26,9 @@
 //   two reports are reported together (their dirty ranges merged by the
 //   state), so the scene updates its buffers and draws once. Reports are also
 //   spaced by settings.reportGap times what a frame costs the main thread
-//   (measured: from the frame's first callback to a task posted from it). Under software GL (headless Chromium) a frame blocks the main
-//   thread for 100-500 ms (the canvas is read back for the compositor), so
+//   (measured: from the frame's first callback to a task posted from it).
+//   Under software GL (headless Chromium) a frame blocks the main thread for
+//   a long while (the canvas is read back for the compositor), so
 //   drawing every packet's level would leave the decoder a fraction of the
 //   time; spaced, at least reportGap / (reportGap + 1) of it goes to
 //   streaming. The work between two yields is cut at frameBudgetMs. No
@@ -383,8 +384,8 @@ export function createStream(viewer) {
   // the main thread for long (software GL: seconds at a million triangles),
   // enough to keep the link busy through a frame and its gap (reportGap frames)
   // at packetPaceMs a packet: no packet is requested while the thread is
-  // blocked, and two packets ahead left the link idle for most of each frame
-  // (bench/viewer: the throttled 1.1M-face bunny). At most MAX_AHEAD.
+  // blocked, and two packets ahead would leave the link idle for most of each
+  // frame (bench/viewer measures it on a throttled large mesh). At most MAX_AHEAD.
   function packetsAhead() {
     const covered = frameCostMs * (option('reportGap') + 1) / option('packetPaceMs');
     return Math.max(1, option('packetsAhead'), Math.min(MAX_AHEAD, Math.ceil(covered)));
@@ -493,9 +494,9 @@ export function createStream(viewer) {
   // Also while the rest is still arriving, if it should arrive (at the link's
   // rate, bytesPerRecord of the packets so far) and be applied within a drawn
   // frame's cost: a frame drawn meanwhile would only delay the full level
-  // (throttled, the 1.1M-face bunny spent seconds on such frames after its
-  // last byte). Held at most twice as long as estimated (holdUntil), so a
-  // stalling link still shows what has arrived.
+  // (on a throttled large mesh, by seconds after its last byte). Held at most
+  // twice as long as estimated (holdUntil), so a stalling link still shows
+  // what has arrived.
   function restInHand() {
     if (planned !== target || !(rate > 0)) return false;
     let records = 0, missing = 0;

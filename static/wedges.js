@@ -12,8 +12,8 @@
 //
 // These are methods of LodState, mixed into its prototype by levelstate.js
 // (`this` is the state), not functions taking it: the record loops call them
-// as the class's own methods, which measured 2-3% faster on textured meshes
-// than calls to another module's functions.
+// as the class's own methods, which cost less in those hot loops than calls
+// to another module's functions.
 
 import { PacketError } from './packet.js';
 

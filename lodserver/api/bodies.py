@@ -1,11 +1,10 @@
 """How a read request gets its body: from memory, from a body file, or encoded
 under the heavy-request limit.
 
-Encoding is what costs memory. Measured on a 1.1M-face mesh, above the mesh
-itself: a 16-level chain (162 MiB) peaks at about 700 MB while it is built (the
-level meshes, the GLB's pieces, then the joined body), a full-detail level at
-110 MB as json (34 MiB), 100 MB as ply, 300 MB as obj (57 MiB, 6 s), a packet
-base -> full at other bits 134 MB (4.5 s). So
+Encoding is what costs memory, above the mesh itself: a chain holds its level
+meshes, the GLB's pieces, then the joined body; a full-detail level as json, ply
+or obj, and a packet from base to full at other bits, hold several times the
+body they make. A large one also takes seconds of CPU. So
 
 1. a body already in the memory cache or in a body file is sent at once, never
    waiting for anything;
@@ -46,7 +45,8 @@ from .headers import add_security_headers
 log = logging.getLogger(__name__)
 
 # Faces below which encoding a level (or a whole chain) is light work, done
-# without the limit: a json level of 65k faces is about 2 MB, encoded in ~15 ms.
+# without the limit: a json level of 65k faces is about 2 MB, a small fraction
+# of what a heavy request holds, and quick to encode.
 LIGHT_FACES = 65_536
 
 
@@ -120,10 +120,10 @@ _malloc_trim = _find_malloc_trim()
 def trim_memory() -> None:
     """Give freed heap memory back to the system (glibc only; a no-op elsewhere).
 
-    Measured on a 1.1M-face mesh: after a 162 MiB chain is written and freed the
-    process keeps 370 MB more than before it, 380 MB after the next one (the
-    encoder's arrays, freed into glibc's arenas); ``malloc_trim(0)`` (1-5 ms)
-    brings it back to where it was. Likewise 40-55 MB after a 34 MiB json level.
+    After a large body is written and freed, the encoder's arrays stay in
+    glibc's arenas: the process keeps about the encoder's peak memory that it
+    no longer uses. ``malloc_trim(0)``, cheap beside the encoding, hands it
+    back to the system.
     """
     if _malloc_trim is not None:
         _malloc_trim(0)

@@ -5,8 +5,7 @@ material, one render vertex per wedge that primitive uses (glTF has a single
 index per corner, so a seam vertex is written once per wedge), float32
 attributes, uint32 indices, the images embedded as bufferViews, and every
 bufferView 4-byte aligned. A mesh without attributes and materials takes a
-separate, faster path whose bytes have not changed since lodserver wrote
-positions only.
+separate, faster path that writes its positions and indices alone.
 
 Every layout column is written (:func:`render_attributes`): NORMAL, TEXCOORD_n,
 COLOR_n, TANGENT and custom ``_NAME`` as FLOAT, JOINTS_n as UNSIGNED_BYTE (or
@@ -475,8 +474,9 @@ def level_glb(vertex_count: int, face_count: int, fill, *, copy: bool = True) ->
 def _bounds(values: np.ndarray) -> tuple[list, list]:
     """Per-column min and max of (n, k) ``values``, as lists.
 
-    Column by column: numpy's ``min(axis=0)`` on a narrow (n, 3) array is ~20x
-    slower, which showed on the million-face levels the server writes.
+    Column by column: numpy's ``min(axis=0)`` on a narrow (n, 3) array is a
+    slow strided reduction, which matters on the million-face levels the
+    server writes.
     """
     columns = values.reshape(len(values), -1).T
     return [c.min().item() for c in columns], [c.max().item() for c in columns]

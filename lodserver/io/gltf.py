@@ -17,8 +17,8 @@ primitive by its node's world transform, giving the arrays
 
 The traversal is the one trimesh's loader uses (depth first, last child
 first, one instance per node and primitive, winding reversed under a mirroring
-transform), so vertices and faces come in the order lodserver read them
-through trimesh before it parsed glTF itself. Transforms are used as stored,
+transform), so vertices and faces come in the order trimesh's loader gives
+them, and a file loads the same through either. Transforms are used as stored,
 whereas trimesh snaps nearly rigid ones to exact rotations: positions can differ
 from trimesh's by the float32 rounding of the stored matrices (4e-8 relative on
 2CylinderEngine.glb), with the same weld and face counts. What means nothing
@@ -53,7 +53,7 @@ import numpy as np
 from ..mesh import Materials, MeshError
 from .gltf_attributes import (as_float as _as_float, attribute_layout, check_attribute_size,
                               check_joints, primitive_corners)
-# their home was this module: readers (obj.py) and tests import them from here
+# re-exported: readers (obj.py) and tests import them from this module
 from .gltf_attributes import face_normals, transform_normals  # noqa: F401
 from .images import image_type
 from .gltf_document import (TRIANGLE_FAN as _TRIANGLE_FAN, TRIANGLE_STRIP as _TRIANGLE_STRIP,

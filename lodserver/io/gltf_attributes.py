@@ -54,7 +54,8 @@ _NORMALIZED_SCALE = {5120: 127.0, 5121: 255.0, 5122: 32767.0, 5123: 65535.0}
 
 _INTEGER_COMPONENTS = (5120, 5121, 5122, 5123, 5125)
 
-# layout order: the four groups lodserver always had first, then the carried ones
+# layout order: NORMAL, TEXCOORD_n, COLOR_n, TANGENT first, then the carried ones: carried
+# columns only ever come after, so the first four keep their places in every layout
 _ORDER = (r"NORMAL", r"TEXCOORD_(\d+)", r"COLOR_(\d+)", r"TANGENT", r"JOINTS_(\d+)",
           r"WEIGHTS_(\d+)", r"TARGET(\d+)_(POSITION|NORMAL|TANGENT)", r"(_[A-Za-z0-9_]+)")
 _TARGET_KINDS = ("POSITION", "NORMAL", "TANGENT")

@@ -18,12 +18,12 @@ from dataclasses import dataclass
 from ..mesh import MeshError
 
 # The server's default triangle limit (the server's settings use the same constant).
-# Sized by bench/speed.py on a 23 GB, 2-core machine: a build peaks at about 300-350
-# bytes per triangle over its input (3-4 GB at 10M), a 9.4M-triangle binary PLY or
-# GLB (170-180 MB, under the default upload limit) parses within the parse worker's
-# default 4 GiB, and a progressive mesh kept loaded takes about 170 bytes per
-# triangle with its packet records. So one build at the limit, its parse and the
-# default 8 loaded meshes at the limit fit in that memory; 20M would not.
+# Sized from memory per triangle: a build peaks at about 300-350 bytes per triangle
+# over its input, a binary PLY or GLB near the limit (under the default upload limit)
+# parses within the parse worker's default 4 GiB, and a progressive mesh kept loaded
+# takes about 170 bytes per triangle with its packet records. So one build at the
+# limit, its parse and the default 8 loaded meshes at the limit fit in a machine of
+# about 24 GB; twice the limit would not.
 DEFAULT_MAX_TRIANGLES = 10_000_000
 
 

@@ -14,7 +14,7 @@ never a server path:
   ``/sys`` or ``/dev`` (whose "regular" files report size 0 and then stream).
 
 Without ``root`` (the command line, reading its user's own files) a name is
-taken relative to the referring file as before, symlinks and ``..`` included.
+taken relative to the referring file, symlinks and ``..`` included.
 
 The file is opened with ``O_NONBLOCK`` (a fifo must not hang the reader) and
 checked again on the open descriptor, and only the bytes its size promised

@@ -228,7 +228,8 @@ def _attribute_grid(data, at, name, width, encoding, bits, step,
 
 def deflate_body(body: bytes) -> bytes:
     """The zlib stream of a packet body. The level is not part of the format:
-    on a 5.6 MB body 9 packed 0.24% tighter than 6, in 1.75 times as long."""
+    on a large body, level 9 packs barely tighter than 6 and takes much longer,
+    so bodies of 1 MiB or more are packed at 6."""
     return zlib.compress(body, 9 if len(body) < 2**20 else 6)
 
 

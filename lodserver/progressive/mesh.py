@@ -102,9 +102,8 @@ def _faces_at_kernel(full_faces, parent, face_count, level, below, out):
     Both loops are free of data-dependent branches: every corner reads the
     table (ids below ``level`` read the dummy ``below[0]``) and a select keeps
     either the id or what was read. At a middle level about half the corners
-    are on each side, so a branch would mispredict on every other corner;
-    that cost more than the extra read (1.7x the time at the middle level of
-    the 1.1M-face bunny).
+    are on each side, so a branch would mispredict on every other corner,
+    which costs more than the extra read.
 
     below : (parent.shape[0] - level + 1,) scratch (see ``_faces_at``)
     out : (face_count, 3) any integer dtype
@@ -333,8 +332,8 @@ class ProgressiveMesh:
             _faces_at_levels(self.faces, self.parent, m0, owner + 1, birth)
             return birth
 
-        # two independent passes of random reads (50 ms each at 1M faces) in
-        # compiled code that releases the GIL: at once (``overlap``)
+        # two independent passes of random reads in compiled code that
+        # releases the GIL: at once (``overlap``)
         birth, (fine, new) = both(
             birth_faces, lambda: hierarchy(self.parent, n0, self.positions, self.coarse_position))
 
@@ -617,8 +616,8 @@ def from_collapse_log(mesh: Mesh, log: CollapseLog, metadata=None) -> Progressiv
 
     moved_counts = np.diff(log.moved_offsets)
     moved_offsets = np.concatenate([[0], np.cumsum(moved_counts[::-1])]).astype(np.int64)
-    # two independent gathers at random (50 ms each at 1M faces), compiled
-    # and free of the GIL: at once (``overlap``)
+    # two independent gathers at random, compiled and free of the GIL: at
+    # once (``overlap``)
     faces, moved_corners = both(
         lambda: renumbered_faces(mesh.faces, face_order, new_id),
         lambda: reversed_corners(log.moved_corners, log.moved_offsets, new_face))

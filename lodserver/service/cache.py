@@ -37,7 +37,7 @@ from pathlib import Path
 log = logging.getLogger(__name__)
 
 # The default bound when LODSERVER_CACHE_BYTES is not set: room for a few of the
-# largest artefacts (the 1.1M-face bunny's .pm is about 140 MB).
+# largest artefacts (a million-face mesh's .pm is about 140 MB).
 DEFAULT_CACHE_BYTES = 2 * 2**30
 
 # A cached file is named by the SHA-256 of its key (any key maps to a safe flat

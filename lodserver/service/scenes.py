@@ -8,7 +8,7 @@ morph targets, animations, cameras: :func:`scene_reason`) is read with
 :class:`~lodserver.progressive.mesh.ProgressiveMesh`, in glTF mesh order
 (part ``p`` is the ``p``-th such mesh). A single mesh (OBJ, PLY, STL, OFF, or a
 glTF holding one mesh placed once, without skin, morph targets, animations or
-cameras: its static transform is baked in, as before) stays a plain
+cameras: its static transform is baked in) stays a plain
 progressive mesh; the API calls it a scene of one part.
 
 The asset is stored as ONE artefact (:func:`encode_asset`), so that everything
@@ -325,7 +325,8 @@ def encode_asset(asset: SceneAsset) -> bytes:
             "materials": None if materials is None else materials.gltf,
             "images": 0 if materials is None else len(materials.images),
             "metadata": asset.metadata}
-    # the instances are stored, not derived on load: seconds for 60,000 nodes
+    # the instances are stored, not derived on load: deriving them walks every
+    # node of the scene, which for tens of thousands of nodes is slow
     instances, diagonal = _instances(asset)
     head["instances"] = {str(p): scales for p, scales in instances.items()}
     head["diagonal"] = diagonal

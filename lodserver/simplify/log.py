@@ -1,6 +1,6 @@
 """The collapse log: every collapse, in order, as parallel arrays.
 
-``CollapseLog`` is what the simplifiers (``decimate.decimate``,
+``CollapseLog`` is what the simplifiers (``collapse.decimate``,
 ``octree.octree_log``) return and ``progressive.from_collapse_log`` turns into
 a progressive mesh; ``log_arrays`` and ``LogArrays`` are the compiled
 kernels' room to write it in.

@@ -56,7 +56,7 @@ def octree_log(mesh: Mesh) -> CollapseLog:
     CollapseLog
         Survivors, removed vertices, positions (mesh units), errors (RMS
         quadric distance, mesh units), killed faces and moved corners, as
-        ``decimate.decimate`` returns them.
+        ``collapse.decimate`` returns them.
     """
     positions = np.asarray(mesh.positions, dtype=np.float64)
     faces = np.ascontiguousarray(mesh.faces, dtype=np.int64)

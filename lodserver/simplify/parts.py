@@ -42,14 +42,15 @@ from numba import njit
 # Parts of a partitioned run: as many as give each part about PART_VERTICES
 # vertices (a power of two, at least 2, at most MAX_PARTS), so that a part's
 # dense copy stays about as large, near cache size, whatever the mesh's
-# size (a 35k-vertex mesh decimates at about 4.7 us a collapse, the 1.1M
-# bunny's shared arrays at 6.5-7.6 us): with 8 parts throughout, the
-# 9.4M-face brain took 1.34x the time per face of the 1.1M bunny. The count depends on the mesh alone, never on the machine's cores,
-# so the artefact is the same everywhere.
+# size: a collapse on rows that fit in cache is cheaper than one on a large
+# mesh's shared arrays (``simplify.submesh``), and a fixed part count would
+# make the time per face grow with the mesh. The count depends on the mesh
+# alone, never on the machine's cores, so the artefact is the same
+# everywhere.
 PART_VERTICES = 70_000
 MAX_PARTS = 256
 # Meshes with fewer vertices are decimated whole: threads would gain little,
-# and small meshes keep the artefacts they always had.
+# and a small mesh's artefact is that of the plain whole-mesh kernel.
 PARALLEL_MIN_VERTICES = 100_000
 # The phases of a partitioned run: each cuts the live mesh anew into
 # ``parts // divisor`` parts (``turned``: along the axes of a turned frame,
@@ -60,11 +61,10 @@ PARALLEL_MIN_VERTICES = 100_000
 #
 # A phase's strip waits at the resolution the phase started with, so the
 # phases are short, and the last one has few cuts: a strip is two rings of
-# the live mesh wide, so the coarser the mesh, the more of it a strip holds
-# (8 parts freeze 3% of the 1.1M bunny at full resolution, about 8% of it at
-# 15%). With 8 parts throughout, its 10% level measured 3% more RMS error
-# than the earlier 2 parts and whole-mesh tail gave; with the last phase in
-# 2 parts, under 1% more (bench/before_after.py).
+# the live mesh wide, so the coarser the mesh, the more of it a strip holds.
+# Many cuts late in the hierarchy leave its coarse levels with a larger share
+# of vertices held back at a finer resolution, which costs surface error; so
+# the last phase cuts into fewer parts.
 PHASES = ((False, 0.6, 1), (True, 0.25, 1), (False, 0.2, 4))
 # Label of a frozen vertex (in no part).
 FROZEN = -1
@@ -72,8 +72,8 @@ FROZEN = -1
 # renumbered along a Morton curve (``memory_order``): past a few tens of MB
 # the kernel's per-vertex rows (quadrics, positions, corner lists) no longer
 # fit in cache, and the neighbours a collapse reads then sit on the same or
-# nearby cache lines and pages (1.1M bunny: about 15% less CPU time).
-# Smaller meshes fit in cache and keep the artefacts they always had.
+# nearby cache lines and pages. Smaller meshes fit in cache and are
+# decimated in their input order.
 REORDER_MIN_VERTICES = 100_000
 # Bits per axis of the Morton code (3 x 21 = 63 bits of an int64).
 _MORTON_BITS = 21
@@ -230,7 +230,7 @@ def partition(positions, faces, alive, parts, turned=False):
 
 # Vertices of a group sampled to find its longest side: the box of an even
 # sample of a surface is its box to within a sample's spacing, and reading
-# every vertex at random took 0.5 s of a 9.4M-face run.
+# every vertex of a large mesh at random is a cache miss per vertex.
 _SIDE_SAMPLE = 65_536
 
 
@@ -238,8 +238,9 @@ _SIDE_SAMPLE = 65_536
 def _longest_side(positions, group):
     """The axis (0, 1 or 2) along which the bounding box of ``positions[group]``
     is longest (the first of equals; 0 for an empty group), from at most about
-    ``_SIDE_SAMPLE`` of them evenly spread through ``group``. One pass:
-    numpy's column reductions of an (n, 3) array took 80 ms of a 1.1M-face run."""
+    ``_SIDE_SAMPLE`` of them evenly spread through ``group``. One pass,
+    where numpy's column reductions of a narrow (n, 3) array would make one
+    strided pass per column and a gathered copy first."""
     lo = np.full(3, np.inf)
     hi = np.full(3, -np.inf)
     for i in range(0, group.shape[0], max(1, group.shape[0] // _SIDE_SAMPLE)):
@@ -279,7 +280,8 @@ def _freeze(faces, label):
 def _gather_blocks(values, offsets, order):
     """Blocks ``values[offsets[i]:offsets[i+1]]`` in the row order ``order``:
     (values, offsets) of the reordered blocks; ``values`` is 1-D. One pass
-    and no temporaries (numpy's repeat-and-index took 0.1 s at 1M faces)."""
+    and no temporaries (numpy's repeat-and-index builds index arrays as
+    long as ``values``)."""
     new_offsets = np.empty(order.shape[0] + 1, np.int64)
     new_offsets[0] = 0
     for i in range(order.shape[0]):

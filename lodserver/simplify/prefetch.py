@@ -2,12 +2,11 @@
 
 A greedy collapse order visits the mesh at random: every popped candidate
 lands in a neighbourhood that is not in cache, and the kernel's walks over it
-are chains of dependent loads (corner -> face -> vertex). Measured with the
-cycle counter, a collapse on the 1.1M bunny's arrays took about 16k cycles
-against about 11k on a mesh that fits in cache. Where the kernel knows an
-address a while before it reads it (the next candidate at the heap's root,
-the neighbours a collapse will re-rank), ``prefetch`` starts the load so
-that the wait overlaps useful work.
+are chains of dependent loads (corner -> face -> vertex), so on a mesh too
+large for the cache a collapse spends much of its time waiting on memory.
+Where the kernel knows an address a while before it reads it (the next
+candidate at the heap's root, the neighbours a collapse will re-rank),
+``prefetch`` starts the load so that the wait overlaps useful work.
 
 ``prefetch(a, i)`` hints the cache line holding ``a[i]`` (``a[i, 0]`` for a
 2-D array): it reads nothing, cannot fault, and changes no result; it only

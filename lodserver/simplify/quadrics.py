@@ -397,7 +397,8 @@ def _accumulate_face_quadrics(positions, faces, out):
 
 @njit(cache=True, nogil=True)
 def _scatter_add(out, rows, values):
-    """``out[rows[i]] += values[i]`` with repeated rows summed (np.add.at, 20x faster)."""
+    """``out[rows[i]] += values[i]`` with repeated rows summed: what np.add.at does,
+    as one compiled loop instead of numpy's slow unbuffered path."""
     for i in range(rows.shape[0]):
         r = rows[i]
         for j in range(values.shape[1]):

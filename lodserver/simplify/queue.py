@@ -12,8 +12,8 @@ grow, so the sum matches iff both endpoints are as they were when the entry
 was queued (Garland & Heckbert's heap, with Hoppe's lazy re-ranking).
 
 The queue is a ``Queue`` of arrays. No step that runs per candidate returns
-arrays: returning a tuple of arrays from a compiled function costs more than
-the push itself (about 330 ns against 34 ns a push, measured), so the steps
+arrays: returning a tuple of arrays from a compiled function costs several
+times as much as the push itself, so the steps
 only write into the arrays, and the pass loop makes room for the next ``k``
 entries at safe points (``has_room`` / ``with_room``), before a step that
 may push up to ``k``.

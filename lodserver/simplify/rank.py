@@ -68,8 +68,8 @@ def rank_geometry(a, b, pos, quadrics, kind, q, p):
     """``rank_collapse``'s cost of collapsing (a, b) for a mesh without
     attributes, taking only the arrays it reads: a call that passes the
     ``Topology`` and ``Wedges`` namedtuples copies every field of their
-    arrays (ranking a part of the 1.1M bunny: 25% less time). Writes ``q``
-    and ``p`` as ``rank_collapse`` does. Returns (cost, survivor): inf and
+    arrays on every call, work this step never needs. Writes ``q`` and ``p``
+    as ``rank_collapse`` does. Returns (cost, survivor): inf and
     -1 when the collapse is never legal (both ends locked)."""
     s = _survivor(a, b, kind)
     if s < 0:
@@ -88,12 +88,12 @@ def rank_collapse(a, b, pos, quadrics, kind, q, p, pairs, topo, wedges):
     (3,) and the wedge pairs into ``pairs`` (2, 2).
 
     The hottest step (about ten calls a collapse) takes its arrays one by
-    one: reading them out of the namedtuples here, on every call, made it
-    twice as slow. ``topo`` and ``wedges`` are only read for a mesh with
-    attributes. Compiled without reference counting (``state.NO_REFCOUNT``):
-    with it, taking the two namedtuples as arguments counted a reference to
-    each of their arrays on every call, 60% of the step's time (1.67M
-    edges of the 1.1M bunny: 0.53 s against 0.19 s of CPU).
+    one, because reading them out of the namedtuples here would repeat that
+    read on every call. ``topo`` and ``wedges`` are only read for a mesh
+    with attributes. Compiled without reference counting
+    (``state.NO_REFCOUNT``): with it, taking the two namedtuples as
+    arguments would count a reference to each of their arrays on every
+    call, most of the step's own work.
 
     Returns (cost, survivor, wedge pair count, seams meet, reason): cost is
     inf, with the reason, when the collapse is never legal.
@@ -172,10 +172,9 @@ def rank_all(verts, topo, wedges, scratch, queue, stamp, pair_radius, label, me)
     q, p, wedge_pairs, mark = scratch.q, scratch.p, scratch.pairs, scratch.mark
     rk, rab, rvs, size = queue.key, queue.pair, queue.version, queue.size
     # The reservoir's fill and capacity are kept in locals: as array cells,
-    # their load and store on every edge took about 30% of this step
-    # (a part of the 1.1M bunny: 151 -> 108 ns an edge). Nothing in
-    # the reservoir is stale during a ranking, so when it is full it doubles,
-    # as ``reservoir_append`` would do.
+    # they would be loaded and stored on every edge, a large share of this
+    # step's work. Nothing in the reservoir is stale during a ranking, so
+    # when it is full it doubles, as ``reservoir_append`` would do.
     rsize, capacity = size[RESERVOIR], size[CAPACITY]
     has_wedges = wedges.quadric.shape[0] > 0
     for a in range(pos.shape[0]):

@@ -40,8 +40,8 @@ KEEPS_POSITION = np.array([False, False, True])
 
 # The compiled kernels read these tables as bit masks (bit ``3 * removed +
 # survivor`` of CAN_COLLAPSE_BITS, bit ``kind`` of the others): a module-level
-# integer is a compile-time constant, while indexing a global array costs
-# about a third of a collapse's ranking (measured on 2CylinderEngine).
+# integer is a compile-time constant, while indexing a global array is a memory
+# read each time, and every candidate's ranking reads these tables.
 # ON_BORDER[kind]: counts as a border vertex for the edge rule (an edge with
 # one face may join two border vertices; an edge with two faces may not, see
 # REJECT_PINCH). A locked vertex may sit on a border, so it counts.

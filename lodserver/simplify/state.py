@@ -2,7 +2,7 @@
 steps share, and how the steps that run per candidate are compiled.
 
 Every array is allocated once per run (``new_state``, or in
-``decimate._prepare``) and edited in place by the steps.
+``collapse._prepare``) and edited in place by the steps.
 """
 
 from __future__ import annotations
@@ -16,8 +16,8 @@ from .topology import link_corners
 
 # The steps run once per popped candidate (check, perform, re-rank) read the
 # kernel's state out of namedtuples, and in compiled code every read of a
-# field takes and drops a reference: two atomic operations, about a quarter
-# of the whole decimation time on 2CylinderEngine. These steps allocate
+# field takes and drops a reference: two atomic operations, on every read,
+# in the hottest loop of the decimation. These steps allocate
 # nothing and keep no array past the call (the kernel holds every
 # reference), so they are compiled without reference counting. ``_nrt`` is
 # numba's own switch for that (CPUTargetOptions); where a numba lacks it the

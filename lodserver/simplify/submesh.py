@@ -1,10 +1,10 @@
 """Sub-meshes: a part of the mesh being decimated, copied out dense, and back.
 
 A greedy collapse order visits the mesh at random, so the kernel's speed is
-the speed of its cache misses: a 35k-vertex mesh whose rows fit in cache
-decimates at about 4.7 us a collapse, the 1.1M bunny at 6.5-7.6 us, and the
-last 15% of a decimated mesh, whose survivors are scattered one in seven
-through rows sized for the input, at 8-11 us. So a part (``simplify.parts``)
+the speed of its cache misses: a collapse is cheapest on a mesh whose rows
+fit in cache, dearer on a large mesh's arrays, and dearest near the end of a
+decimation, when the survivors are scattered thinly through rows sized for
+the input. So a part (``simplify.parts``)
 is not decimated in place: its faces, and the vertices on them, are copied
 into small dense arrays (``extract``; vertices keep their relative order, so
 the Morton locality of ``parts.memory_order`` carries over), the unchanged

@@ -169,8 +169,8 @@ def get_chain(mesh_id: MeshId, store: StoreDep, bodies: BodiesDep, request: Requ
     node 0 the finest level, ``MSFT_lod`` naming the others, with
     ``MSFT_screencoverage`` hints.
 
-    The encoder holds the whole chain in memory while it builds it (about 700 MB
-    at peak for 16 levels of a 1.1M-face mesh), so an uncached chain of more than
+    The encoder holds the whole chain in memory while it builds it (several
+    times the body at peak), so an uncached chain of more than
     ``LIGHT_FACES`` faces takes every heavy slot; it is then written to a body
     file and streamed from it.
 

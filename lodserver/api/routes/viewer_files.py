@@ -1,7 +1,7 @@
 """The viewer's files as a browser should get them: versioned, compressed, cached.
 
 ``ViewerFiles(folder)`` reads every file of the viewer's folder into memory
-once (2.3 MB, most of it three.js), with its SHA-256 and, for text types worth
+once (a few MB, most of it three.js), with its SHA-256 and, for text types worth
 it, a gzip body made at start (level 9: done once, so the slowest level costs
 nothing per request). The folder's *version* is a digest of all its files'
 paths and contents. Then:
@@ -12,7 +12,7 @@ paths and contents. Then:
   load), its quoted ``./`` URLs, the import map's included, pointing into
   ``./v/<version>/``. Relative module imports then resolve inside the
   versioned path, while the page keeps its URL (its ``../meshes`` fetches
-  and ``?mesh=`` links work as before). The CSP's import-map hash is computed
+  and ``?mesh=`` links resolve as from ``/viewer/``). The CSP's import-map hash is computed
   from this served page (``headers.ViewerPolicy``).
 * ``/viewer/<path>``: the current file, unversioned, ``no-cache`` with an ETag
   (for old links and for pages that import a module by its plain path).
