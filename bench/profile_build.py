@@ -102,7 +102,7 @@ def main(argv=None):
 
     totals = install_timers()
     build_module.build(Mesh(*warmup_mesh()))        # compile / load kernels
-    collapse.decimate(Mesh(*warmup_mesh()), parts=2)  # and the partitioned path's
+    collapse.decimate(Mesh(*warmup_mesh()), collapse.DecimateOptions(parts=2))  # and the partitioned path's
     start = time.perf_counter()
     mesh = load(args.mesh)
     load_s = time.perf_counter() - start
