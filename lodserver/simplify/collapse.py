@@ -192,9 +192,9 @@ def _decimate_kernel(verts, topo, wedges, scratch, options, label, me, progress)
     updated in place. ``progress[0]`` receives the collapse count as it
     goes; a non-zero ``progress[1]`` asks the kernel to stop early.
 
-    Returns (the filled log columns, see ``simplify.log.filled``; the queue
-    key (k,) each collapse was taken at; rejections (REASON_COUNT,) by
-    reason; passes).
+    Returns (the filled log, ``simplify.log.LogColumns``; the queue key (k,)
+    each collapse was taken at; rejections (REASON_COUNT,) by reason;
+    passes).
     """
     n = verts.pos.shape[0]
     vertex_alive = topo.vertex_alive
@@ -345,7 +345,8 @@ def _run_kernels(verts, faces, wedges, options, parts, states):
     on its own dense copy, ``simplify.submesh``, as many at once as there are
     threads), then the whole live mesh on a dense copy. ``states`` are the
     kernels' progress counters, one per kernel (``parts.kernel_count``).
-    Returns (the log columns, rejections (REASON_COUNT,), passes)."""
+    Returns (the log, ``simplify.log.LogColumns``; rejections
+    (REASON_COUNT,); passes)."""
     n = len(verts.pos)
     if parts == 1:
         topo = _new_topology(faces, n, wedges)
@@ -555,22 +556,21 @@ def decimate(mesh: Mesh, options: DecimateOptions = DecimateOptions(), *, locked
             progress(sum(int(state[0]) for state in states), n)
     if "log" not in result:
         raise RuntimeError("the decimation kernel failed")
-    columns, rejected, passes = result["log"]
-    (s, r, p, cost, area, killed_off, killed, moved_off, moved,
-     merge_off, merge_s, merge_r, merge_v) = columns
-
+    log, rejected, passes = result["log"]
+    s, r = log.survivor, log.removed
     if order is not None:
         s, r = order[s], order[r]
-    error = np.sqrt(cost / np.maximum(area, np.finfo(float).tiny)) * scale
+    error = np.sqrt(log.cost / np.maximum(log.area, np.finfo(float).tiny)) * scale
     merges = {}
     if mesh.attributes is not None:
         # back from sqrt(weight)-scaled to input units
-        merges = dict(merge_offsets=_own(merge_off), merge_survivor=_own(merge_s),
-                      merge_removed=_own(merge_r), merge_value=merge_v / scales)
+        merges = dict(merge_offsets=_own(log.merge_offsets),
+                      merge_survivor=_own(log.merge_survivor),
+                      merge_removed=_own(log.merge_removed), merge_value=log.merge_value / scales)
     return CollapseLog(
-        survivor=_own(s), removed=_own(r), position=_own(p), error=error,
-        killed_offsets=_own(killed_off), killed_faces=_own(killed),
-        moved_offsets=_own(moved_off), moved_corners=_own(moved),
+        survivor=_own(s), removed=_own(r), position=_own(log.position), error=error,
+        killed_offsets=_own(log.killed_offsets), killed_faces=_own(log.killed),
+        moved_offsets=_own(log.moved_offsets), moved_corners=_own(log.moved),
         rejected=rejected_counts(rejected), passes=int(passes), **merges)
 
 

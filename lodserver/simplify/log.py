@@ -1,9 +1,18 @@
 """The collapse log: every collapse, in order, as parallel arrays.
 
-``CollapseLog`` is what the simplifiers (``decimate.decimate``,
-``octree.octree_log``) return and ``progressive.from_collapse_log`` turns into
-a progressive mesh; ``log_arrays`` and ``LogArrays`` are the compiled
-kernels' room to write it in.
+Two forms of one set of columns:
+
+- ``CollapseLog``, what the simplifiers (``collapse.decimate``,
+  ``octree.octree_log``) return and ``progressive.from_collapse_log`` turns
+  into a progressive mesh: ids of the input mesh, errors in mesh units;
+- ``LogColumns``, the edge-collapse kernel's log as it passes between
+  ``collapse``, ``parts`` and ``submesh``: the same columns with the kernel's
+  ``cost`` and ``area`` in place of ``error`` (``error = sqrt(cost / area)``,
+  rescaled), ``killed`` and ``moved`` for ``killed_faces`` and
+  ``moved_corners``, and vertex ids of whichever mesh the kernel ran on.
+
+``LogArrays`` is the kernel's room to write ``LogColumns`` in (the columns
+plus their fill counts), ``log_arrays`` the octree kernel's.
 """
 
 from __future__ import annotations
@@ -81,12 +90,38 @@ def log_arrays(n, m):
             np.zeros(n + 1, np.int64), np.empty(3 * m, np.int64))
 
 
-# The edge-collapse kernel's log: the columns of CollapseLog (``cost`` and
-# ``area`` become ``error`` outside: sqrt(cost / area)), then how many rows of
-# each are filled, ``count[COLLAPSES, KILLED, MOVED, MERGED]``.
-LogArrays = namedtuple("LogArrays", "survivor removed position cost area killed_offsets killed "
-                                    "moved_offsets moved merge_offsets merge_survivor "
-                                    "merge_removed merge_value count")
+LogColumns = namedtuple("LogColumns", "survivor removed position cost area killed_offsets "
+                                      "killed moved_offsets moved merge_offsets merge_survivor "
+                                      "merge_removed merge_value")
+LogColumns.__doc__ = """The edge-collapse kernel's log, one row per collapse (``k`` of them), as
+it passes between modules (``filled``, ``parts.merge_phases``,
+``submesh.map_log``); ``collapse.decimate`` turns it into a ``CollapseLog``.
+Vertex, face and corner ids are those of the mesh the kernel ran on; wedge
+ids are the input's.
+
+survivor, removed : (k,) int64
+    The vertex that stays and the one that goes.
+position : (k, 3) float64
+    The survivor's position after the collapse, mesh units.
+cost : (k,) float64
+    The quadric error of the collapse, in the unit box (squared distance
+    times area).
+area : (k,) float64
+    The area the quadric is summed over, in the unit box.
+killed_offsets : (k + 1,) int64, killed : (f,) int64
+    ``killed[killed_offsets[i]:killed_offsets[i+1]]`` are the faces collapse i removes.
+moved_offsets : (k + 1,) int64, moved : (c,) int64
+    ``moved[moved_offsets[i]:moved_offsets[i+1]]`` are the corners
+    (``3 * face + slot``) collapse i relabels from removed to survivor.
+merge_offsets : (k + 1,) int64, merge_survivor, merge_removed : (g,) int64
+    The wedge merges of collapse i, as in ``CollapseLog``.
+merge_value : (g, d) float64
+    The survivor wedge's value after each merge, scaled by sqrt(weight).
+"""
+
+# The kernel's room to write its log in: the columns of ``LogColumns``, then
+# how many rows of each are filled, ``count[COLLAPSES, KILLED, MOVED, MERGED]``.
+LogArrays = namedtuple("LogArrays", LogColumns._fields + ("count",))
 COLLAPSES = 0
 KILLED = 1
 MOVED = 2
@@ -106,15 +141,14 @@ def new_log(n, m, merges, width):
 
 @njit(cache=True, nogil=True, inline="always")
 def filled(log):
-    """The filled prefix of every column of ``log`` (views), as a plain tuple:
-    survivor, removed, position, cost, area, killed_offsets, killed,
-    moved_offsets, moved, merge_offsets, merge_survivor, merge_removed, merge_value."""
+    """The filled prefix of every column of ``log`` (views), as ``LogColumns``."""
     nk = log.count[COLLAPSES]
     nm = log.count[MERGED]
-    return (log.survivor[:nk], log.removed[:nk], log.position[:nk], log.cost[:nk],
-            log.area[:nk], log.killed_offsets[:nk + 1], log.killed[:log.count[KILLED]],
-            log.moved_offsets[:nk + 1], log.moved[:log.count[MOVED]], log.merge_offsets[:nk + 1],
-            log.merge_survivor[:nm], log.merge_removed[:nm], log.merge_value[:nm])
+    return LogColumns(log.survivor[:nk], log.removed[:nk], log.position[:nk], log.cost[:nk],
+                      log.area[:nk], log.killed_offsets[:nk + 1], log.killed[:log.count[KILLED]],
+                      log.moved_offsets[:nk + 1], log.moved[:log.count[MOVED]],
+                      log.merge_offsets[:nk + 1], log.merge_survivor[:nm],
+                      log.merge_removed[:nm], log.merge_value[:nm])
 
 
 @njit(cache=True, nogil=True)

@@ -13,6 +13,7 @@ from lodserver.progressive.artefact import encode_progressive
 from lodserver.progressive.mesh import from_collapse_log
 from lodserver.simplify import collapse, parts
 from lodserver.simplify.collapse import decimate
+from lodserver.simplify.log import LogColumns
 from lodserver.simplify.options import DecimateOptions
 from lodserver.simplify.parts import FROZEN, merge_logs, partition
 
@@ -75,15 +76,16 @@ def _log(keys, first_face, width=1):
     k = len(keys)
     rows = first_face + np.arange(k)
     offsets = np.arange(k + 1)
-    return (rows, rows + 1000, np.c_[rows, rows, rows].astype(float), np.asarray(keys, float),
-            np.ones(k), offsets, rows, 2 * offsets, np.repeat(rows, 2), offsets, rows, rows + 1,
-            np.c_[rows.astype(float)] * np.ones(width))
+    return LogColumns(rows, rows + 1000, np.c_[rows, rows, rows].astype(float),
+                      np.asarray(keys, float), np.ones(k), offsets, rows, 2 * offsets,
+                      np.repeat(rows, 2), offsets, rows, rows + 1,
+                      np.c_[rows.astype(float)] * np.ones(width))
 
 
 def test_merged_logs_keep_each_order_and_follow_the_keys():
     a, b, tail = _log([1, 5, 2, 6], 0), _log([3, 4], 100), _log([0.5], 200)
-    merged = merge_logs([a, b], [a[3], b[3]], tail)
-    survivor = merged[0]
+    merged = merge_logs([a, b], [a.cost, b.cost], tail)
+    survivor = merged.survivor
     # running maxima 1 5 5 6 and 3 4: a0, b0, b1, a1, a2, a3, then the tail
     np.testing.assert_array_equal(survivor, [0, 100, 101, 1, 2, 3, 200])
     # every block column follows its row
@@ -142,7 +144,8 @@ def test_the_artefact_does_not_depend_on_the_threads(name):
     try:
         for count in (1, numba.config.NUMBA_NUM_THREADS, 1):
             numba.set_num_threads(count)
-            artefacts.append(encode_progressive(from_collapse_log(m, decimate(m, DecimateOptions(parts=4)))))
+            log = decimate(m, DecimateOptions(parts=4))
+            artefacts.append(encode_progressive(from_collapse_log(m, log)))
     finally:
         numba.set_num_threads(threads)
     assert artefacts[0] == artefacts[1] == artefacts[2]
@@ -154,7 +157,8 @@ def test_parts_are_the_default_only_for_large_meshes(monkeypatch):
 
     def artefact(pm, parts):
         # the build's metadata on the log of ``parts`` parts
-        return encode_progressive(from_collapse_log(m, decimate(m, DecimateOptions(parts=parts)), pm.metadata))
+        log = decimate(m, DecimateOptions(parts=parts))
+        return encode_progressive(from_collapse_log(m, log, pm.metadata))
 
     built = build(m)
     assert encode_progressive(built) == artefact(built, 1)
