@@ -39,7 +39,7 @@ from worker import warmup_mesh  # noqa: E402
 import importlib  # noqa: E402
 import lodserver.simplify.collapse as collapse  # noqa: E402
 from lodserver import Mesh  # noqa: E402
-from lodserver.progressive.artefact import encode_progressive  # noqa: E402
+from lodserver.progressive import encode_progressive  # noqa: E402
 
 # the module, not the function ``lodserver.build`` that shadows it
 build_module = importlib.import_module("lodserver.build")

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from lodserver.progressive.artefact import (
+from lodserver.progressive import (
     ArtefactError,
     decode_progressive,
     encode_progressive,

@@ -11,7 +11,7 @@ import dataclasses
 import numpy as np
 import pytest
 
-from lodserver.progressive.artefact import encode_progressive
+from lodserver.progressive import encode_progressive
 from lodserver.progressive.mesh import from_collapse_log
 from lodserver.simplify import collapse
 from lodserver.simplify.collapse import decimate

@@ -9,7 +9,7 @@ import numba
 import numpy as np
 import pytest
 
-from lodserver.progressive.artefact import encode_progressive
+from lodserver.progressive import encode_progressive
 from lodserver.progressive.mesh import from_collapse_log
 from lodserver.simplify import collapse, parts
 from lodserver.simplify.collapse import decimate
