@@ -176,8 +176,9 @@ class ChainOptions:
         world box); each mesh at its coarsest level within the bound (world
         error for a scene: the mesh's error times its largest instance scale).
     per_mesh : bool
-        A scene's ``lods`` are each mesh's own face ratios (the meaning before
-        scenes had one budget). The same for a single mesh. Not with ``errors``.
+        A scene's ``lods`` are each mesh's own face ratios instead of one
+        budget for the whole scene. The same for a single mesh. Not with
+        ``errors``.
     separate : bool
         Write ``OUT_lod0.glb``, ``OUT_lod1.glb``, ... instead of one file.
     reach : str
