@@ -238,7 +238,7 @@ def _decimate_kernel(verts, topo, wedges, scratch, options, label, me, progress)
                                  me)
         # the heap's and reservoir's arrays, read again whenever the queue grows
         hk, hab, hvs, rk = queue.heap_key, queue.heap_pair, queue.heap_version, queue.key
-        moved_room = log.moved.shape[0]
+        moved_room = log.moved_corners.shape[0]
         stop = False
         while True:
             if (alive_count <= min_vertices or count[COLLAPSES] >= max_collapses
@@ -291,7 +291,7 @@ def _decimate_kernel(verts, topo, wedges, scratch, options, label, me, progress)
             # arrays would pay for it on every call (simplify.queue).
             if count[MOVED] + face_count[r] > moved_room:
                 log = with_room_for_moves(log, face_count[r])
-                moved_room = log.moved.shape[0]
+                moved_room = log.moved_corners.shape[0]
             keys[count[COLLAPSES]] = cost
             perform_collapse(s, r, n_pairs, o0, o1, verts, topo, wedges, scratch, log)
             alive_count -= 1
@@ -569,8 +569,8 @@ def decimate(mesh: Mesh, options: DecimateOptions = DecimateOptions(), *, locked
                       merge_removed=_own(log.merge_removed), merge_value=log.merge_value / scales)
     return CollapseLog(
         survivor=_own(s), removed=_own(r), position=_own(log.position), error=error,
-        killed_offsets=_own(log.killed_offsets), killed_faces=_own(log.killed),
-        moved_offsets=_own(log.moved_offsets), moved_corners=_own(log.moved),
+        killed_offsets=_own(log.killed_offsets), killed_faces=_own(log.killed_faces),
+        moved_offsets=_own(log.moved_offsets), moved_corners=_own(log.moved_corners),
         rejected=rejected_counts(rejected), passes=int(passes), **merges)
 
 

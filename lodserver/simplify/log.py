@@ -8,8 +8,7 @@ Two forms of one set of columns:
 - ``LogColumns``, the edge-collapse kernel's log as it passes between
   ``collapse``, ``parts`` and ``submesh``: the same columns with the kernel's
   ``cost`` and ``area`` in place of ``error`` (``error = sqrt(cost / area)``,
-  rescaled), ``killed`` and ``moved`` for ``killed_faces`` and
-  ``moved_corners``, and vertex ids of whichever mesh the kernel ran on.
+  rescaled), and vertex ids of whichever mesh the kernel ran on.
 
 ``LogArrays`` is the kernel's room to write ``LogColumns`` in (the columns
 plus their fill counts), ``log_arrays`` the octree kernel's.
@@ -91,8 +90,8 @@ def log_arrays(n, m):
 
 
 LogColumns = namedtuple("LogColumns", "survivor removed position cost area killed_offsets "
-                                      "killed moved_offsets moved merge_offsets merge_survivor "
-                                      "merge_removed merge_value")
+                                      "killed_faces moved_offsets moved_corners merge_offsets "
+                                      "merge_survivor merge_removed merge_value")
 LogColumns.__doc__ = """The edge-collapse kernel's log, one row per collapse (``k`` of them), as
 it passes between modules (``filled``, ``parts.merge_phases``,
 ``submesh.map_log``); ``collapse.decimate`` turns it into a ``CollapseLog``.
@@ -108,10 +107,10 @@ cost : (k,) float64
     times area).
 area : (k,) float64
     The area the quadric is summed over, in the unit box.
-killed_offsets : (k + 1,) int64, killed : (f,) int64
-    ``killed[killed_offsets[i]:killed_offsets[i+1]]`` are the faces collapse i removes.
-moved_offsets : (k + 1,) int64, moved : (c,) int64
-    ``moved[moved_offsets[i]:moved_offsets[i+1]]`` are the corners
+killed_offsets : (k + 1,) int64, killed_faces : (f,) int64
+    ``killed_faces[killed_offsets[i]:killed_offsets[i+1]]`` are the faces collapse i removes.
+moved_offsets : (k + 1,) int64, moved_corners : (c,) int64
+    ``moved_corners[moved_offsets[i]:moved_offsets[i+1]]`` are the corners
     (``3 * face + slot``) collapse i relabels from removed to survivor.
 merge_offsets : (k + 1,) int64, merge_survivor, merge_removed : (g,) int64
     The wedge merges of collapse i, as in ``CollapseLog``.
@@ -145,8 +144,9 @@ def filled(log):
     nk = log.count[COLLAPSES]
     nm = log.count[MERGED]
     return LogColumns(log.survivor[:nk], log.removed[:nk], log.position[:nk], log.cost[:nk],
-                      log.area[:nk], log.killed_offsets[:nk + 1], log.killed[:log.count[KILLED]],
-                      log.moved_offsets[:nk + 1], log.moved[:log.count[MOVED]],
+                      log.area[:nk], log.killed_offsets[:nk + 1],
+                      log.killed_faces[:log.count[KILLED]], log.moved_offsets[:nk + 1],
+                      log.moved_corners[:log.count[MOVED]],
                       log.merge_offsets[:nk + 1], log.merge_survivor[:nm],
                       log.merge_removed[:nm], log.merge_value[:nm])
 
@@ -154,13 +154,14 @@ def filled(log):
 @njit(cache=True, nogil=True)
 def with_room_for_moves(log, k):
     """``log`` with room for ``k`` more moved corners (a new ``LogArrays``
-    only if ``moved`` had to grow): a corner moves each time its vertex goes,
+    only if ``moved_corners`` had to grow): a corner moves each time its vertex goes,
     so the total can outgrow ``3 m``."""
     need = log.count[MOVED] + k
-    if need <= log.moved.shape[0]:
+    if need <= log.moved_corners.shape[0]:
         return log
-    moved = np.empty(max(need, 2 * log.moved.shape[0]), np.int64)
-    moved[:log.count[MOVED]] = log.moved[:log.count[MOVED]]
+    moved = np.empty(max(need, 2 * log.moved_corners.shape[0]), np.int64)
+    moved[:log.count[MOVED]] = log.moved_corners[:log.count[MOVED]]
     return LogArrays(log.survivor, log.removed, log.position, log.cost, log.area,
-                     log.killed_offsets, log.killed, log.moved_offsets, moved, log.merge_offsets,
-                     log.merge_survivor, log.merge_removed, log.merge_value, log.count)
+                     log.killed_offsets, log.killed_faces, log.moved_offsets, moved,
+                     log.merge_offsets, log.merge_survivor, log.merge_removed, log.merge_value,
+                     log.count)

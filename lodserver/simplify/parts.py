@@ -337,7 +337,7 @@ def merge_phases(phases, tail=None):
 
 
 # The columns with one entry per collapse, and the block columns (values
-# ``killed[killed_offsets[i]:killed_offsets[i + 1]]`` per collapse i) with
+# ``killed_faces[killed_offsets[i]:killed_offsets[i + 1]]`` per collapse i) with
 # their offsets; the three merge columns share ``merge_offsets``.
 _ROWS = ("survivor", "removed", "position", "cost", "area")
 _MERGE_VALUES = ("merge_survivor", "merge_removed", "merge_value")
@@ -346,13 +346,13 @@ _MERGE_VALUES = ("merge_survivor", "merge_removed", "merge_value")
 def concatenate_logs(logs):
     """The logs ``logs`` (``LogColumns``) one after another, as one ``LogColumns``."""
     rows = {name: np.concatenate([getattr(log, name) for log in logs]) for name in _ROWS}
-    killed, killed_offsets = _concatenate_blocks(logs, "killed_offsets", "killed")
-    moved, moved_offsets = _concatenate_blocks(logs, "moved_offsets", "moved")
+    killed, killed_offsets = _concatenate_blocks(logs, "killed_offsets", "killed_faces")
+    moved, moved_offsets = _concatenate_blocks(logs, "moved_offsets", "moved_corners")
     merge_survivor, merge_offsets = _concatenate_blocks(logs, "merge_offsets", "merge_survivor")
     merge_removed, merge_value = (np.concatenate([getattr(log, name) for log in logs])
                                   for name in _MERGE_VALUES[1:])
-    return LogColumns(**rows, killed_offsets=killed_offsets, killed=killed,
-                      moved_offsets=moved_offsets, moved=moved, merge_offsets=merge_offsets,
+    return LogColumns(**rows, killed_offsets=killed_offsets, killed_faces=killed,
+                      moved_offsets=moved_offsets, moved_corners=moved, merge_offsets=merge_offsets,
                       merge_survivor=merge_survivor, merge_removed=merge_removed,
                       merge_value=merge_value)
 
@@ -361,16 +361,16 @@ def _take(logs, order):
     """The rows ``order`` of the logs ``logs`` put one after another, as ``LogColumns``."""
     rows = {name: np.concatenate([getattr(log, name) for log in logs])[order] for name in _ROWS}
     killed, killed_offsets = _gather_blocks(
-        *_concatenate_blocks(logs, "killed_offsets", "killed"), order)
+        *_concatenate_blocks(logs, "killed_offsets", "killed_faces"), order)
     moved, moved_offsets = _gather_blocks(
-        *_concatenate_blocks(logs, "moved_offsets", "moved"), order)
+        *_concatenate_blocks(logs, "moved_offsets", "moved_corners"), order)
     # the three merge columns share offsets: gather an index once
     merges, merge_offsets = _concatenate_blocks(logs, "merge_offsets", "merge_survivor")
     index, merge_offsets = _gather_blocks(np.arange(len(merges)), merge_offsets, order)
     merge_survivor, merge_removed, merge_value = (
         np.concatenate([getattr(log, name) for log in logs])[index] for name in _MERGE_VALUES)
-    return LogColumns(**rows, killed_offsets=killed_offsets, killed=killed,
-                      moved_offsets=moved_offsets, moved=moved, merge_offsets=merge_offsets,
+    return LogColumns(**rows, killed_offsets=killed_offsets, killed_faces=killed,
+                      moved_offsets=moved_offsets, moved_corners=moved, merge_offsets=merge_offsets,
                       merge_survivor=merge_survivor, merge_removed=merge_removed,
                       merge_value=merge_value)
 

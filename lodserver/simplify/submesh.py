@@ -215,7 +215,8 @@ def map_log(columns: LogColumns, sub: SubMesh) -> LogColumns:
     vertex, face and corner ids replaced by the mesh's (wedge ids are the
     mesh's already)."""
     vertex_ids, face_ids = sub.vertex_ids, sub.face_ids
-    moved = 3 * face_ids[columns.moved // 3] + columns.moved % 3
+    moved = 3 * face_ids[columns.moved_corners // 3] + columns.moved_corners % 3
     return columns._replace(survivor=vertex_ids[columns.survivor],
                             removed=vertex_ids[columns.removed],
-                            killed=face_ids[columns.killed], moved=moved)
+                            killed_faces=face_ids[columns.killed_faces],
+                            moved_corners=moved)
