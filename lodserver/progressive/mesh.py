@@ -67,7 +67,6 @@ if TYPE_CHECKING:
     from ..simplify.collapse import CollapseLog
 
 
-
 @njit(cache=True, nogil=True, inline="always")
 def ancestor_below(parent, x, level):
     """The vertex a full-detail corner ``x`` reads at ``level``: its first
