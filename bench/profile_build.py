@@ -39,7 +39,7 @@ from worker import warmup_mesh  # noqa: E402
 import importlib  # noqa: E402
 import lodserver.simplify.collapse as collapse  # noqa: E402
 from lodserver import Mesh  # noqa: E402
-from lodserver.progressive.artefact import encode_progressive  # noqa: E402
+from lodserver.progressive import encode_progressive  # noqa: E402
 
 # the module, not the function ``lodserver.build`` that shadows it
 build_module = importlib.import_module("lodserver.build")
@@ -102,7 +102,7 @@ def main(argv=None):
 
     totals = install_timers()
     build_module.build(Mesh(*warmup_mesh()))        # compile / load kernels
-    collapse.decimate(Mesh(*warmup_mesh()), parts=2)  # and the partitioned path's
+    collapse.decimate(Mesh(*warmup_mesh()), collapse.DecimateOptions(parts=2))  # and the partitioned path's
     start = time.perf_counter()
     mesh = load(args.mesh)
     load_s = time.perf_counter() - start

@@ -207,9 +207,9 @@ def _warm_parts():
     """Decimate the warm-up mesh in parts, as ``build`` does a mesh of
     ``PARALLEL_MIN_VERTICES`` or more: its kernels compile (or load) now."""
     from lodserver import Mesh
-    from lodserver.simplify.collapse import decimate
+    from lodserver.simplify.collapse import DecimateOptions, decimate
 
-    decimate(Mesh(*warmup_mesh()), parts=2)
+    decimate(Mesh(*warmup_mesh()), DecimateOptions(parts=2))
 
 
 def run_warmup():

@@ -9,7 +9,7 @@ import numpy as np
 from .simplify.carried import complete_log, solved_part
 from .simplify.collapse import decimate
 from .mesh import Mesh, MeshError
-from .options import METHODS, BuildOptions
+from .options import METHODS, BuildOptions, distance_from
 from .progressive.mesh import ProgressiveMesh, from_collapse_log
 
 __all__ = ["build", "BuildOptions", "METHODS", "distance_from", "kernels_cold"]
@@ -79,19 +79,15 @@ def build(source, options: BuildOptions | dict | None = None, *, locked=None, pr
         metadata["decimation"] = {"passes": log.passes}
         return from_collapse_log(mesh, log, metadata)
     locked = _locked(mesh, locked, options.lock_border)
-    threshold = distance_from(options.pair_threshold, mesh)
-    weights = options.attribute_weights()
+    kernel = options.decimate_options(mesh)
     # the kernel ranks on the solved attributes; the carried ones follow the log
-    log = decimate(solved_part(mesh), boundary_weight=options.boundary_weight, locked=locked,
-                   min_vertices=options.min_vertices, flip_cos=options.flip_cos,
-                   pair_threshold=threshold, attribute_weights=weights,
-                   preserve_volume=options.preserve_volume, seam_weight=options.seam_weight,
-                   progress=progress, cancel=cancel, poses=poses)
+    log = decimate(solved_part(mesh), kernel, locked=locked, poses=poses, progress=progress,
+                   cancel=cancel)
     log = complete_log(mesh, log)
     metadata["options"] = {
         **options.model_dump(),
         "attributes": [name for name, _ in mesh.attributes.layout] if mesh.attributes else [],
-        "attribute_weights": weights,
+        "attribute_weights": dict(kernel.attribute_weights),
         "locked_vertices": 0 if locked is None else int(np.count_nonzero(locked))}
     metadata["decimation"] = {"passes": log.passes, "rejected": log.rejected}
     return from_collapse_log(mesh, log, metadata)
@@ -130,18 +126,3 @@ def kernels_cold(method: str = "qem") -> bool:
         return not cache._cache_file._load_index()
     except Exception:       # the kernel or numba's internals moved: say nothing, build on
         return False
-
-
-def distance_from(value, mesh: Mesh) -> float:
-    """A distance in mesh units from a number, or from ``"P%"`` of the bounding-box diagonal."""
-    text = str(value).strip()
-    try:
-        if text.endswith("%"):
-            distance = float(text[:-1]) / 100.0 * mesh.bounding_box_diagonal
-        else:
-            distance = float(text)
-    except ValueError:
-        raise MeshError(f"a distance must be a number or a percentage like '1%', got {value!r}") from None
-    if not distance >= 0 or distance == float("inf"):
-        raise MeshError(f"a distance must be finite and non-negative, got {value!r}")
-    return distance

@@ -223,7 +223,7 @@ def _export_usage(args) -> str | None:
 
 
 def _cmd_export(args) -> int:
-    from .pipeline import export_lods, is_url, parse_errors, parse_lods
+    from .pipeline import ChainOptions, export_lods, is_url, parse_errors, parse_lods
 
     problem = _export_usage(args)
     if problem is not None:
@@ -233,13 +233,14 @@ def _cmd_export(args) -> int:
         ratios, errors = None, parse_errors(args.errors)
     else:
         ratios, errors = parse_lods(args.lods or DEFAULT_LODS_TEXT), None
-    args.error_bounds = errors          # for _export_folder
+    chain = ChainOptions(lods=ratios, errors=errors, per_mesh=args.per_mesh,
+                         separate=args.separate, reach=args.reach)
     options = options_from(args)
     if is_url(args.source) or Path(args.source).is_dir():
         if Path(args.output).suffix.lower() == ".glb":
             raise MeshError(f"{args.source} is a folder, so -o names the folder to write into, "
                             f"not a .glb file ({args.output})")
-        return _export_folder(args, ratios, options)
+        return _export_folder(args, chain, options)
     if args.scheduler is not None:
         raise MeshError("--scheduler runs the assets of a folder: name a folder, "
                         f"not a file ({args.source})")
@@ -250,9 +251,7 @@ def _cmd_export(args) -> int:
         _announce_compile(options.method)
     progress = _Progress()
     try:
-        done = export_lods(args.source, _output_file(args.output), lods=ratios,
-                           errors=errors, per_mesh=args.per_mesh,
-                           separate=args.separate, reach=args.reach, options=options,
+        done = export_lods(args.source, _output_file(args.output), chain, options=options,
                            untrusted=args.untrusted, progress=progress)
     finally:
         progress.close()
@@ -282,7 +281,7 @@ def _levels(done) -> str:
     return text
 
 
-def _export_folder(args, ratios, options) -> int:
+def _export_folder(args, chain, options) -> int:
     """Every mesh file under ``args.source`` into the folder ``args.output``: a bar
     over the files on a terminal, a line per file, exit 1 if any failed (the same
     on a Dask cluster, ``--scheduler``)."""
@@ -318,11 +317,8 @@ def _export_folder(args, ratios, options) -> int:
 
     start = time.perf_counter()
     try:
-        report = export_folder(args.source, args.output, lods=ratios,
-                               errors=args.error_bounds, per_mesh=args.per_mesh,
-                               separate=args.separate,
-                               reach=args.reach, jobs=args.jobs, force=args.force,
-                               options=options, untrusted=args.untrusted,
+        report = export_folder(args.source, args.output, chain, jobs=args.jobs,
+                               force=args.force, options=options, untrusted=args.untrusted,
                                scheduler=args.scheduler, progress=progress)
     finally:
         bar.close()

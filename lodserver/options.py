@@ -22,7 +22,8 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 from pydantic_core import PydanticCustomError
 
 from .simplify.collapse import DEFAULT_ATTRIBUTE_WEIGHTS, DEFAULT_FLIP_COS
-from .mesh import MeshError
+from .simplify.options import DecimateOptions
+from .mesh import Mesh, MeshError
 
 METHODS = ("qem", "cluster")
 # A distance in mesh units, or a percentage of the bounding-box diagonal: "0.01", "2%", "1e-3".
@@ -115,6 +116,24 @@ class BuildOptions(BaseModel):
         """``decimate``'s attribute_weights: weight by glTF attribute name."""
         return {name: getattr(self, field) for name, field in _WEIGHT_FIELDS.items()}
 
+    def decimate_options(self, mesh: Mesh) -> DecimateOptions:
+        """These options as the edge-collapse kernel takes them for ``mesh``
+        (``simplify.options.DecimateOptions``): the pair threshold in mesh
+        units (a percentage is of ``mesh``'s bounding-box diagonal), the
+        weights by attribute name. ``method``, ``attributes`` and
+        ``lock_border`` are the builder's to apply; they are not here.
+
+        Raises
+        ------
+        MeshError
+            The pair threshold is not a finite distance.
+        """
+        return DecimateOptions(
+            boundary_weight=self.boundary_weight, seam_weight=self.seam_weight,
+            attribute_weights=self.attribute_weights(), flip_cos=self.flip_cos,
+            pair_threshold=distance_from(self.pair_threshold, mesh),
+            preserve_volume=self.preserve_volume, min_vertices=self.min_vertices)
+
     @classmethod
     def check(cls, options: BuildOptions | dict | None = None, **overrides) -> BuildOptions:
         """``options`` (a model, a mapping or None for the defaults) with ``overrides`` applied.
@@ -188,3 +207,18 @@ def field_default_text(name: str) -> str:
     if isinstance(default, float) and default.is_integer():
         return str(int(default))
     return str(default)
+
+
+def distance_from(value, mesh: Mesh) -> float:
+    """A distance in mesh units from a number, or from ``"P%"`` of the bounding-box diagonal."""
+    text = str(value).strip()
+    try:
+        if text.endswith("%"):
+            distance = float(text[:-1]) / 100.0 * mesh.bounding_box_diagonal
+        else:
+            distance = float(text)
+    except ValueError:
+        raise MeshError(f"a distance must be a number or a percentage like '1%', got {value!r}") from None
+    if not distance >= 0 or distance == float("inf"):
+        raise MeshError(f"a distance must be finite and non-negative, got {value!r}")
+    return distance

@@ -124,7 +124,7 @@ def lod_chain(pm: ProgressiveMesh, lods=DEFAULT_LODS, *, reach: str = "none"):
 
     Returns ``(meshes, coverage, clustered)``: the meshes, their screen coverage
     hints (:func:`gltf.coverage_from_ratios`) and the indices of the levels made
-    by clustering (``reach``, as for :func:`export_lods`). Raises
+    by clustering (``reach``, as :class:`ChainOptions` says). Raises
     :class:`MeshError` on bad ratios or ``reach``.
     """
     ratios = check_lods(lods)
@@ -158,25 +158,73 @@ def error_chain(pm: ProgressiveMesh, errors):
     return [pm.at(v) for v in levels], coverage
 
 
-def _check_choice(lods, errors, per_mesh, reach):
-    """The levels' criterion: (ratios or None, error bounds or None); one sentence
-    for a bad combination."""
-    if lods is not None and errors is not None:
-        raise MeshError("give LOD ratios or LOD errors, not both")
-    if errors is not None:
-        if per_mesh:
-            raise MeshError("per-mesh levels are chosen by ratio; levels by error are "
-                            "per mesh already")
-        if reach != "none":
-            raise MeshError("reach meets face budgets, and levels by error have none")
-        return None, check_errors(errors)
-    return check_lods(DEFAULT_LODS if lods is None else lods), None
+@dataclass(frozen=True)
+class ChainOptions:
+    """Which levels an export writes, and how: the options of the chain of levels,
+    checked when made (``MeshError``, one sentence) and held checked.
+
+    Attributes
+    ----------
+    lods : tuple of float
+        Face ratios of the levels, finest first, strictly decreasing, in (0, 1];
+        ``DEFAULT_LODS`` when neither ``lods`` nor ``errors`` is given, None with
+        ``errors``. For a scene, ratios of the whole scene's triangles, each part
+        once per instance, with one budget for all parts (:func:`budget.scene_levels`).
+    errors : tuple of float, optional
+        Instead of ``lods``: error bounds of the levels, finest first, strictly
+        increasing, >= 0, as fractions of the bounding-box diagonal (a scene's
+        world box); each mesh at its coarsest level within the bound (world
+        error for a scene: the mesh's error times its largest instance scale).
+    per_mesh : bool
+        A scene's ``lods`` are each mesh's own face ratios instead of one
+        budget for the whole scene. The same for a single mesh. Not with
+        ``errors``.
+    separate : bool
+        Write ``OUT_lod0.glb``, ``OUT_lod1.glb``, ... instead of one file.
+    reach : str
+        ``"none"``: a level edge collapse cannot bring down to its budget stays
+        at the coarsest it reaches. ``"cluster"``: such a level is made by vertex
+        clustering of the full mesh instead (``cluster.cluster``), which joins
+        parts and meets the budget but keeps positions only (no UVs, normals or
+        materials: a textured asset's far level is drawn untextured). Not with
+        ``errors``.
+    """
+
+    lods: tuple[float, ...] | None = None
+    errors: tuple[float, ...] | None = None
+    per_mesh: bool = False
+    separate: bool = False
+    reach: str = "none"
+
+    def __post_init__(self):
+        check_reach(self.reach)
+        if self.lods is not None and self.errors is not None:
+            raise MeshError("give LOD ratios or LOD errors, not both")
+        if self.errors is not None:
+            if self.per_mesh:
+                raise MeshError("per-mesh levels are chosen by ratio; levels by error are "
+                                "per mesh already")
+            if self.reach != "none":
+                raise MeshError("reach meets face budgets, and levels by error have none")
+            object.__setattr__(self, "errors", check_errors(self.errors))
+        else:
+            lods = DEFAULT_LODS if self.lods is None else self.lods
+            object.__setattr__(self, "lods", check_lods(lods))
+
+    @classmethod
+    def of(cls, chain: ChainOptions | None, keywords: dict) -> ChainOptions:
+        """``chain``, or one made of ``keywords`` (the fields by name, as
+        ``export_lods`` and ``export_folder`` also take them); not both."""
+        if chain is None:
+            return cls(**keywords)
+        if keywords:
+            raise TypeError(f"give chain or {', '.join(sorted(keywords))}, not both")
+        return chain
 
 
-def export_lods(source, output, *, lods=None, separate: bool = False,
-                reach: str = "none", options: BuildOptions | None = None,
-                untrusted: bool = False, per_mesh: bool = False, errors=None,
-                progress=None) -> Exported:
+def export_lods(source, output, chain: ChainOptions | None = None, *,
+                options: BuildOptions | None = None, untrusted: bool = False, progress=None,
+                **chain_keywords) -> Exported:
     """Write the levels of detail of ``source`` to ``output`` (a ``.glb`` path).
 
     Parameters
@@ -187,28 +235,10 @@ def export_lods(source, output, *, lods=None, separate: bool = False,
         and the output is the input document with every mesh replaced by its
         levels (``io.scene_glb``); skinned and morphed meshes are kept as they
         are, one level, and ``Exported.notes`` says so.
-    lods : sequence of float, optional
-        Face ratios of the levels, finest first, strictly decreasing, in (0, 1]
-        (default ``DEFAULT_LODS``). For a scene, ratios of the whole scene's
-        triangles, each part once per instance, with one budget for all parts
-        (:func:`budget.scene_levels`); with ``per_mesh``, of each mesh's own.
-    errors : sequence of float, optional
-        Instead of ``lods``: error bounds of the levels, finest first, strictly
-        increasing, >= 0, as fractions of the bounding-box diagonal (a scene's
-        world box); each mesh at its coarsest level within the bound (world
-        error for a scene: the mesh's error times its largest instance scale).
-    per_mesh : bool
-        A scene's ``lods`` are each mesh's own face ratios instead of one
-        budget for the whole scene. The same for a single mesh.
-    separate : bool
-        Write ``OUT_lod0.glb``, ``OUT_lod1.glb``, ... instead of one file.
-    reach : str
-        ``"none"``: a level edge collapse cannot bring down to its budget stays
-        at the coarsest it reaches. ``"cluster"``: such a level is made by vertex
-        clustering of the full mesh instead (``cluster.cluster``), which joins
-        parts and meets the budget but keeps positions only (no UVs, normals or
-        materials: a textured asset's far level is drawn untextured). Not with
-        ``errors``.
+    chain : ChainOptions, optional
+        Which levels, and how they are written (None: every default). Its
+        fields may be given as keywords instead (``lods=(1, 0.5, 0.1)``,
+        ``errors``, ``per_mesh``, ``separate``, ``reach``), not with it.
     options : BuildOptions, optional
         How a mesh file is built (``options.BuildOptions``; None: the defaults).
         A ``.pm`` source was built already and ignores them.
@@ -228,9 +258,10 @@ def export_lods(source, output, *, lods=None, separate: bool = False,
         On a bad source, bad ratios or errors, both given, or an output that is
         not ``.glb``. Nothing is written then; each file written is complete
         (``io.write_atomic``).
+    TypeError
+        A keyword that is not a field of ``ChainOptions``, or ``chain`` with keywords.
     """
-    check_reach(reach)
-    lods, errors = _check_choice(lods, errors, per_mesh, reach)     # before a build
+    chain = ChainOptions.of(chain, chain_keywords)      # checked before a build
     options = BuildOptions.check(options)
     source, output = Path(source), Path(output)
     if output.suffix.lower() != ".glb":
@@ -240,8 +271,7 @@ def export_lods(source, output, *, lods=None, separate: bool = False,
     if source.suffix.lower() in (".gltf", ".glb"):
         from .io.scene import load_scene
         scene = load_scene(source, root=source.parent if untrusted else None)
-        return _export_scene(scene, source, output, lods, errors, per_mesh, separate, reach,
-                             options, progress, start)
+        return _export_scene(scene, source, output, chain, options, progress, start)
     if source.suffix.lower() == ".pm":
         pm = ProgressiveMesh.load(source)
     else:
@@ -250,11 +280,11 @@ def export_lods(source, output, *, lods=None, separate: bool = False,
             pm = build(source, options, progress=progress, untrusted=untrusted)
         except ValueError as exc:       # argument checks deep in the build
             raise MeshError(str(exc)) from exc
-    if errors is not None:
-        (meshes, coverage), clustered = error_chain(pm, errors), []
+    if chain.errors is not None:
+        (meshes, coverage), clustered = error_chain(pm, chain.errors), []
     else:
-        meshes, coverage, clustered = lod_chain(pm, lods, reach=reach)
-    outputs = _write_chain(output, separate, meshes, coverage)
+        meshes, coverage, clustered = lod_chain(pm, chain.lods, reach=chain.reach)
+    outputs = _write_chain(output, chain.separate, meshes, coverage)
     return Exported(source, outputs, [mesh.face_count for mesh in meshes], coverage,
                     time.perf_counter() - start, pm.faces_at_level(pm.base_vertices),
                     clustered)
@@ -291,8 +321,8 @@ def _build_parts(scene, source: Path, options, progress) -> dict:
     return pms
 
 
-def _export_scene(scene, source: Path, output: Path, lods, errors, per_mesh, separate, reach,
-                  options, progress, start) -> Exported:
+def _export_scene(scene, source: Path, output: Path, chain: ChainOptions, options, progress,
+                  start) -> Exported:
     """:func:`export_lods` of a glTF scene kept whole: each glTF mesh built once into a
     progressive mesh, the levels of all of them chosen together (``budget.chain_levels``)
     and written in place of them (``io.scene_glb``).
@@ -314,22 +344,24 @@ def _export_scene(scene, source: Path, output: Path, lods, errors, per_mesh, sep
                         "a mesh)")
     pms = _build_parts(scene, source, options, progress)
     instances, diagonal = scene_instances(scene, pms)
-    count = len(errors if errors is not None else lods)
-    chain = chain_levels(pms, instances, lods=lods, errors=errors, per_mesh=per_mesh,
-                         diagonal=diagonal)
-    levels = {index: [pm.at(chosen[index]) for chosen in chain] for index, pm in pms.items()}
+    lods, per_mesh = chain.lods, chain.per_mesh
+    count = len(chain.errors if chain.errors is not None else lods)
+    chosen_levels = chain_levels(pms, instances, lods=lods, errors=chain.errors,
+                                 per_mesh=per_mesh, diagonal=diagonal)
+    levels = {index: [pm.at(chosen[index]) for chosen in chosen_levels]
+              for index, pm in pms.items()}
     worst = [max(world_errors(pms, instances, chosen).values(), default=0.0)
-             for chosen in chain]
+             for chosen in chosen_levels]
     drawn = [sum(len(instances[index]) * levels[index][k].face_count for index in pms)
              for k in range(count)]
     clustered = set()
-    if reach == "cluster":
+    if chain.reach == "cluster":
         full_drawn = sum(len(instances[index]) * pm.face_count for index, pm in pms.items())
         for k, ratio in enumerate(lods):
             # per mesh: each mesh over its own budget; scene: the meshes stopped at their
             # base, when the scene is over its budget
             if per_mesh or drawn[k] > REACH_SLACK * max(1, ratio * full_drawn):
-                replaced = _cluster_stuck(pms, chain[k], levels, k, ratio, per_mesh)
+                replaced = _cluster_stuck(pms, chosen_levels[k], levels, k, ratio, per_mesh)
                 if replaced:
                     clustered.add(k)
                     # a clustered level has no collapse error: its measured distance
@@ -341,7 +373,7 @@ def _export_scene(scene, source: Path, output: Path, lods, errors, per_mesh, sep
     kept_drawn = sum(scene.as_is_faces[index] * len(scene.mesh_nodes.get(index, ()))
                      for index in scene.as_is)
     coverage = coverage_from_errors(worst, diagonal) if count else []
-    if separate:
+    if chain.separate:
         outputs = [output.with_name(f"{output.stem}_lod{i}{output.suffix}") for i in range(count)]
         blobs = [encode_scene(scene, levels, coverage, level=i) for i in range(count)]
     else:
@@ -429,11 +461,10 @@ def _keep_sources(relatives: list) -> list:
             and not any(out == relative.parent or out in relative.parents for out in outputs)]
 
 
-def export_folder(source, output, *, lods=None, separate: bool = False,
-                  reach: str = "none", jobs: int = 1, force: bool = False,
-                  options: BuildOptions | None = None, untrusted: bool = False,
-                  per_mesh: bool = False, errors=None,
-                  scheduler=None, progress=None) -> FolderReport:
+def export_folder(source, output, chain: ChainOptions | None = None, *, jobs: int = 1,
+                  force: bool = False, options: BuildOptions | None = None,
+                  untrusted: bool = False, scheduler=None, progress=None,
+                  **chain_keywords) -> FolderReport:
     """Export every mesh file under ``source`` into ``output`` (see the module docstring).
 
     Parameters
@@ -445,10 +476,11 @@ def export_folder(source, output, *, lods=None, separate: bool = False,
         ``AWS_ENDPOINT_URL``): a task then fetches its source, with the files it
         names (a glTF's buffers and images, an OBJ's MTL and textures), into a
         temporary folder, and writes each output as one whole object.
-    lods, errors, per_mesh, separate, reach, options
-        As for :func:`export_lods`; the manifest records them all, so changing
-        one rebuilds (``per_mesh`` only for glTF sources, the only ones it
-        changes; ``errors`` when given).
+    chain, options
+        As for :func:`export_lods` (the chain's fields may be keywords here
+        too); the manifest records them all, so changing one rebuilds
+        (``per_mesh`` only for glTF sources, the only ones it changes;
+        ``errors`` when given).
     jobs : int
         Sources built at once: threads of the local pool (the compiled kernels
         release the GIL), or worker processes of ``scheduler="local"``. Each holds
@@ -479,8 +511,7 @@ def export_folder(source, output, *, lods=None, separate: bool = False,
     """
     from .schedulers import check_scheduler, open_scheduler
 
-    check_reach(reach)
-    ratios, errors = _check_choice(lods, errors, per_mesh, reach)
+    chain = ChainOptions.of(chain, chain_keywords)
     options = BuildOptions.check(options)
     check_scheduler(scheduler)
     if jobs < 1:
@@ -492,16 +523,16 @@ def export_folder(source, output, *, lods=None, separate: bool = False,
     if not sources:
         raise MeshError(f"{source} holds no mesh file ({', '.join(SOURCE_SUFFIXES)})")
     outputs.create()
-    recorded = {"lods": list(ratios) if ratios is not None else None, "separate": separate,
-                "reach": reach, "build": options.model_dump()}
-    if errors is not None:
-        recorded["errors"] = list(errors)
+    recorded = {"lods": list(chain.lods) if chain.lods is not None else None,
+                "separate": chain.separate, "reach": chain.reach, "build": options.model_dump()}
+    if chain.errors is not None:
+        recorded["errors"] = list(chain.errors)
 
     def recorded_for(relative) -> dict:
         # a glTF scene's levels depend on whether they share one budget; other
         # sources are one mesh either way, so their entries stay as they were
         if PurePosixPath(relative).suffix.lower() in (".gltf", ".glb"):
-            return {**recorded, "levels": "per mesh" if per_mesh else "scene"}
+            return {**recorded, "levels": "per mesh" if chain.per_mesh else "scene"}
         return recorded
 
     manifest = outputs.read_manifest()
@@ -553,8 +584,7 @@ def export_folder(source, output, *, lods=None, separate: bool = False,
             running = {}
             for relative, digest in todo:
                 job = AssetJob(inputs.shared(shared), outputs.shared(shared),
-                               PurePosixPath(relative).as_posix(), ratios,
-                               separate, reach, options, untrusted, per_mesh, errors)
+                               PurePosixPath(relative).as_posix(), chain, options, untrusted)
                 key = f"lodserver-export-{_key(relative)}-{uuid.uuid4().hex[:12]}"
                 running[runner.submit(export_asset, job, key)] = (relative, digest)
             for done in runner.completed(list(running)) if running else ():
@@ -599,13 +629,9 @@ class AssetJob:
     source: str
     output: str
     relative: str            # the source file under ``source``, '/'-separated
-    lods: tuple
-    separate: bool
-    reach: str
+    chain: ChainOptions
     options: BuildOptions
     untrusted: bool
-    per_mesh: bool = False
-    errors: tuple | None = None
 
 
 def export_asset(job: AssetJob):
@@ -636,10 +662,8 @@ def _export_asset(job: AssetJob) -> Exported:
         else:
             source = Path(job.source, *relative.parts)
         written_to = Path(scratch, "out") if is_url(job.output) else Path(job.output)
-        exported = export_lods(source, written_to.joinpath(*target.parts), lods=job.lods,
-                               separate=job.separate, reach=job.reach, options=job.options,
-                               untrusted=job.untrusted, per_mesh=job.per_mesh,
-                               errors=job.errors)
+        exported = export_lods(source, written_to.joinpath(*target.parts), job.chain,
+                               options=job.options, untrusted=job.untrusted)
         names = [PurePosixPath(path.relative_to(written_to).as_posix())
                  for path in exported.outputs]
         if is_url(job.output):

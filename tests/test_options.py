@@ -142,3 +142,19 @@ def test_version_is_the_package_version():
 
     assert lodserver.__version__ == version("lodserver")
     assert lodserver.BuildOptions is BuildOptions
+
+
+def test_decimate_options_are_the_build_options_in_the_kernels_units():
+    m = mesh("spot")
+    options = BuildOptions(pair_threshold="1%", boundary_weight=2, seam_weight=0.5,
+                           flip_cos=0.3, min_vertices=10, preserve_volume=False)
+    kernel = options.decimate_options(m)
+    # a percentage becomes mesh units; the rest is copied as it is
+    assert kernel.pair_threshold == pytest.approx(0.01 * m.bounding_box_diagonal)
+    assert (kernel.boundary_weight, kernel.seam_weight, kernel.flip_cos) == (2, 0.5, 0.3)
+    assert kernel.min_vertices == 10 and kernel.preserve_volume is False
+    assert kernel.attribute_weights == options.attribute_weights()
+    # what only a direct caller of decimate chooses keeps its default
+    assert kernel.max_collapses is None and kernel.parts is None
+    with pytest.raises(MeshError, match="distance"):
+        BuildOptions(pair_threshold="1e400").decimate_options(m)

@@ -266,3 +266,24 @@ def test_scene_level_choice_is_part_of_the_manifest(tmp_path):
     assert not export_folder(source, out, errors=(0.001, 0.01)).written
     with pytest.raises(MeshError, match="not both"):
         export_folder(source, out, lods=(1, 0.5), errors=(0.01,))
+
+
+def test_chain_options_are_checked_when_made_and_passed_whole(tmp_path):
+    from lodserver.pipeline import DEFAULT_LODS, ChainOptions
+    assert ChainOptions().lods == DEFAULT_LODS and ChainOptions().errors is None
+    assert ChainOptions(errors=[0, 0.01]).errors == (0.0, 0.01)
+    assert ChainOptions(errors=[0]).lods is None
+    with pytest.raises(MeshError, match="not both"):
+        ChainOptions(lods=(1, 0.5), errors=(0.01,))
+    with pytest.raises(MeshError, match="reach"):
+        ChainOptions(reach="sloppy")
+    with pytest.raises(MeshError, match="per mesh already"):
+        ChainOptions(errors=(0.01,), per_mesh=True)
+    source = tmp_path / "ball.ply"
+    source.write_bytes(trimesh.creation.icosphere(2).export(file_type="ply"))
+    whole = export_lods(source, tmp_path / "whole.glb", ChainOptions(lods=(1, 0.25)))
+    loose = export_lods(source, tmp_path / "loose.glb", lods=(1, 0.25))
+    assert whole.faces == loose.faces
+    assert (tmp_path / "whole.glb").read_bytes() == (tmp_path / "loose.glb").read_bytes()
+    with pytest.raises(TypeError, match="not both"):
+        export_lods(source, tmp_path / "x.glb", ChainOptions(), lods=(1, 0.5))

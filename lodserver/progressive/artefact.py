@@ -1,5 +1,12 @@
 """The stored artefact of a progressive mesh: one versioned ``.pm`` file.
 
+A codec of named arrays: ``encode_artefact`` writes a mapping of the stored
+fields (``STORED_FIELDS``: a few header values and named arrays) and
+``decode_artefact`` reads them back, checked, as the keywords
+``ProgressiveMesh`` is made from. It knows the format, not the class:
+``progressive.mesh`` calls it (``encode_progressive``, ``ProgressiveMesh.save``
+and ``load``), never the other way round.
+
 Byte layout (all integers little-endian)::
 
     offset  size  field
@@ -18,10 +25,10 @@ Byte layout (all integers little-endian)::
 
 The ``meta`` block holds UTF-8 JSON (base_vertices, the metadata dict and,
 with attributes, their layout). Version 2 adds optional blocks for
-appearance: the wedge arrays (``progressive.WEDGE_ARRAYS``), ``face_material``,
+appearance: the wedge arrays (``WEDGE_ARRAYS``), ``face_material``,
 ``materials`` (UTF-8 JSON of the glTF material records) and ``image.<i>`` (the
 image files' bytes). Version 1 files (geometry only) are still read.
-Only the arrays ``ProgressiveMesh`` stores are written; everything derived
+Only the arrays ``ProgressiveMesh`` is made from are written; everything derived
 (vertex hierarchy, split positions, birth faces) is rebuilt on load. Integer
 arrays whose values fit in int32 are stored as int32 (half the bytes).
 
@@ -38,17 +45,34 @@ from pathlib import Path
 
 import numpy as np
 
+from collections.abc import Mapping
+
 from ..io.files import write_atomic
 from ..mesh import Materials, MeshError
-from .mesh import WEDGE_ARRAYS, ProgressiveMesh
+
+__all__ = ["ArtefactError", "encode_artefact", "decode_artefact", "write_artefact",
+           "read_artefact", "ARRAYS", "WEDGE_ARRAYS", "STORED_FIELDS", "MAGIC", "FORMAT_VERSION",
+           "READABLE_VERSIONS"]
 
 MAGIC = b"LODSRVPM"
 FORMAT_VERSION = 2
 READABLE_VERSIONS = (1, 2)
 _HEADER = struct.Struct("<8sIIQ")
 _DTYPES = {b"f": np.dtype("<f8"), b"i": np.dtype("<i8"), b"j": np.dtype("<i4"), b"u": np.dtype("u1")}
-_ARRAYS = ("positions", "faces", "parent", "coarse_position", "error", "face_counts",
-           "moved_offsets", "moved_corners")
+# The arrays every artefact holds, in their order in the file.
+ARRAYS = ("positions", "faces", "parent", "coarse_position", "error", "face_counts",
+          "moved_offsets", "moved_corners")
+# The arrays of the wedges, present when the mesh has appearance attributes.
+WEDGE_ARRAYS = ("wedge_values", "corner_wedges", "wedge_parent", "wedge_coarse_value",
+                "wedge_counts")
+# Every field ``encode_artefact`` reads: base_vertices (int) and metadata
+# (JSON-able dict), the arrays, and the optional attribute_layout (tuple of
+# (name, width)), face_material (m,) int and materials (``mesh.Materials``),
+# each None when absent.
+STORED_FIELDS = (("base_vertices", "metadata") + ARRAYS + WEDGE_ARRAYS
+                 + ("attribute_layout", "face_material", "materials"))
+# Arrays read back as float64; every other array is read back as int64.
+_FLOATS = ("positions", "coarse_position", "error", "wedge_values", "wedge_coarse_value")
 
 
 class ArtefactError(MeshError):
@@ -70,21 +94,32 @@ def _encode_block(name: str, array: np.ndarray) -> bytes:
     return head + np.ascontiguousarray(array).tobytes()
 
 
-def encode_progressive(pm: ProgressiveMesh) -> bytes:
-    """The whole ``.pm`` file as bytes."""
-    meta = {"base_vertices": pm.base_vertices, "metadata": pm.metadata}
-    if pm.has_attributes:
-        meta["attribute_layout"] = [list(item) for item in pm.attribute_layout]
+def encode_artefact(fields: Mapping) -> bytes:
+    """The whole ``.pm`` file as bytes.
+
+    Parameters
+    ----------
+    fields : mapping
+        At least ``STORED_FIELDS`` by name (a progressive mesh's own fields);
+        the wedge arrays and ``attribute_layout`` are written when
+        ``wedge_values`` is not None, ``face_material`` and ``materials`` when
+        not None.
+    """
+    meta = {"base_vertices": fields["base_vertices"], "metadata": fields["metadata"]}
+    attributes = fields["wedge_values"] is not None
+    if attributes:
+        meta["attribute_layout"] = [list(item) for item in fields["attribute_layout"]]
     blocks = [_encode_block("meta", _json_bytes(meta))]
-    blocks += [_encode_block(name, getattr(pm, name)) for name in _ARRAYS]
-    if pm.has_attributes:
-        blocks += [_encode_block(name, getattr(pm, name)) for name in WEDGE_ARRAYS]
-    if pm.face_material is not None:
-        blocks.append(_encode_block("face_material", pm.face_material))
-    if pm.materials is not None:
-        blocks.append(_encode_block("materials", _json_bytes(pm.materials.gltf)))
+    blocks += [_encode_block(name, fields[name]) for name in ARRAYS]
+    if attributes:
+        blocks += [_encode_block(name, fields[name]) for name in WEDGE_ARRAYS]
+    if fields["face_material"] is not None:
+        blocks.append(_encode_block("face_material", fields["face_material"]))
+    materials = fields["materials"]
+    if materials is not None:
+        blocks.append(_encode_block("materials", _json_bytes(materials.gltf)))
         blocks += [_encode_block(f"image.{i}", np.frombuffer(image, dtype=np.uint8))
-                   for i, image in enumerate(pm.materials.images)]
+                   for i, image in enumerate(materials.images)]
     payload = b"".join(blocks)
     return _HEADER.pack(MAGIC, FORMAT_VERSION, zlib.crc32(payload), len(payload)) + payload
 
@@ -93,8 +128,21 @@ def _json_bytes(value) -> np.ndarray:
     return np.frombuffer(json.dumps(value).encode(), dtype=np.uint8)
 
 
-def decode_progressive(data: bytes, *, source: str = "the artefact") -> ProgressiveMesh:
-    """Parse bytes written by ``encode_progressive``."""
+def decode_artefact(data: bytes, *, source: str = "the artefact") -> dict:
+    """Parse bytes written by ``encode_artefact``.
+
+    Returns
+    -------
+    dict
+        The stored fields present, by name, arrays as float64 or int64 (int32
+        for ``face_material``) of their own: the keywords of ``ProgressiveMesh``.
+
+    Raises
+    ------
+    ArtefactError
+        A sentence naming ``source`` and what is wrong (magic, version,
+        length, checksum, a missing or malformed block).
+    """
     if len(data) < _HEADER.size:
         raise ArtefactError(f"{source} is truncated: {len(data)} bytes is shorter than the header")
     magic, version, crc, length = _HEADER.unpack_from(data)
@@ -131,46 +179,55 @@ def decode_progressive(data: bytes, *, source: str = "the artefact") -> Progress
             at += size
     except (struct.error, KeyError, UnicodeDecodeError) as exc:
         raise ArtefactError(f"{source} has a malformed block table ({exc})") from exc
-    missing = [name for name in ("meta",) + _ARRAYS if name not in blocks]
+    missing = [name for name in ("meta",) + ARRAYS if name not in blocks]
     if missing:
         raise ArtefactError(f"{source} lacks the blocks {', '.join(missing)}")
     try:
         meta = json.loads(blocks["meta"].tobytes())
-        floats = ("positions", "coarse_position", "error", "wedge_values", "wedge_coarse_value")
-        arrays = {name: np.array(blocks[name], dtype=np.float64 if name in floats else np.int64)
-                  for name in _ARRAYS}
+        fields = {"base_vertices": int(meta["base_vertices"]),
+                  "metadata": meta.get("metadata", {})}
+        fields.update({name: _array(blocks[name], name) for name in ARRAYS})
         if "attribute_layout" in meta:
             missing = [name for name in WEDGE_ARRAYS if name not in blocks]
             if missing:
                 raise ArtefactError(f"{source} lacks the blocks {', '.join(missing)}")
-            arrays.update({name: np.array(blocks[name], dtype=np.float64 if name in floats
-                                          else np.int64) for name in WEDGE_ARRAYS})
-            arrays["attribute_layout"] = tuple(tuple(item) for item in meta["attribute_layout"])
+            fields.update({name: _array(blocks[name], name) for name in WEDGE_ARRAYS})
+            fields["attribute_layout"] = tuple(tuple(item) for item in meta["attribute_layout"])
         if "face_material" in blocks:
-            arrays["face_material"] = np.array(blocks["face_material"], dtype=np.int32)
+            fields["face_material"] = np.array(blocks["face_material"], dtype=np.int32)
         if "materials" in blocks:
             images = []
             while f"image.{len(images)}" in blocks:
                 images.append(blocks[f"image.{len(images)}"].tobytes())
-            arrays["materials"] = Materials(json.loads(blocks["materials"].tobytes()),
+            fields["materials"] = Materials(json.loads(blocks["materials"].tobytes()),
                                             tuple(images))
-        return ProgressiveMesh(base_vertices=int(meta["base_vertices"]),
-                               metadata=meta.get("metadata", {}), **arrays)
+        return fields
     except (ValueError, KeyError, IndexError, TypeError) as exc:
         raise ArtefactError(f"{source} holds inconsistent arrays ({exc})") from exc
 
 
-def save_progressive(pm: ProgressiveMesh, path) -> None:
-    """Write ``pm`` to ``path`` atomically (:func:`lodserver.io.files.write_atomic`):
-    a temporary file in the same directory, flushed to disk, then renamed over
-    the target."""
-    write_atomic(path, encode_progressive(pm))
+def _array(block: np.ndarray, name: str) -> np.ndarray:
+    """A block read back as the array the mesh holds: a copy, float64 or int64."""
+    return np.array(block, dtype=np.float64 if name in _FLOATS else np.int64)
 
 
-def load_progressive(path) -> ProgressiveMesh:
+def write_artefact(path, fields: Mapping) -> None:
+    """Write ``encode_artefact(fields)`` to ``path`` atomically
+    (:func:`lodserver.io.files.write_atomic`): a temporary file in the same
+    directory, flushed to disk, then renamed over the target."""
+    write_atomic(path, encode_artefact(fields))
+
+
+def read_artefact(path) -> bytes:
+    """The bytes of the ``.pm`` file ``path`` (``decode_artefact`` parses them).
+
+    Raises
+    ------
+    ArtefactError
+        The file cannot be read.
+    """
     path = Path(path)
     try:
-        data = path.read_bytes()
+        return path.read_bytes()
     except OSError as exc:
         raise ArtefactError(f"cannot read {path}: {exc.strerror or exc}") from exc
-    return decode_progressive(data, source=str(path))

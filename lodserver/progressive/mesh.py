@@ -51,6 +51,8 @@ from numba import njit
 
 from ..mesh import Attributes, Materials, Mesh, take_rows
 from ..overlap import both
+from .artefact import (ARRAYS, STORED_FIELDS, WEDGE_ARRAYS, ArtefactError, decode_artefact,
+                       encode_artefact, read_artefact, write_artefact)
 from .renumber import (
     hierarchy,
     renumbered_faces,
@@ -63,9 +65,6 @@ if TYPE_CHECKING:
     # only for annotations: a progressive mesh reads a collapse log's arrays, and
     # need not import the simplifier to do so
     from ..simplify.collapse import CollapseLog
-
-WEDGE_ARRAYS = ("wedge_values", "corner_wedges", "wedge_parent", "wedge_coarse_value",
-                "wedge_counts")
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -296,8 +295,7 @@ class ProgressiveMesh:
             self._check_wedges()
         if self.face_material is not None and self.face_material.shape != (len(self.faces),):
             raise ValueError("inconsistent progressive mesh arrays: face_material size")
-        for name in ("positions", "faces", "parent", "coarse_position", "error", "face_counts",
-                     "moved_offsets", "moved_corners") + WEDGE_ARRAYS + ("face_material",):
+        for name in ARRAYS + WEDGE_ARRAYS + ("face_material",):
             if getattr(self, name) is not None:
                 getattr(self, name).setflags(write=False)
         self._derive()
@@ -494,15 +492,46 @@ class ProgressiveMesh:
                            "max": self.positions.max(axis=0).tolist() if n else [0.0] * 3},
                 "error_curve": curve, "metadata": self.metadata}
 
-    # ---- persistence ----------------------------------------------------
+    # ---- persistence: the .pm file (progressive.artefact) ----------------
     def save(self, path) -> None:
-        from .artefact import save_progressive
+        """Write the ``.pm`` artefact to ``path`` atomically."""
         save_progressive(self, path)
 
     @classmethod
     def load(cls, path) -> ProgressiveMesh:
-        from .artefact import load_progressive
+        """Read a ``.pm`` artefact; ``ArtefactError`` if it is unreadable or damaged."""
         return load_progressive(path)
+
+
+def encode_progressive(pm: ProgressiveMesh) -> bytes:
+    """The whole ``.pm`` file of ``pm`` as bytes (``artefact.encode_artefact``)."""
+    return encode_artefact({name: getattr(pm, name) for name in STORED_FIELDS})
+
+
+def decode_progressive(data: bytes, *, source: str = "the artefact") -> ProgressiveMesh:
+    """The progressive mesh in bytes written by ``encode_progressive``.
+
+    Raises
+    ------
+    ArtefactError
+        The bytes are damaged, or hold arrays that do not make a progressive
+        mesh (a sentence naming ``source``).
+    """
+    fields = decode_artefact(data, source=source)
+    try:
+        return ProgressiveMesh(**fields)
+    except (ValueError, KeyError, IndexError, TypeError) as exc:
+        raise ArtefactError(f"{source} holds inconsistent arrays ({exc})") from exc
+
+
+def save_progressive(pm: ProgressiveMesh, path) -> None:
+    """Write ``pm`` to ``path`` atomically (``artefact.write_artefact``)."""
+    write_artefact(path, {name: getattr(pm, name) for name in STORED_FIELDS})
+
+
+def load_progressive(path) -> ProgressiveMesh:
+    """The progressive mesh stored at ``path``; ``ArtefactError`` if unreadable or damaged."""
+    return decode_progressive(read_artefact(path), source=str(path))
 
 
 @njit(cache=True, nogil=True)

@@ -51,8 +51,8 @@ from ..io.scene import Scene, load_scene
 from ..io.scene_glb import encode_scene
 from ..io.files import write_atomic
 from ..mesh import Materials, MeshError
-from ..progressive.artefact import (ArtefactError, decode_progressive, encode_progressive,
-                                    load_progressive)
+from ..progressive import (ArtefactError, decode_progressive, encode_progressive,
+                           load_progressive)
 from ..progressive.mesh import ProgressiveMesh
 from ..simplify.poses import scene_poses
 

@@ -61,7 +61,7 @@ from collections import OrderedDict
 from pathlib import Path
 
 from ..io.files import write_atomic
-from ..progressive.artefact import ArtefactError, load_progressive, save_progressive
+from ..progressive import ArtefactError, load_progressive, save_progressive
 from ..progressive.mesh import ProgressiveMesh
 from .blobs import Blobs, BlobNotFoundError, LocalBlobs, open_blobs, sha256_file
 from .cache import DEFAULT_CACHE_BYTES, ArtefactCache

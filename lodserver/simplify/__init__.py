@@ -12,5 +12,7 @@
 - ``parts``: partitioned runs (parts decimated at once, logs merged by key);
 - ``submesh``: a part copied out dense for its kernel, and written back;
 - ``prefetch``: cache hints for the kernel's random reads;
-- ``log``: the collapse log, one row per collapse (``CollapseLog``).
+- ``log``: the collapse log, one row per collapse (``CollapseLog``; the
+  kernel's named columns, ``LogColumns``);
+- ``options``: what a caller chooses of the kernel (``DecimateOptions``).
 """

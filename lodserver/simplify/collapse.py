@@ -54,6 +54,7 @@ from ..mesh import Mesh, MeshError, take_rows, to_unit_box, unit_box
 from ..overlap import both
 from .legality import check_legality
 from .log import COLLAPSES, MOVED, CollapseLog, filled, new_log, with_room_for_moves
+from .options import DecimateOptions
 from .pairs import MAX_PAIRS_PER_VERTEX
 from .parts import (
     PHASES,
@@ -109,7 +110,8 @@ from .wedges import (
     wedge_inputs,
 )
 
-__all__ = ["decimate", "check_collapse", "classify_vertices", "CollapseLog", "DEFAULT_FLIP_COS",
+__all__ = ["decimate", "check_collapse", "classify_vertices", "CollapseLog", "DecimateOptions",
+           "DEFAULT_FLIP_COS",
            "DEFAULT_ATTRIBUTE_WEIGHTS", "REJECT_REASONS", "INTERIOR", "BORDER", "LOCKED",
            "MAX_PAIRS_PER_VERTEX", "attribute_scales"]
 
@@ -190,9 +192,9 @@ def _decimate_kernel(verts, topo, wedges, scratch, options, label, me, progress)
     updated in place. ``progress[0]`` receives the collapse count as it
     goes; a non-zero ``progress[1]`` asks the kernel to stop early.
 
-    Returns (the filled log columns, see ``simplify.log.filled``; the queue
-    key (k,) each collapse was taken at; rejections (REASON_COUNT,) by
-    reason; passes).
+    Returns (the filled log, ``simplify.log.LogColumns``; the queue key (k,)
+    each collapse was taken at; rejections (REASON_COUNT,) by reason;
+    passes).
     """
     n = verts.pos.shape[0]
     vertex_alive = topo.vertex_alive
@@ -236,7 +238,7 @@ def _decimate_kernel(verts, topo, wedges, scratch, options, label, me, progress)
                                  me)
         # the heap's and reservoir's arrays, read again whenever the queue grows
         hk, hab, hvs, rk = queue.heap_key, queue.heap_pair, queue.heap_version, queue.key
-        moved_room = log.moved.shape[0]
+        moved_room = log.moved_corners.shape[0]
         stop = False
         while True:
             if (alive_count <= min_vertices or count[COLLAPSES] >= max_collapses
@@ -289,7 +291,7 @@ def _decimate_kernel(verts, topo, wedges, scratch, options, label, me, progress)
             # arrays would pay for it on every call (simplify.queue).
             if count[MOVED] + face_count[r] > moved_room:
                 log = with_room_for_moves(log, face_count[r])
-                moved_room = log.moved.shape[0]
+                moved_room = log.moved_corners.shape[0]
             keys[count[COLLAPSES]] = cost
             perform_collapse(s, r, n_pairs, o0, o1, verts, topo, wedges, scratch, log)
             alive_count -= 1
@@ -343,7 +345,8 @@ def _run_kernels(verts, faces, wedges, options, parts, states):
     on its own dense copy, ``simplify.submesh``, as many at once as there are
     threads), then the whole live mesh on a dense copy. ``states`` are the
     kernels' progress counters, one per kernel (``parts.kernel_count``).
-    Returns (the log columns, rejections (REASON_COUNT,), passes)."""
+    Returns (the log, ``simplify.log.LogColumns``; rejections
+    (REASON_COUNT,); passes)."""
     n = len(verts.pos)
     if parts == 1:
         topo = _new_topology(faces, n, wedges)
@@ -419,11 +422,11 @@ def _run_kernels(verts, faces, wedges, options, parts, states):
 # 3. Public entry points
 # --------------------------------------------------------------------------
 
-def _prepare(mesh: Mesh, *, boundary_weight, locked, flip_cos, pair_threshold,
-             attribute_weights, preserve_volume, seam_weight, min_vertices=0, limit=None,
-             poses=None):
-    """The kernel's inputs for ``mesh``: (Vertices, faces, Wedges, Options,
-    attribute scales, unit-box scale)."""
+def _prepare(mesh: Mesh, options: DecimateOptions, locked=None, poses=None):
+    """The kernel's inputs for ``mesh`` decimated with ``options``, ``locked``
+    (n,) bool and ``poses`` (P, n, 3, 4) as ``decimate`` takes them:
+    (Vertices, faces, Wedges, the kernel's ``state.Options``, attribute
+    scales, unit-box scale)."""
     positions = np.asarray(mesh.positions, dtype=np.float64)
     faces = np.ascontiguousarray(mesh.faces, dtype=np.int64)
     n = len(positions)
@@ -441,6 +444,7 @@ def _prepare(mesh: Mesh, *, boundary_weight, locked, flip_cos, pair_threshold,
     quadrics, found = both(lambda: vertex_quadrics(unit, faces, boundary_weight=0.0),
                            lambda: census(faces, n))
     kind = classify_vertices(found, n, locked)
+    boundary_weight, seam_weight = options.boundary_weight, options.seam_weight
     if boundary_weight > 0:
         add_edge_planes(quadrics, unit, faces, found.boundary_edges, found.boundary_faces,
                         boundary_weight)
@@ -455,17 +459,19 @@ def _prepare(mesh: Mesh, *, boundary_weight, locked, flip_cos, pair_threshold,
         from .poses import pose_quadrics, poses_to_unit_box
         posed = pose_quadrics(unit, faces, poses_to_unit_box(poses, lo, scale))
         quadrics = (quadrics + posed) / (1.0 + len(poses))
-    wedges, scales = wedge_inputs(attributes, unit, faces, attribute_weights, n)
+    wedges, scales = wedge_inputs(attributes, unit, faces, options.attribute_weights, n)
 
+    pair_threshold = options.pair_threshold
     if not pair_threshold >= 0:
         raise ValueError(f"pair_threshold must be a non-negative distance, got {pair_threshold}")
     # cells of the pair search are this wide in the unit box; keep their count sane
     radius = max(float(pair_threshold) / scale, 1e-6) if pair_threshold > 0 else 0.0
     verts = Vertices(unit, positions.copy(), quadrics, kind, np.zeros(n, np.int64), lo,
                      float(scale))
-    options = Options(int(min_vertices), n if limit is None else int(limit), float(flip_cos),
-                      radius, bool(preserve_volume))
-    return verts, faces, wedges, options, scales, scale
+    limit = options.max_collapses
+    kernel_options = Options(int(options.min_vertices), n if limit is None else int(limit),
+                             float(options.flip_cos), radius, bool(options.preserve_volume))
+    return verts, faces, wedges, kernel_options, scales, scale
 
 
 def _in_memory_order(mesh: Mesh, locked, poses):
@@ -491,62 +497,27 @@ def _in_memory_order(mesh: Mesh, locked, poses):
     return mesh, order, locked, poses
 
 
-def decimate(mesh: Mesh, *, boundary_weight: float = 1.0, locked=None, min_vertices: int = 0,
-             max_collapses: int | None = None, flip_cos: float = DEFAULT_FLIP_COS,
-             pair_threshold: float = 0.0, attribute_weights: dict | None = None,
-             preserve_volume: bool = True, seam_weight: float = 1.0, progress=None,
-             cancel: threading.Event | None = None, parts: int | None = None,
-             poses=None) -> CollapseLog:
+def decimate(mesh: Mesh, options: DecimateOptions = DecimateOptions(), *, locked=None,
+             poses=None, progress=None, cancel: threading.Event | None = None) -> CollapseLog:
     """Collapse edges of ``mesh`` cheapest first and log every collapse.
 
     Parameters
     ----------
     mesh : Mesh
         Welded, clean input (see ``io.clean_mesh``).
-    boundary_weight : float
-        Weight of the border constraint planes; 0 lets borders shrink.
+    options : DecimateOptions
+        Weights, limits, close pairs and parts (``simplify.options``); the
+        default takes every default.
     locked : (n,) bool, optional
         Vertices that must neither move nor vanish.
-    min_vertices : int
-        Stop when this few vertices remain (0: run until no legal collapse is left).
-    max_collapses : int, optional
-        Stop after this many collapses.
-    flip_cos : float
-        A collapse that turns a surviving face's normal by more than
-        ``arccos(flip_cos)`` is refused.
-    pair_threshold : float
-        Also contract vertex pairs that share no edge but lie at most this far
-        apart (mesh units), joining separate parts and sheets (G&H's close
-        pairs). 0 (default) contracts edges only. A pair is contracted only if
-        the two vertices share no neighbour and are still that close; the
-        joined vertex then has two fans, and the link condition keeps every
-        later collapse from making a non-manifold edge.
-    attribute_weights : dict, optional
-        Weight of each attribute's squared error (by glTF name, e.g.
-        ``{"NORMAL": 0.25, "TEXCOORD_0": 1}``) against squared distance in the
-        unit box; missing names take :data:`DEFAULT_ATTRIBUTE_WEIGHTS`. Only
-        used when the mesh has attributes.
-    preserve_volume : bool
-        Place every interior collapse on the plane that keeps the enclosed
-        volume (default), so thin parts do not shrink away.
-    seam_weight : float
-        Weight of the constraint planes along attribute seams (as
-        ``boundary_weight`` for borders).
-    progress : callable(done: int, expected: int), optional
-        Called from this thread about ten times a second while the kernel runs.
-    cancel : threading.Event, optional
-        When set, the kernel stops at the next progress check.
-    parts : int, optional
-        Decimate the mesh in phases of this many parts first, as many at
-        once as numba has threads (a power of two, ``simplify.parts``); 1
-        decimates the whole mesh in one thread. Default:
-        ``parts.default_parts``, one part per ``PART_VERTICES`` vertices
-        from ``PARALLEL_MIN_VERTICES`` on, else 1. Ignored (1) with close
-        pairs or ``max_collapses``.
     poses : (P, n, 3, 4) float64, optional
         Per pose, the affine map of every vertex from its bind position to its
         posed one (mesh units; ``simplify.poses``): the error of a collapse is
         then the mean over the bind pose and these poses.
+    progress : callable(done: int, expected: int), optional
+        Called from this thread about ten times a second while the kernel runs.
+    cancel : threading.Event, optional
+        When set, the kernel stops at the next progress check.
 
     Returns
     -------
@@ -556,22 +527,17 @@ def decimate(mesh: Mesh, *, boundary_weight: float = 1.0, locked=None, min_verti
     # The kernel runs on the renumbered mesh; the log's vertex ids are mapped
     # back at the end (its face and corner ids need nothing: faces keep their rows).
     mesh, order, locked, poses = _in_memory_order(mesh, locked, poses)
-    verts, faces, wedges, options, scales, scale = _prepare(
-        mesh, boundary_weight=boundary_weight, locked=locked, flip_cos=flip_cos,
-        pair_threshold=pair_threshold, attribute_weights=attribute_weights,
-        preserve_volume=preserve_volume, seam_weight=seam_weight, min_vertices=min_vertices,
-        limit=max_collapses, poses=poses)
+    verts, faces, wedges, kernel_options, scales, scale = _prepare(mesh, options, locked, poses)
     n = len(verts.pos)
-    if parts is None:
-        parts = default_parts(n)
-    if parts > 1 and (options.pair_radius > 0 or options.max_collapses < n):
+    parts = default_parts(n) if options.parts is None else options.parts
+    if parts > 1 and (kernel_options.pair_radius > 0 or kernel_options.max_collapses < n):
         parts = 1       # close pairs cross parts; a collapse limit is a prefix of the whole order
     # one progress counter (and stop flag) per kernel: each part's, then the whole mesh's
     states = [np.zeros(2, dtype=np.int64) for _ in range(kernel_count(parts))]
     result = {}
 
     def run():
-        result["log"] = _run_kernels(verts, faces, wedges, options, parts, states)
+        result["log"] = _run_kernels(verts, faces, wedges, kernel_options, parts, states)
 
     if progress is None and cancel is None:
         run()
@@ -590,22 +556,21 @@ def decimate(mesh: Mesh, *, boundary_weight: float = 1.0, locked=None, min_verti
             progress(sum(int(state[0]) for state in states), n)
     if "log" not in result:
         raise RuntimeError("the decimation kernel failed")
-    columns, rejected, passes = result["log"]
-    (s, r, p, cost, area, killed_off, killed, moved_off, moved,
-     merge_off, merge_s, merge_r, merge_v) = columns
-
+    log, rejected, passes = result["log"]
+    s, r = log.survivor, log.removed
     if order is not None:
         s, r = order[s], order[r]
-    error = np.sqrt(cost / np.maximum(area, np.finfo(float).tiny)) * scale
+    error = np.sqrt(log.cost / np.maximum(log.area, np.finfo(float).tiny)) * scale
     merges = {}
     if mesh.attributes is not None:
         # back from sqrt(weight)-scaled to input units
-        merges = dict(merge_offsets=_own(merge_off), merge_survivor=_own(merge_s),
-                      merge_removed=_own(merge_r), merge_value=merge_v / scales)
+        merges = dict(merge_offsets=_own(log.merge_offsets),
+                      merge_survivor=_own(log.merge_survivor),
+                      merge_removed=_own(log.merge_removed), merge_value=log.merge_value / scales)
     return CollapseLog(
-        survivor=_own(s), removed=_own(r), position=_own(p), error=error,
-        killed_offsets=_own(killed_off), killed_faces=_own(killed),
-        moved_offsets=_own(moved_off), moved_corners=_own(moved),
+        survivor=_own(s), removed=_own(r), position=_own(log.position), error=error,
+        killed_offsets=_own(log.killed_offsets), killed_faces=_own(log.killed_faces),
+        moved_offsets=_own(log.moved_offsets), moved_corners=_own(log.moved_corners),
         rejected=rejected_counts(rejected), passes=int(passes), **merges)
 
 
@@ -632,21 +597,18 @@ cost : float
 """
 
 
-def check_collapse(mesh: Mesh, a: int, b: int, *, boundary_weight: float = 1.0, locked=None,
-                   flip_cos: float = DEFAULT_FLIP_COS, pair_threshold: float = 0.0,
-                   attribute_weights: dict | None = None, preserve_volume: bool = True,
-                   seam_weight: float = 1.0) -> Verdict:
+def check_collapse(mesh: Mesh, a: int, b: int, options: DecimateOptions = DecimateOptions(), *,
+                   locked=None) -> Verdict:
     """Would ``decimate`` collapse the edge (or close pair) (a, b) of ``mesh``
     as its first move? Runs the kernel's own rank and check steps on it, with
-    ``decimate``'s options; the queue (and so volume deferral) plays no part.
+    ``decimate``'s ``options`` and ``locked`` (its limits and parts play no
+    part); the queue (and so volume deferral) plays no part either.
     """
-    verts, faces, wedges, options, _, scale = _prepare(
-        mesh, boundary_weight=boundary_weight, locked=locked, flip_cos=flip_cos,
-        pair_threshold=pair_threshold, attribute_weights=attribute_weights,
-        preserve_volume=preserve_volume, seam_weight=seam_weight)
+    unlimited = dataclasses.replace(options, min_vertices=0, max_collapses=None)
+    verts, faces, wedges, kernel_options, _, scale = _prepare(mesh, unlimited, locked)
     n = len(verts.pos)
     if not (0 <= a < n and 0 <= b < n and a != b):
         raise ValueError(f"a and b must be two different vertices below {n}, got {a} and {b}")
-    reason, s, cost, p = _check_kernel(int(a), int(b), verts, faces, wedges, options)
+    reason, s, cost, p = _check_kernel(int(a), int(b), verts, faces, wedges, kernel_options)
     return Verdict(None if reason == LEGAL else REASON_NAMES[reason], int(s),
                    verts.origin + scale * p, float(cost))

@@ -1,9 +1,17 @@
 """The collapse log: every collapse, in order, as parallel arrays.
 
-``CollapseLog`` is what the simplifiers (``collapse.decimate``,
-``octree.octree_log``) return and ``progressive.from_collapse_log`` turns into
-a progressive mesh; ``log_arrays`` and ``LogArrays`` are the compiled
-kernels' room to write it in.
+Two forms of one set of columns:
+
+- ``CollapseLog``, what the simplifiers (``collapse.decimate``,
+  ``octree.octree_log``) return and ``progressive.from_collapse_log`` turns
+  into a progressive mesh: ids of the input mesh, errors in mesh units;
+- ``LogColumns``, the edge-collapse kernel's log as it passes between
+  ``collapse``, ``parts`` and ``submesh``: the same columns with the kernel's
+  ``cost`` and ``area`` in place of ``error`` (``error = sqrt(cost / area)``,
+  rescaled), and vertex ids of whichever mesh the kernel ran on.
+
+``LogArrays`` is the kernel's room to write ``LogColumns`` in (the columns
+plus their fill counts), ``log_arrays`` the octree kernel's.
 """
 
 from __future__ import annotations
@@ -81,12 +89,38 @@ def log_arrays(n, m):
             np.zeros(n + 1, np.int64), np.empty(3 * m, np.int64))
 
 
-# The edge-collapse kernel's log: the columns of CollapseLog (``cost`` and
-# ``area`` become ``error`` outside: sqrt(cost / area)), then how many rows of
-# each are filled, ``count[COLLAPSES, KILLED, MOVED, MERGED]``.
-LogArrays = namedtuple("LogArrays", "survivor removed position cost area killed_offsets killed "
-                                    "moved_offsets moved merge_offsets merge_survivor "
-                                    "merge_removed merge_value count")
+LogColumns = namedtuple("LogColumns", "survivor removed position cost area killed_offsets "
+                                      "killed_faces moved_offsets moved_corners merge_offsets "
+                                      "merge_survivor merge_removed merge_value")
+LogColumns.__doc__ = """The edge-collapse kernel's log, one row per collapse (``k`` of them), as
+it passes between modules (``filled``, ``parts.merge_phases``,
+``submesh.map_log``); ``collapse.decimate`` turns it into a ``CollapseLog``.
+Vertex, face and corner ids are those of the mesh the kernel ran on; wedge
+ids are the input's.
+
+survivor, removed : (k,) int64
+    The vertex that stays and the one that goes.
+position : (k, 3) float64
+    The survivor's position after the collapse, mesh units.
+cost : (k,) float64
+    The quadric error of the collapse, in the unit box (squared distance
+    times area).
+area : (k,) float64
+    The area the quadric is summed over, in the unit box.
+killed_offsets : (k + 1,) int64, killed_faces : (f,) int64
+    ``killed_faces[killed_offsets[i]:killed_offsets[i+1]]`` are the faces collapse i removes.
+moved_offsets : (k + 1,) int64, moved_corners : (c,) int64
+    ``moved_corners[moved_offsets[i]:moved_offsets[i+1]]`` are the corners
+    (``3 * face + slot``) collapse i relabels from removed to survivor.
+merge_offsets : (k + 1,) int64, merge_survivor, merge_removed : (g,) int64
+    The wedge merges of collapse i, as in ``CollapseLog``.
+merge_value : (g, d) float64
+    The survivor wedge's value after each merge, scaled by sqrt(weight).
+"""
+
+# The kernel's room to write its log in: the columns of ``LogColumns``, then
+# how many rows of each are filled, ``count[COLLAPSES, KILLED, MOVED, MERGED]``.
+LogArrays = namedtuple("LogArrays", LogColumns._fields + ("count",))
 COLLAPSES = 0
 KILLED = 1
 MOVED = 2
@@ -106,27 +140,28 @@ def new_log(n, m, merges, width):
 
 @njit(cache=True, nogil=True, inline="always")
 def filled(log):
-    """The filled prefix of every column of ``log`` (views), as a plain tuple:
-    survivor, removed, position, cost, area, killed_offsets, killed,
-    moved_offsets, moved, merge_offsets, merge_survivor, merge_removed, merge_value."""
+    """The filled prefix of every column of ``log`` (views), as ``LogColumns``."""
     nk = log.count[COLLAPSES]
     nm = log.count[MERGED]
-    return (log.survivor[:nk], log.removed[:nk], log.position[:nk], log.cost[:nk],
-            log.area[:nk], log.killed_offsets[:nk + 1], log.killed[:log.count[KILLED]],
-            log.moved_offsets[:nk + 1], log.moved[:log.count[MOVED]], log.merge_offsets[:nk + 1],
-            log.merge_survivor[:nm], log.merge_removed[:nm], log.merge_value[:nm])
+    return LogColumns(log.survivor[:nk], log.removed[:nk], log.position[:nk], log.cost[:nk],
+                      log.area[:nk], log.killed_offsets[:nk + 1],
+                      log.killed_faces[:log.count[KILLED]], log.moved_offsets[:nk + 1],
+                      log.moved_corners[:log.count[MOVED]],
+                      log.merge_offsets[:nk + 1], log.merge_survivor[:nm],
+                      log.merge_removed[:nm], log.merge_value[:nm])
 
 
 @njit(cache=True, nogil=True)
 def with_room_for_moves(log, k):
     """``log`` with room for ``k`` more moved corners (a new ``LogArrays``
-    only if ``moved`` had to grow): a corner moves each time its vertex goes,
+    only if ``moved_corners`` had to grow): a corner moves each time its vertex goes,
     so the total can outgrow ``3 m``."""
     need = log.count[MOVED] + k
-    if need <= log.moved.shape[0]:
+    if need <= log.moved_corners.shape[0]:
         return log
-    moved = np.empty(max(need, 2 * log.moved.shape[0]), np.int64)
-    moved[:log.count[MOVED]] = log.moved[:log.count[MOVED]]
+    moved = np.empty(max(need, 2 * log.moved_corners.shape[0]), np.int64)
+    moved[:log.count[MOVED]] = log.moved_corners[:log.count[MOVED]]
     return LogArrays(log.survivor, log.removed, log.position, log.cost, log.area,
-                     log.killed_offsets, log.killed, log.moved_offsets, moved, log.merge_offsets,
-                     log.merge_survivor, log.merge_removed, log.merge_value, log.count)
+                     log.killed_offsets, log.killed_faces, log.moved_offsets, moved,
+                     log.merge_offsets, log.merge_survivor, log.merge_removed, log.merge_value,
+                     log.count)

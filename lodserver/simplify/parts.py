@@ -39,6 +39,8 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
+from .log import LogColumns
+
 # Parts of a partitioned run: as many as give each part about PART_VERTICES
 # vertices (a power of two, at least 2, at most MAX_PARTS), so that a part's
 # dense copy stays about as large, near cache size, whatever the mesh's
@@ -302,18 +304,17 @@ def merge_logs(columns, keys, tail=None):
 
     Parameters
     ----------
-    columns : list of tuples
-        Every part's filled log columns (``simplify.log.filled``): survivor,
-        removed, position, cost, area, killed_offsets, killed, moved_offsets,
-        moved, merge_offsets, merge_survivor, merge_removed, merge_value.
+    columns : list of LogColumns
+        Every part's filled log (``simplify.log.filled``).
     keys : list of (k_i,) float64
         The queue key of each part's collapses, in its order.
-    tail : tuple, optional
-        Columns of a log that follows all of them.
+    tail : LogColumns, optional
+        A log that follows all of them.
 
     Returns
     -------
-    The merged columns, in the same layout.
+    LogColumns
+        The merged log.
     """
     return merge_phases([(columns, keys)], tail)
 
@@ -337,37 +338,52 @@ def merge_phases(phases, tail=None):
     return merged if tail is None else concatenate_logs([merged, tail])
 
 
+# The columns with one entry per collapse, and the block columns (values
+# ``killed_faces[killed_offsets[i]:killed_offsets[i + 1]]`` per collapse i) with
+# their offsets; the three merge columns share ``merge_offsets``.
+_ROWS = ("survivor", "removed", "position", "cost", "area")
+_MERGE_VALUES = ("merge_survivor", "merge_removed", "merge_value")
+
+
 def concatenate_logs(logs):
-    """The logs ``logs`` (tuples of filled columns, ``merge_logs``) one after another."""
-    rows = [np.concatenate([log[i] for log in logs]) for i in range(5)]
-    killed, killed_offsets = _concatenate_blocks(logs, 5, 6)
-    moved, moved_offsets = _concatenate_blocks(logs, 7, 8)
-    merge_s, merge_offsets = _concatenate_blocks(logs, 9, 10)
-    merge_r, merge_v = (np.concatenate([log[i] for log in logs]) for i in (11, 12))
-    return (*rows, killed_offsets, killed, moved_offsets, moved, merge_offsets, merge_s, merge_r,
-            merge_v)
+    """The logs ``logs`` (``LogColumns``) one after another, as one ``LogColumns``."""
+    rows = {name: np.concatenate([getattr(log, name) for log in logs]) for name in _ROWS}
+    killed, killed_offsets = _concatenate_blocks(logs, "killed_offsets", "killed_faces")
+    moved, moved_offsets = _concatenate_blocks(logs, "moved_offsets", "moved_corners")
+    merge_survivor, merge_offsets = _concatenate_blocks(logs, "merge_offsets", "merge_survivor")
+    merge_removed, merge_value = (np.concatenate([getattr(log, name) for log in logs])
+                                  for name in _MERGE_VALUES[1:])
+    return LogColumns(**rows, killed_offsets=killed_offsets, killed_faces=killed,
+                      moved_offsets=moved_offsets, moved_corners=moved, merge_offsets=merge_offsets,
+                      merge_survivor=merge_survivor, merge_removed=merge_removed,
+                      merge_value=merge_value)
 
 
 def _take(logs, order):
-    """The rows ``order`` of the logs ``logs`` put one after another."""
-    rows = [np.concatenate([log[i] for log in logs])[order] for i in range(5)]
-    killed, killed_offsets = _gather_blocks(*_concatenate_blocks(logs, 5, 6), order)
-    moved, moved_offsets = _gather_blocks(*_concatenate_blocks(logs, 7, 8), order)
+    """The rows ``order`` of the logs ``logs`` put one after another, as ``LogColumns``."""
+    rows = {name: np.concatenate([getattr(log, name) for log in logs])[order] for name in _ROWS}
+    killed, killed_offsets = _gather_blocks(
+        *_concatenate_blocks(logs, "killed_offsets", "killed_faces"), order)
+    moved, moved_offsets = _gather_blocks(
+        *_concatenate_blocks(logs, "moved_offsets", "moved_corners"), order)
     # the three merge columns share offsets: gather an index once
-    merges, merge_offsets = _concatenate_blocks(logs, 9, 10)
+    merges, merge_offsets = _concatenate_blocks(logs, "merge_offsets", "merge_survivor")
     index, merge_offsets = _gather_blocks(np.arange(len(merges)), merge_offsets, order)
-    merge_s, merge_r, merge_v = (np.concatenate([log[i] for log in logs])[index]
-                                 for i in (10, 11, 12))
-    return (*rows, killed_offsets, killed, moved_offsets, moved, merge_offsets, merge_s, merge_r,
-            merge_v)
+    merge_survivor, merge_removed, merge_value = (
+        np.concatenate([getattr(log, name) for log in logs])[index] for name in _MERGE_VALUES)
+    return LogColumns(**rows, killed_offsets=killed_offsets, killed_faces=killed,
+                      moved_offsets=moved_offsets, moved_corners=moved, merge_offsets=merge_offsets,
+                      merge_survivor=merge_survivor, merge_removed=merge_removed,
+                      merge_value=merge_value)
 
 
-def _concatenate_blocks(logs, at_offsets, at_values):
-    """(values, offsets) of the block column ``at_values`` of every log, one
-    after another (offsets shifted to match)."""
+def _concatenate_blocks(logs, offsets_name, values_name):
+    """(values, offsets) of the block column ``values_name`` of every log, one
+    after another (its offsets ``offsets_name`` shifted to match)."""
     offsets, shift = [], 0
     for log in logs:
-        offsets.append(log[at_offsets][:-1] + shift)
-        shift += int(log[at_offsets][-1])
+        column = getattr(log, offsets_name)
+        offsets.append(column[:-1] + shift)
+        shift += int(column[-1])
     offsets.append(np.array([shift], dtype=np.int64))
-    return np.concatenate([log[at_values] for log in logs]), np.concatenate(offsets)
+    return np.concatenate([getattr(log, values_name) for log in logs]), np.concatenate(offsets)

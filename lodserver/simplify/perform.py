@@ -20,15 +20,16 @@ from .wedges import merge_wedges, vertex_fixed
 def _move_corners(s, r, n_pairs, topo, wedges, pairs, log):
     """r's faces on the edge die; its other faces move to s (corners relabelled,
     wedges of the removed vertex to the survivor's partner). Logs the killed
-    faces and the moved corners (``log.moved`` must have room for r's faces)."""
+    faces and the moved corners (``log.moved_corners`` must have room for r's
+    faces)."""
     faces = topo.faces
     vhead = topo.vhead
     cnext = topo.cnext
     face_count = topo.face_count
     face_alive = topo.face_alive
     cw = wedges.corner
-    moved = log.moved
-    killed = log.killed
+    moved = log.moved_corners
+    killed = log.killed_faces
     nkilled = log.count[KILLED]
     nmoved = log.count[MOVED]
     c = vhead[r]
@@ -97,8 +98,8 @@ def _move_survivor(s, r, p, verts):
 @njit(**NO_REFCOUNT)
 def perform_collapse(s, r, n_pairs, o0, o1, verts, topo, wedges, scratch, log):
     """Collapse r into s at ``scratch.p`` and append the record to ``log``
-    (``log.moved`` must have room for r's faces). ``scratch.pairs`` holds the
-    wedge pairs as (survivor's, removed's)."""
+    (``log.moved_corners`` must have room for r's faces). ``scratch.pairs``
+    holds the wedge pairs as (survivor's, removed's)."""
     p = scratch.p
     quadrics = verts.quadrics
     gq = scratch.gq

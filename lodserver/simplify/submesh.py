@@ -29,6 +29,7 @@ from collections import namedtuple
 import numpy as np
 from numba import njit
 
+from .log import LogColumns
 from .state import Vertices, new_topology
 from .wedges import fill_fixed
 
@@ -209,13 +210,13 @@ def write_back(sub: SubMesh, verts, faces, face_alive, vertex_alive, wedges):
                  sub.wedges.corner, sub.vertex_ids, sub.face_ids, wedges.quadric.shape[0] > 0)
 
 
-def map_log(columns, sub: SubMesh):
-    """The kernel's log columns (``simplify.log.filled``) with the copy's
+def map_log(columns: LogColumns, sub: SubMesh) -> LogColumns:
+    """The kernel's log of a copy (``simplify.log.filled``) with the copy's
     vertex, face and corner ids replaced by the mesh's (wedge ids are the
     mesh's already)."""
-    (s, r, p, cost, area, killed_off, killed, moved_off, moved, merge_off, merge_s, merge_r,
-     merge_v) = columns
     vertex_ids, face_ids = sub.vertex_ids, sub.face_ids
-    moved = 3 * face_ids[moved // 3] + moved % 3
-    return (vertex_ids[s], vertex_ids[r], p, cost, area, killed_off, face_ids[killed], moved_off,
-            moved, merge_off, merge_s, merge_r, merge_v)
+    moved = 3 * face_ids[columns.moved_corners // 3] + columns.moved_corners % 3
+    return columns._replace(survivor=vertex_ids[columns.survivor],
+                            removed=vertex_ids[columns.removed],
+                            killed_faces=face_ids[columns.killed_faces],
+                            moved_corners=moved)

@@ -567,8 +567,8 @@ def test_write_atomic_leaves_the_umask_alone_and_applies_it(tmp_path, monkeypatc
     try:
         monkeypatch.setattr(os, "umask", lambda *_: pytest.fail("the umask was touched"))
         write_atomic(tmp_path / "a.bin", b"one")
-        monkeypatch.setattr(codec, "encode_progressive", lambda pm: b"artefact")
-        codec.save_progressive(None, tmp_path / "b.pm")
+        monkeypatch.setattr(codec, "encode_artefact", lambda fields: b"artefact")
+        codec.write_artefact(tmp_path / "b.pm", None)
     finally:
         monkeypatch.undo()
         os.umask(previous)

@@ -9,7 +9,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from lodserver import build
-from lodserver.progressive.artefact import decode_progressive, encode_progressive
+from lodserver.progressive import decode_progressive, encode_progressive
 from lodserver.simplify.collapse import decimate
 from lodserver.mesh import Attributes, Materials, Mesh
 from lodserver.simplify.quadrics import seam_edges, wedge_quadrics

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from lodserver.progressive.artefact import (
+from lodserver.progressive import (
     ArtefactError,
     decode_progressive,
     encode_progressive,
@@ -49,3 +49,27 @@ def test_damaged_artefacts_are_refused_with_a_reason(damage, message):
 def test_missing_file_is_a_clear_error(tmp_path):
     with pytest.raises(ArtefactError, match="cannot read"):
         load_progressive(tmp_path / "nope.pm")
+
+
+def test_the_codec_writes_named_arrays_and_knows_no_progressive_mesh():
+    import ast
+    from pathlib import Path
+
+    from lodserver.progressive import artefact
+
+    pm = progressive("grid")
+    fields = {name: getattr(pm, name) for name in artefact.STORED_FIELDS}
+    data = artefact.encode_artefact(fields)
+    assert data == encode_progressive(pm)
+    back = artefact.decode_artefact(data)
+    assert back["base_vertices"] == pm.base_vertices and back["metadata"] == pm.metadata
+    for name in artefact.ARRAYS:
+        assert np.array_equal(back[name], getattr(pm, name)), name
+    _same(ProgressiveMesh(**back), pm)
+    # the codec imports nothing of the progressive package: mesh.py imports it
+    tree = ast.parse(Path(artefact.__file__).read_text())
+    siblings = [(node.module or "") for node in ast.walk(tree)
+                if isinstance(node, ast.ImportFrom) and node.level == 1]
+    absolute = [node.module for node in ast.walk(tree)
+                if isinstance(node, ast.ImportFrom) and node.level == 0]
+    assert "mesh" not in siblings and "lodserver.progressive.mesh" not in absolute

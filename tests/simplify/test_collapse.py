@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 
 from lodserver.simplify.collapse import check_collapse, classify_vertices, decimate
+from lodserver.simplify.options import DecimateOptions
 from lodserver.mesh import Mesh
 from lodserver.simplify import rules
 from lodserver.simplify.topology import census
@@ -182,7 +183,7 @@ def test_two_locked_vertices_never_merge():
 
 def test_a_face_turning_too_far_is_a_flip():
     m = tent(height=0.5)            # faces slope ~30 degrees; flattening them turns them so
-    strict = check_collapse(m, 0, 1, flip_cos=0.95)
+    strict = check_collapse(m, 0, 1, DecimateOptions(flip_cos=0.95))
     assert strict.reason == "flip"
     assert _naive_refusals(m, 0, 1, flip_cos=0.95, verdict=strict) == ["flip"]
     verdict = check_collapse(m, 0, 1)
@@ -206,9 +207,9 @@ def test_a_face_left_without_area_is_degenerate():
 def test_close_pairs_need_a_threshold_and_stay_close():
     m = two_triangles(gap=0.1)
     assert check_collapse(m, 0, 3).reason == "not_an_edge"
-    verdict = check_collapse(m, 0, 3, pair_threshold=0.2)
+    verdict = check_collapse(m, 0, 3, DecimateOptions(pair_threshold=0.2))
     assert verdict.reason is None
-    assert check_collapse(m, 0, 3, pair_threshold=0.1).reason == "pair_too_far"
+    assert check_collapse(m, 0, 3, DecimateOptions(pair_threshold=0.1)).reason == "pair_too_far"
 
 
 def test_reason_table_is_consistent():
@@ -288,8 +289,8 @@ def test_every_edge_gets_the_reference_verdict(name, seed, flip_cos, locked_shar
     K, _ = naive.quadric_matrices(unit, m.faces)
     legal = []
     for a, b in _edges(m.faces):
-        verdict = check_collapse(m, a, b, preserve_volume=False, flip_cos=flip_cos,
-                                 locked=locked)
+        verdict = check_collapse(m, a, b, DecimateOptions(preserve_volume=False,
+                                                                 flip_cos=flip_cos), locked=locked)
         planned = naive.plan(unit, K, kind, a, b)
         if planned is None:
             assert verdict.reason == "locked"
@@ -307,8 +308,8 @@ def test_every_edge_gets_the_reference_verdict(name, seed, flip_cos, locked_shar
     # the first collapse decimate takes is the cheapest legal one
     legal.sort()
     if len(legal) > 1 and legal[1][0] > legal[0][0] * (1 + 1e-9):
-        first = decimate(m, max_collapses=1, preserve_volume=False, flip_cos=flip_cos,
-                         locked=locked)
+        first = decimate(m, DecimateOptions(max_collapses=1, preserve_volume=False,
+                                             flip_cos=flip_cos), locked=locked)
         assert (first.survivor[0], first.removed[0]) == legal[0][1:]
 
 
@@ -322,9 +323,7 @@ def test_the_geometry_only_rank_is_the_full_rank_bit_for_bit():
 
     m = mesh("grid")
     locked = _mask(m.vertex_count, *range(40, 80))
-    verts, faces, wedges, _, _, _ = _prepare(
-        m, boundary_weight=1.0, locked=locked, flip_cos=rules.DEFAULT_FLIP_COS,
-        pair_threshold=0.0, attribute_weights=None, preserve_volume=True, seam_weight=1.0)
+    verts, faces, wedges, _, _, _ = _prepare(m, DecimateOptions(), locked)
     topo = new_topology(faces.astype(np.int32), m.vertex_count)
     full, lean = new_scratch(m.vertex_count), new_scratch(m.vertex_count)
     edges = np.unique(np.sort(np.r_[m.faces[:, :2], m.faces[:, 1:], m.faces[:, ::2]], axis=1),

@@ -11,10 +11,11 @@ import dataclasses
 import numpy as np
 import pytest
 
-from lodserver.progressive.artefact import encode_progressive
+from lodserver.progressive import encode_progressive
 from lodserver.progressive.mesh import from_collapse_log
 from lodserver.simplify import collapse
 from lodserver.simplify.collapse import decimate
+from lodserver.simplify.options import DecimateOptions
 from lodserver.simplify.parts import REORDER_MIN_VERTICES, memory_order
 
 from ..meshes import canonical_faces, mesh
@@ -85,14 +86,14 @@ def test_only_large_meshes_are_renumbered(monkeypatch):
 def test_the_log_is_the_renumbered_runs_in_the_inputs_ids(monkeypatch, parts):
     m = _shuffled("torus")
     monkeypatch.setattr(collapse, "REORDER_MIN_VERTICES", 0)
-    log = decimate(m, parts=parts)
+    log = decimate(m, DecimateOptions(parts=parts))
     # the same run by hand: renumber, decimate as it is, map the ids back
     order = memory_order(m.positions)
     inverse = np.empty_like(order)
     inverse[order] = np.arange(len(order))
     renumbered = dataclasses.replace(m, positions=m.positions[order], faces=inverse[m.faces])
     monkeypatch.setattr(collapse, "REORDER_MIN_VERTICES", 10**9)
-    direct = decimate(renumbered, parts=parts)
+    direct = decimate(renumbered, DecimateOptions(parts=parts))
     np.testing.assert_array_equal(log.survivor, order[direct.survivor])
     np.testing.assert_array_equal(log.removed, order[direct.removed])
     np.testing.assert_array_equal(log.position, direct.position)
@@ -110,7 +111,7 @@ def test_the_log_is_the_renumbered_runs_in_the_inputs_ids(monkeypatch, parts):
 def test_every_level_is_exact_when_renumbered(monkeypatch, name, parts):
     m = _shuffled(name)
     monkeypatch.setattr(collapse, "REORDER_MIN_VERTICES", 0)
-    pm = from_collapse_log(m, decimate(m, parts=parts))
+    pm = from_collapse_log(m, decimate(m, DecimateOptions(parts=parts)))
     assert pm.split_count > 0.9 * m.vertex_count
     replayed = pm.cursor(pm.base_vertices).seek(pm.vertex_count).arrays()
     assert np.array_equal(canonical_faces(*replayed), canonical_faces(m.positions, m.faces))
@@ -122,14 +123,14 @@ def test_every_level_is_exact_when_renumbered(monkeypatch, name, parts):
         assert np.all((faces[:, 0] != faces[:, 1]) & (faces[:, 1] != faces[:, 2])
                       & (faces[:, 0] != faces[:, 2]))
     # the same input twice: the same bytes
-    again = from_collapse_log(m, decimate(m, parts=parts))
+    again = from_collapse_log(m, decimate(m, DecimateOptions(parts=parts)))
     assert encode_progressive(again) == encode_progressive(pm)
 
 
 def test_attributes_locked_vertices_and_poses_follow_the_renumbering(monkeypatch):
     m = mesh("textured_sphere")
     monkeypatch.setattr(collapse, "REORDER_MIN_VERTICES", 0)
-    pm = from_collapse_log(m, decimate(m, parts=2))
+    pm = from_collapse_log(m, decimate(m, DecimateOptions(parts=2)))
     np.testing.assert_array_equal(corner_rows(pm.at(pm.vertex_count)), corner_rows(m))
     cursor = pm.cursor(pm.base_vertices)
     for level in np.linspace(pm.base_vertices, pm.vertex_count, 7).astype(int):

@@ -9,10 +9,12 @@ import numba
 import numpy as np
 import pytest
 
-from lodserver.progressive.artefact import encode_progressive
+from lodserver.progressive import encode_progressive
 from lodserver.progressive.mesh import from_collapse_log
 from lodserver.simplify import collapse, parts
 from lodserver.simplify.collapse import decimate
+from lodserver.simplify.log import LogColumns
+from lodserver.simplify.options import DecimateOptions
 from lodserver.simplify.parts import FROZEN, merge_logs, partition
 
 from ..meshes import canonical_faces, mesh
@@ -24,7 +26,7 @@ TEXTURED = ["textured_sphere", "hard_sphere"]
 
 def _pm(name, parts):
     m = mesh(name)
-    return m, from_collapse_log(m, decimate(m, parts=parts))
+    return m, from_collapse_log(m, decimate(m, DecimateOptions(parts=parts)))
 
 
 def _labels(m, parts):
@@ -74,15 +76,16 @@ def _log(keys, first_face, width=1):
     k = len(keys)
     rows = first_face + np.arange(k)
     offsets = np.arange(k + 1)
-    return (rows, rows + 1000, np.c_[rows, rows, rows].astype(float), np.asarray(keys, float),
-            np.ones(k), offsets, rows, 2 * offsets, np.repeat(rows, 2), offsets, rows, rows + 1,
-            np.c_[rows.astype(float)] * np.ones(width))
+    return LogColumns(rows, rows + 1000, np.c_[rows, rows, rows].astype(float),
+                      np.asarray(keys, float), np.ones(k), offsets, rows, 2 * offsets,
+                      np.repeat(rows, 2), offsets, rows, rows + 1,
+                      np.c_[rows.astype(float)] * np.ones(width))
 
 
 def test_merged_logs_keep_each_order_and_follow_the_keys():
     a, b, tail = _log([1, 5, 2, 6], 0), _log([3, 4], 100), _log([0.5], 200)
-    merged = merge_logs([a, b], [a[3], b[3]], tail)
-    survivor = merged[0]
+    merged = merge_logs([a, b], [a.cost, b.cost], tail)
+    survivor = merged.survivor
     # running maxima 1 5 5 6 and 3 4: a0, b0, b1, a1, a2, a3, then the tail
     np.testing.assert_array_equal(survivor, [0, 100, 101, 1, 2, 3, 200])
     # every block column follows its row
@@ -141,7 +144,8 @@ def test_the_artefact_does_not_depend_on_the_threads(name):
     try:
         for count in (1, numba.config.NUMBA_NUM_THREADS, 1):
             numba.set_num_threads(count)
-            artefacts.append(encode_progressive(from_collapse_log(m, decimate(m, parts=4))))
+            log = decimate(m, DecimateOptions(parts=4))
+            artefacts.append(encode_progressive(from_collapse_log(m, log)))
     finally:
         numba.set_num_threads(threads)
     assert artefacts[0] == artefacts[1] == artefacts[2]
@@ -153,7 +157,8 @@ def test_parts_are_the_default_only_for_large_meshes(monkeypatch):
 
     def artefact(pm, parts):
         # the build's metadata on the log of ``parts`` parts
-        return encode_progressive(from_collapse_log(m, decimate(m, parts=parts), pm.metadata))
+        log = decimate(m, DecimateOptions(parts=parts))
+        return encode_progressive(from_collapse_log(m, log, pm.metadata))
 
     built = build(m)
     assert encode_progressive(built) == artefact(built, 1)
@@ -166,8 +171,8 @@ def test_parts_are_the_default_only_for_large_meshes(monkeypatch):
 def test_a_collapse_limit_or_close_pairs_run_whole():
     m = mesh("torus")
     for options in (dict(max_collapses=40), dict(pair_threshold=0.05)):
-        limited = decimate(m, parts=2, **options)
-        whole = decimate(m, parts=1, **options)
+        limited = decimate(m, DecimateOptions(parts=2, **options))
+        whole = decimate(m, DecimateOptions(parts=1, **options))
         np.testing.assert_array_equal(limited.removed, whole.removed)
         np.testing.assert_array_equal(limited.position, whole.position)
 
@@ -185,5 +190,5 @@ def test_the_part_count_follows_the_mesh_not_the_machine():
 
 def test_min_vertices_holds_across_parts():
     m = mesh("icosphere")
-    log = decimate(m, parts=2, min_vertices=60)
+    log = decimate(m, DecimateOptions(parts=2, min_vertices=60))
     assert m.vertex_count - len(log) == 60

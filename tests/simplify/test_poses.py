@@ -15,6 +15,7 @@ from lodserver.io.scene import Scene
 from lodserver.mesh import Attributes, Mesh, MeshError
 from lodserver.simplify import poses as poses_module
 from lodserver.simplify.collapse import decimate
+from lodserver.simplify.options import DecimateOptions
 from lodserver.simplify.poses import (
     compose_maps,
     morph_pose_maps,
@@ -233,8 +234,8 @@ def posed_rms(mesh, log, vertices, joints, weights, matrices, samples=20_000):
 def test_decimating_the_bent_strip_with_poses_keeps_the_bend():
     strip, joints, weights, matrices = bent_strip()
     maps = skin_pose_maps(joints, weights, matrices[1:])
-    plain = decimate(strip, boundary_weight=1.0)
-    posed = decimate(strip, boundary_weight=1.0, poses=maps)
+    plain = decimate(strip, DecimateOptions(boundary_weight=1.0))
+    posed = decimate(strip, DecimateOptions(boundary_weight=1.0), poses=maps)
     target = 20
     bent = matrices[1:]
     with_poses = posed_rms(strip, posed, target, joints, weights, bent)

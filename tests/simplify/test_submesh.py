@@ -11,6 +11,7 @@ import pytest
 from numba import njit
 
 from lodserver.simplify import collapse
+from lodserver.simplify.options import DecimateOptions
 from lodserver.simplify.parts import FROZEN, partition
 from lodserver.simplify.prefetch import prefetch, prefetch2
 from lodserver.simplify.state import new_scratch
@@ -21,9 +22,7 @@ from ..meshes import mesh
 
 def _kernel_inputs(name):
     m = mesh(name)
-    verts, faces, wedges, options, _, _ = collapse._prepare(
-        m, boundary_weight=1.0, locked=None, flip_cos=collapse.DEFAULT_FLIP_COS,
-        pair_threshold=0.0, attribute_weights=None, preserve_volume=True, seam_weight=1.0)
+    verts, faces, wedges, options, _, _ = collapse._prepare(m, DecimateOptions())
     faces = faces.astype(np.int32)
     n = len(verts.pos)
     alive = np.bincount(faces.ravel(), minlength=n) > 0
