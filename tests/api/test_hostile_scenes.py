@@ -16,13 +16,21 @@ from fastapi.testclient import TestClient
 from lodserver.api.main import create_app
 from lodserver.api.settings import Settings
 
+from ..conftest import glb_chunks
+from ..io import test_gltf
+from ..io.test_gltf import assert_valid
 from ..io.test_hostile_scenes import (
     Glb,
     _custom,
     _morphed,
+    aliased_clips,
+    instanced,
     one_sentence,
     skinned_document,
 )
+from ..test_scene_export import accessor_values
+
+gltf_validator = test_gltf.gltf_validator    # the session fixture, shared
 
 
 def _client(tmp_path, **overrides):
@@ -135,7 +143,6 @@ HOSTILE = {
     "channel to a missing sampler": (_edit(_set(["animations", 0, "channels", 0, "sampler"],
                                                 4)), "sampler 4"),
     "mesh weights of the wrong count": (_weights(_morphed([2])), "3 morph weights for 2"),
-    "1000 morph targets": (_morphed([1000], size=60), "1000 vertex attributes"),
     "300 custom attributes": (_custom([(f"_X{i}", "SCALAR") for i in range(300)]),
                               "300 vertex attributes"),
 }
@@ -161,6 +168,56 @@ def test_a_hostile_scene_upload_is_a_422_sentence_leaving_nothing(server, case):
     assert "hostile.glb" in message
     assert time.monotonic() - start < 60
     assert _stored(data) == []
+
+
+# what a small upload would cost once read, refused from its declarations (413)
+COSTLY = {
+    "70,000 GPU instances": (instanced(70_000), "69999 GPU instances"),
+    "60 samplers over distinct ranges of one view": (
+        aliased_clips(60, 20_000, distinct=True), "animations, skins and instancing accessors"),
+    "255 targets naming one accessor": (_morphed([255], size=100), "morph targets of mesh 0"),
+    "1000 morph targets": (_morphed([1000], size=60), "morph targets of mesh 0"),
+}
+
+
+@pytest.mark.parametrize("case", list(COSTLY))
+def test_a_costly_scene_upload_is_a_413_sentence_leaving_nothing(server, case):
+    client, data = server
+    glb, match = COSTLY[case]
+    response = _upload(client, glb)
+    assert response.status_code == 413, response.text
+    message = response.json()["message"]
+    one_sentence(message, data, data.parent)
+    assert re.search(match, message) and "hostile.glb" in message, message
+    assert _stored(data) == []
+
+
+def test_aliased_sampler_outputs_are_stored_and_written_once(tmp_path, gltf_validator):
+    """60 samplers whose outputs alias one bufferView: built, the artefact and every
+    scene body at most 20 times the upload (written once each, not 60 times), the
+    GLB valid, its samplers naming one accessor of the same values."""
+    source = aliased_clips(60, 20_000)
+    upload = source.glb()
+    with _client(tmp_path) as client:
+        created = client.post("/meshes", files={"file": ("clips.glb", upload)})
+        assert created.status_code == 202, created.text
+        body = _wait(client, created.json()["id"])
+        assert body["status"] == "ready", body.get("failure")
+        artefacts = [p for p in (tmp_path / "data" / "artefacts").rglob("*") if p.is_file()]
+        assert artefacts and sum(p.stat().st_size for p in artefacts) <= 20 * len(upload)
+        for route, params in (("chain", {"lods": "1,0.5"}),
+                              ("lod", {"format": "glb", "ratio": 0.5})):
+            level = client.get(f"/meshes/{body['id']}/{route}", params=params)
+            assert level.status_code == 200, level.text
+            assert len(level.content) <= 20 * len(upload)
+    assert_valid(gltf_validator, level.content, "the aliased clips")
+    document, binary = glb_chunks(level.content)
+    outputs = {s["output"] for s in document["animations"][0]["samplers"]}
+    assert len(document["animations"][0]["samplers"]) == 60 and len(outputs) == 1
+    first = source.document["animations"][0]["samplers"][0]["output"]
+    view = source.document["bufferViews"][source.document["accessors"][first]["bufferView"]]
+    expected = np.frombuffer(bytes(source.binary), "<f4", 20_000 * 3, view["byteOffset"])
+    assert np.array_equal(accessor_values(document, binary, outputs.pop()).ravel(), expected)
 
 
 def _zero_weights(glb):
