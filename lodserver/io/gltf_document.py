@@ -294,9 +294,8 @@ def carried_bytes(document: dict, carried) -> dict:
         type, each byte range once however many accessors alias it
         (:func:`accessor_identity`); ``"tangents, skin and custom attributes of mesh m"`` and
         ``"morph targets of mesh m"``: per vertex of its triangle primitives, float64
-        (what the reader holds them as); ``"joint and instance transforms"``:
-        128 bytes for every transform a node draws its mesh with (one per GPU
-        instance, times its skin's joints).
+        (what the reader holds them as); ``"joint transforms of skinned nodes"``:
+        128 bytes for every joint of a skinned node's skin, times its GPU instances.
     """
     found = {}
     seen, total = set(), 0
@@ -322,16 +321,13 @@ def carried_bytes(document: dict, carried) -> dict:
         found[f"morph targets of {label}"] = 8 * vertices * targets
     transforms = 0
     for number, node in enumerate(nodes):
-        if "mesh" not in node:
-            continue
-        copies = gpu_instances(document, node, f"node {number}")
-        joints = 1
-        if "skin" in node:
+        if "mesh" in node and "skin" in node:
+            # one transform per joint per instance (instances alone are bounded by
+            # max_instances; their product with a skin's joints is not)
+            copies = gpu_instances(document, node, f"node {number}")
             skin = record(document, "skins", node["skin"], f"node {number}")
-            joints = max(len(skin.get("joints") or ()), 1)
-        if copies is not None or "skin" in node:
-            transforms += (1 if copies is None else copies) * joints
-    found["joint and instance transforms"] = TRANSFORM_BYTES * transforms
+            transforms += (1 if copies is None else copies) * len(skin.get("joints") or ())
+    found["joint transforms of skinned nodes"] = TRANSFORM_BYTES * transforms
     return found
 
 

@@ -63,19 +63,21 @@ class LoadLimits:
     max_json_depth : int
         Nesting depth of that JSON (glTF needs about ten; deeper is an attack).
     carried_ratio : int
-        A glTF scene's carried data (animations, skins and their joint
-        transforms, GPU instances, morph targets, skin and custom attributes),
-        counted in bytes as it is held once read (attribute values float64 per
-        vertex, accessors in their own type, 128 bytes a transform), may be at most
-        this many times the bytes uploaded (the file and the buffers it names), or
-        ``min_carried_bytes``, whichever is more. A file that names one accessor
-        for 255 morph targets, or aliases one bufferView for many samplers, is
-        small and expands far past what it holds; a file that stores its data
-        holds about what it expands to (float32 read as float64 is twice, an
-        8-bit normalized weight eight times).
+        A glTF scene's carried data (animations, skins, GPU instancing
+        accessors, morph targets, tangents, skin and custom attributes, and the
+        joint transforms of skinned nodes), counted in bytes as it is held once
+        read (attribute values float64 per vertex, accessors in their own type,
+        128 bytes a transform), may be at most this many times the bytes
+        uploaded (the file and the buffers it names), or ``min_carried_bytes``,
+        whichever is more. A file that names one accessor for 255 morph
+        targets, or aliases one bufferView for many samplers, is small and
+        expands far past what it holds; a file that stores its data holds about
+        what it expands to (float32 read as float64 is twice, int16 quantized
+        deltas three times, and the rest of the file dilutes it). A build's
+        memory grows with these columns: tens of bytes for each byte counted.
     min_carried_bytes : int
-        That bound for small files (a few kilobytes of glTF may still carry a
-        few megabytes: sparse morph targets, short clips on many nodes).
+        That bound for small files (a few kilobytes of glTF may still carry
+        some: sparse morph targets, short clips on many nodes).
     """
 
     max_triangles: int | None = DEFAULT_MAX_TRIANGLES
@@ -86,8 +88,8 @@ class LoadLimits:
     max_file_bytes: int | None = 1 << 30
     max_json_bytes: int | None = 64 << 20
     max_json_depth: int | None = 64
-    carried_ratio: int | None = 8
-    min_carried_bytes: int | None = 4 << 20
+    carried_ratio: int | None = 4
+    min_carried_bytes: int | None = 2 << 20
 
     def __post_init__(self):
         # -1 marks "derive from max_triangles", so LoadLimits(max_triangles=k) scales both

@@ -140,6 +140,7 @@ def load_scene(path, *, root=None, limits: LoadLimits | None = None) -> Scene:
         if size == 0:
             raise MeshError("the file is empty")
         limits.check("max_file_bytes", size, "bytes (the file's size)")
+
         def check(document):
             # the bytes uploaded: the file and the buffer files it names
             external = sum(buffer.get("byteLength", 0) for buffer in document.get("buffers", ())

@@ -574,11 +574,18 @@ def aliased_clips(samplers: int, keys: int, *, distinct: bool = False) -> Glb:
     return glb
 
 
-def test_gpu_instances_count_against_the_instance_limit(tmp_path):
-    path = write(tmp_path, instanced(70_000))
+@pytest.mark.parametrize("in_the_scene", [True, False])
+def test_gpu_instances_count_against_the_instance_limit(tmp_path, in_the_scene):
+    glb = instanced(70_000)
+    if not in_the_scene:        # drawn by no scene, its instances are still derived
+        glb.document["scenes"][0]["nodes"].remove(0)
+    path = write(tmp_path, glb)
     with pytest.raises(LimitError, match="69999 GPU instances") as e:
         load_scene(path, root=tmp_path, limits=LoadLimits())
     one_sentence(str(e.value), tmp_path)
+    # within the limit: loaded, translations alone (12 bytes an instance)
+    assert load_scene(write(tmp_path, instanced(65_000), "within.glb"),
+                      limits=LoadLimits()).meshes[0].face_count == 32
 
 
 def test_gpu_instances_count_against_the_triangle_total(tmp_path):
@@ -650,3 +657,14 @@ def test_every_shared_scene_loads_within_the_carried_budget(shared_meshes):
             pytest.fail(f"{path.name}: {exc}")
         except MeshError as exc:            # SimpleMorph.gltf ships without its buffer
             assert "is missing" in str(exc), f"{path.name}: {exc}"
+
+
+def test_joints_times_gpu_instances_are_counted(tmp_path):
+    # a skinned node of 65,000 instances: 130,000 joint transforms to derive
+    glb = skinned_document(animation=False)
+    translations = glb.add(np.zeros((65_000, 3)), "VEC3")
+    glb.document["nodes"][0]["extensions"] = {
+        "EXT_mesh_gpu_instancing": {"attributes": {"TRANSLATION": translations}}}
+    path = write(tmp_path, glb)
+    with pytest.raises(LimitError, match="16640000 for the joint transforms of skinned nodes"):
+        load_scene(path, limits=LoadLimits())
