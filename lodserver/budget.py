@@ -222,7 +222,7 @@ def scene_levels(pms: dict, instances: dict, *, ratio: float | None = None,
     ----------
     pms : dict of int to ProgressiveMesh
         The parts.
-    instances : dict of int to list of float
+    instances : dict of int to (k,) float array or list of float
         Per part, one world scale factor per instance (:func:`scene_instances`);
         an empty list: drawn by no node (its faces count 0, it stays at its base).
     ratio : float, optional
@@ -372,14 +372,47 @@ def _carried_float(scene, index):
     return _as_float(np.asarray(values), record)
 
 
-def _node_matrices(scene, number: int, world: list) -> tuple[np.ndarray, np.ndarray]:
-    """How node ``number`` draws its mesh: ((k, j, 4, 4) transforms, k instances of
-    j transforms each). One instance per ``EXT_mesh_gpu_instancing`` entry, else
+def _instancing_matrices(columns: dict, count: int) -> np.ndarray:
+    """(k, 4, 4) float64 local transforms of ``count`` GPU instances from their
+    ``EXT_mesh_gpu_instancing`` columns (``TRANSLATION`` (k, 3), ``ROTATION`` (k, 4)
+    x y z w, ``SCALE`` (k, 3), each optional), all at once: ``T @ R @ S`` as
+    ``io.gltf._local_matrix`` makes it for one node (an unnormalised quaternion is
+    normalised, a zero one is no rotation), with the same operations in the same
+    order, so each matrix is the same to the bit."""
+    widths = {"TRANSLATION": 3, "ROTATION": 4, "SCALE": 3}
+    for name, values in columns.items():
+        if values.ndim != 2 or values.shape[1] != widths[name]:
+            raise MeshError(f"its EXT_mesh_gpu_instancing {name} values have "
+                            f"{values.shape[-1]} components, not {widths[name]}")
+    local = np.zeros((count, 4, 4))
+    local[:, 3, 3] = 1.0
+    linear = np.repeat(np.eye(3)[None], count, axis=0)
+    if "ROTATION" in columns:
+        x, y, z, w = np.asarray(columns["ROTATION"][:count], np.float64).T
+        norm = x * x + y * y + z * z + w * w
+        turned = norm > 1e-12
+        with np.errstate(divide="ignore", invalid="ignore"):   # rows of a zero one unused
+            s = 2.0 / norm
+            rotation = np.stack([
+                np.stack([1 - s * (y * y + z * z), s * (x * y - z * w), s * (x * z + y * w)], -1),
+                np.stack([s * (x * y + z * w), 1 - s * (x * x + z * z), s * (y * z - x * w)], -1),
+                np.stack([s * (x * z - y * w), s * (y * z + x * w), 1 - s * (x * x + y * y)], -1),
+            ], 1)
+        linear[turned] = rotation[turned]
+    if "SCALE" in columns:
+        linear = linear * np.asarray(columns["SCALE"][:count], np.float64)[:, None, :]
+    local[:, :3, :3] = linear
+    if "TRANSLATION" in columns:
+        local[:, :3, 3] = columns["TRANSLATION"][:count]
+    return local
+
+
+def _node_matrices(scene, number: int, world: list) -> np.ndarray:
+    """How node ``number`` draws its mesh: (k, j, 4, 4) transforms, k instances of
+    j transforms each. One instance per ``EXT_mesh_gpu_instancing`` entry, else
     one; each the node's world transform, or for a skinned node the bind pose of
     each of its j joints (joint world x inverse bind matrix: glTF ignores the
     node's own transform then), a vertex going where a blend of them takes it."""
-    from .io.gltf import _local_matrix
-
     document = scene.document
     node = document["nodes"][number]
     base = world[number][None]
@@ -398,10 +431,7 @@ def _node_matrices(scene, number: int, world: list) -> tuple[np.ndarray, np.ndar
         columns = {name: _carried_float(scene, attributes[name]) for name in
                    ("TRANSLATION", "ROTATION", "SCALE") if attributes.get(name) in scene.carried}
         count = min((len(v) for v in columns.values()), default=0)
-        local = np.stack([_local_matrix({name.lower(): columns[name][i].tolist()
-                                         for name in columns}) for i in range(count)]
-                         ) if count else np.zeros((0, 4, 4))
-        return base[None] @ local[:, None]
+        return base[None] @ _instancing_matrices(columns, count)[:, None]
     return base[None]
 
 
@@ -420,7 +450,7 @@ def scene_instances(scene, pms: dict | None = None) -> tuple[dict, float]:
     Returns
     -------
     (instances, diagonal)
-        ``instances[p]``: a list of floats, the largest singular value of each
+        ``instances[p]``: (k,) float64, the largest singular value of each
         transform that draws part ``p`` (node world transforms, instancing,
         skinned nodes' bind pose); ``diagonal``: the diagonal of the world
         bounding box of every part's every instance (the corners of each part's
@@ -432,14 +462,15 @@ def scene_instances(scene, pms: dict | None = None) -> tuple[dict, float]:
     users = scene.mesh_nodes
     instances, low, high = {}, np.full(3, np.inf), np.full(3, -np.inf)
     for p in parts:
-        instances[p], matrices = [], [np.zeros((0, 4, 4))]
+        scales, matrices = [np.zeros(0)], [np.zeros((0, 4, 4))]
         for number in users.get(p, ()):
             drawn = _node_matrices(scene, number, world)
             # an instance's scale: the largest of its joints' (a blend of rigid or
             # scaled joints stretches no more than its most stretching joint)
             largest = _largest_scale(drawn.reshape(-1, 4, 4)).reshape(drawn.shape[:2])
-            instances[p].extend(float(s) for s in largest.max(axis=1, initial=0.0))
+            scales.append(largest.max(axis=1, initial=0.0))
             matrices.append(drawn.reshape(-1, 4, 4))
+        instances[p] = np.concatenate(scales)
         matrices = np.concatenate(matrices)
         positions = np.asarray(pms[p].positions if pms is not None else scene.meshes[p].positions)
         if len(matrices) and len(positions):

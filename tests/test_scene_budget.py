@@ -80,7 +80,8 @@ def parts(bolt_and_hull):
 
 def test_instances_are_the_nodes_scales(parts):
     _, _, instances, diagonal = parts
-    assert instances == {0: [1.0], 1: list(HULL_SCALES)}
+    assert {p: scales.tolist() for p, scales in instances.items()} == {
+        0: [1.0], 1: list(HULL_SCALES)}
     # the world box: hull B reaches x = 20 + 5 * 2, hull A x = -3 * 2
     low = np.array([-2.0 * 3, -5.0, -0.7 * 5])
     high = np.array([20.0 + 2.0 * 5, 5.0, 4.01])

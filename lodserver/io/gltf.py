@@ -57,7 +57,8 @@ from .gltf_attributes import (as_float as _as_float, attribute_layout, check_att
 from .gltf_attributes import face_normals, transform_normals  # noqa: F401
 from .images import image_type
 from .gltf_document import (TRIANGLE_FAN as _TRIANGLE_FAN, TRIANGLE_STRIP as _TRIANGLE_STRIP,
-                            TRIANGLES, check_declared, natural, parse_container, record)
+                            TRIANGLES, accessor_identity, check_declared, natural,
+                            parse_container, record)
 from .limits import LoadLimits
 from .references import read_reference, resolve_reference
 
@@ -275,6 +276,25 @@ def _read_accessor(document: dict, views: list, index: int) -> np.ndarray:
     return values
 
 
+def _accessor_reader(document: dict, views: list):
+    """``accessor(index)``: accessor ``index``'s values (:func:`_read_accessor`), each
+    read once, and accessors aliasing one byte range (:func:`.gltf_document.accessor_identity`)
+    given the one array, so a thousand records naming the same bytes cost one copy."""
+    cache, by_identity = {}, {}
+
+    def accessor(index):
+        if index not in cache:
+            key = accessor_identity(record(document, "accessors", index, "primitive"))
+            if key is None or key not in by_identity:
+                values = _read_accessor(document, views, index)
+                if key is not None:
+                    by_identity[key] = values
+            cache[index] = by_identity[key] if key is not None else values
+        return cache[index]
+
+    return accessor
+
+
 def _local_matrix(node: dict) -> np.ndarray:
     """(4, 4) node transform: ``matrix`` times translation, rotation, scale (like trimesh)."""
     matrix = np.eye(4)
@@ -341,7 +361,7 @@ def _primitive_triangles(mode: int, indices: np.ndarray) -> np.ndarray:
 
 
 def read_gltf_meshes(path: Path, kind: str, *, root: Path | None = None,
-                     limits: LoadLimits | None = None, honoured=()) -> dict:
+                     limits: LoadLimits | None = None, honoured=(), check=None) -> dict:
     """Each glTF mesh of a .gltf or .glb file on its own, in its local space.
 
     The same reading, checks and primitive decoding as :func:`read_gltf`, but
@@ -361,19 +381,18 @@ def read_gltf_meshes(path: Path, kind: str, *, root: Path | None = None,
         (sparse applied), for data carried as it is (animations).
 
     An ``extensionsRequired`` entry not in ``honoured`` is a MeshError, and so is a
-    joint index outside the skin of a node that uses the mesh.
+    joint index outside the skin of a node that uses the mesh. ``check(document)``,
+    when given, runs after the declared sizes are checked and before any accessor,
+    image or mesh is read (the scene reader's bound on what it carries).
     """
     def refuse(required):
         raise MeshError(f"it requires the glTF extension {required}, which lodserver "
                         "cannot honour")
 
     def meshes(document, views, files):
-        cache = {}
-
-        def accessor(index):
-            if index not in cache:
-                cache[index] = _read_accessor(document, views, index)
-            return cache[index]
+        if check is not None:
+            check(document)
+        accessor = _accessor_reader(document, views)
 
         materials = _read_materials(document, views, files)
         used = sorted({node["mesh"] for node in document.get("nodes", ())
@@ -413,12 +432,7 @@ def _flatten_scene(document: dict, views: list, files: _ReferencedFiles, *,
     its local space.
     """
     if accessor is None:
-        cache = {}
-
-        def accessor(index):
-            if index not in cache:
-                cache[index] = _read_accessor(document, views, index)
-            return cache[index]
+        accessor = _accessor_reader(document, views)
 
     placed = []  # (primitive, linear (3, 3), triangles, world positions)
     if instances is None:

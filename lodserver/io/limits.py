@@ -50,10 +50,11 @@ class LoadLimits:
     max_primitives : int
         glTF primitives in the document's meshes.
     max_instances : int
-        glTF nodes of the default scene that place a mesh.
+        glTF nodes of the default scene, plus the instances every
+        ``EXT_mesh_gpu_instancing`` node adds beyond its first.
     max_triangles_total : int
-        Triangles after instancing (a glTF mesh placed by ten nodes counts ten
-        times); by default ``max_triangles``.
+        Triangles after instancing (a glTF mesh placed by ten nodes, or by one
+        node with ten GPU instances, counts ten times); by default ``max_triangles``.
     max_file_bytes : int
         Bytes of the mesh file and of any one file it references (buffers,
         images, MTL libraries, textures).
@@ -61,6 +62,22 @@ class LoadLimits:
         Bytes of a glTF JSON document (a .gltf file or a GLB's JSON chunk).
     max_json_depth : int
         Nesting depth of that JSON (glTF needs about ten; deeper is an attack).
+    carried_ratio : int
+        A glTF scene's carried data (animations, skins, GPU instancing
+        accessors, morph targets, tangents, skin and custom attributes, and the
+        joint transforms of skinned nodes), counted in bytes as it is held once
+        read (attribute values float64 per vertex, accessors in their own type,
+        128 bytes a transform), may be at most this many times the bytes
+        uploaded (the file and the buffers it names), or ``min_carried_bytes``,
+        whichever is more. A file that names one accessor for 255 morph
+        targets, or aliases one bufferView for many samplers, is small and
+        expands far past what it holds; a file that stores its data holds about
+        what it expands to (float32 read as float64 is twice, int16 quantized
+        deltas three times, and the rest of the file dilutes it). A build's
+        memory grows with these columns: tens of bytes for each byte counted.
+    min_carried_bytes : int
+        That bound for small files (a few kilobytes of glTF may still carry
+        some: sparse morph targets, short clips on many nodes).
     """
 
     max_triangles: int | None = DEFAULT_MAX_TRIANGLES
@@ -71,6 +88,8 @@ class LoadLimits:
     max_file_bytes: int | None = 1 << 30
     max_json_bytes: int | None = 64 << 20
     max_json_depth: int | None = 64
+    carried_ratio: int | None = 4
+    min_carried_bytes: int | None = 2 << 20
 
     def __post_init__(self):
         # -1 marks "derive from max_triangles", so LoadLimits(max_triangles=k) scales both
@@ -89,7 +108,14 @@ class LoadLimits:
         """No size limits, only the JSON depth guard (a parser cannot recurse forever)."""
         return cls(max_triangles=None, max_vertices=None, max_primitives=None,
                    max_instances=None, max_triangles_total=None, max_file_bytes=None,
-                   max_json_bytes=None)
+                   max_json_bytes=None, carried_ratio=None)
+
+    def carried_bytes(self, upload_bytes: int) -> int | None:
+        """The most bytes of carried data a file of ``upload_bytes`` may expand to
+        (``carried_ratio``), None for no bound."""
+        if self.carried_ratio is None:
+            return None
+        return max(self.min_carried_bytes or 0, self.carried_ratio * upload_bytes)
 
     def check(self, name: str, count: int, what: str) -> None:
         """Raise a LimitError if ``count`` exceeds the limit ``name``.

@@ -30,6 +30,7 @@ from ..mesh import Materials, MeshError
 from .animation import check_scene
 from .clean import clean_mesh
 from .gltf import read_gltf_meshes
+from .gltf_document import TRIANGLE_FAN, TRIANGLE_STRIP, TRIANGLES, check_carried
 from .limits import LoadLimits
 from .load import file_errors
 
@@ -121,7 +122,9 @@ def load_scene(path, *, root=None, limits: LoadLimits | None = None) -> Scene:
         no nodes, non-finite or decreasing keyframe times, ...) or animation and
         skin data without bytes behind it.
     LimitError
-        If the file declares more than ``limits`` allow.
+        If the file declares more than ``limits`` allow, its carried data
+        included (``LoadLimits.carried_ratio``, checked on the declarations
+        before any of it is read).
     """
     path = Path(path)
     kind = path.suffix.lower().lstrip(".")
@@ -137,9 +140,19 @@ def load_scene(path, *, root=None, limits: LoadLimits | None = None) -> Scene:
         if size == 0:
             raise MeshError("the file is empty")
         limits.check("max_file_bytes", size, "bytes (the file's size)")
+
+        def check(document):
+            # the bytes uploaded: the file and the buffer files it names
+            external = sum(buffer.get("byteLength", 0) for buffer in document.get("buffers", ())
+                           if isinstance(buffer.get("uri"), str)
+                           and buffer["uri"][:5].lower() != "data:")
+            carried = carried_accessors(document, _without_triangles(document))
+            _check_carried_records(document, carried)
+            check_carried(document, carried, size + external, limits)
+
         try:
             parts = read_gltf_meshes(path, kind, root=root, limits=limits,
-                                     honoured=HONOURED_REQUIRED)
+                                     honoured=HONOURED_REQUIRED, check=check)
             return _scene(parts)
         except MeshError:       # a ValueError too, already one sentence
             raise
@@ -161,6 +174,18 @@ def kept_as_is(document: dict, meshes: dict) -> dict:
     """
     return {index: "it has no triangles (only points or lines)"
             for index, arrays in meshes.items() if isinstance(arrays, str)}
+
+
+def _without_triangles(document: dict) -> list:
+    """The meshes some node uses whose primitives are all points or lines: from the
+    declarations, the meshes :func:`kept_as_is` will name (their accessors carried)."""
+    used = {node["mesh"] for node in document.get("nodes", ())
+            if isinstance(node, dict) and isinstance(node.get("mesh"), int)}
+    meshes = document.get("meshes", [])
+    return sorted(m for m in used if 0 <= m < len(meshes) and not any(
+        isinstance(p, dict) and p.get("mode", TRIANGLES) in (TRIANGLES, TRIANGLE_STRIP,
+                                                             TRIANGLE_FAN)
+        for p in meshes[m].get("primitives", ())))
 
 
 # how a carried accessor is used, for its bufferView's target and alignment
@@ -206,17 +231,26 @@ def _check_backed(accessor: dict, index: int) -> None:
                         f"without a bufferView (only {sparse_count!r:.20} given)")
 
 
-def _scene(parts: dict) -> Scene:
-    document, arrays = parts["document"], parts["meshes"]
-    scene = Scene(document, materials=parts["materials"])
-    scene.as_is = kept_as_is(document, arrays)
+def _check_carried_records(document: dict, carried: dict) -> None:
+    """MeshError for a carried accessor that does not exist, or (animation, skin and
+    instancing data) has no bytes behind it (:func:`_check_backed`)."""
     accessors = document.get("accessors", [])
-    for index, role in carried_accessors(document, scene.as_is).items():
+    for index, role in carried.items():
         if isinstance(index, bool) or not isinstance(index, int) or not 0 <= index < len(accessors):
             raise MeshError(f"its animation, skin, mesh or instancing data refers to accessor "
                             f"{index!r}, which does not exist")
         if role == OTHER:
             _check_backed(accessors[index], index)
+
+
+def _scene(parts: dict) -> Scene:
+    document, arrays = parts["document"], parts["meshes"]
+    scene = Scene(document, materials=parts["materials"])
+    scene.as_is = kept_as_is(document, arrays)
+    accessors = document.get("accessors", [])
+    carried = carried_accessors(document, scene.as_is)
+    _check_carried_records(document, carried)
+    for index, role in carried.items():
         scene.carried[index] = (parts["accessor"](index), accessors[index], role)
     # the node tree, skins and animations the poses and the writer evaluate
     check_scene(document, scene.carried)

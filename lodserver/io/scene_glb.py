@@ -170,7 +170,8 @@ def encode_scene(scene: Scene, levels: dict, coverage: list[float], *,
 
 
 def _carry_accessors(writer: GlbWriter, carried: dict) -> dict:
-    """Write each carried accessor's values tightly packed; old index -> new index.
+    """Write each carried accessor's values tightly packed; old index -> new index
+    (accessors sharing one array share one new index).
 
     The record keeps its componentType, type, normalized, name and extras, and
     gets min and max of the values as written (the validator checks them, and
@@ -179,9 +180,16 @@ def _carry_accessors(writer: GlbWriter, carried: dict) -> dict:
     element is not a multiple of 4 bytes (a u8 VEC2, say), a padded byteStride,
     as glTF requires of vertex attributes; indices get ELEMENT_ARRAY_BUFFER.
     """
-    mapping = {}
+    mapping, written = {}, {}
     for index in sorted(carried):
         values, record, role = carried[index]
+        # accessors aliasing one byte range share one array (io.gltf reads them
+        # once): one accessor written, named by all of them
+        same = (id(values), role, record.get("componentType"), record.get("type"),
+                bool(record.get("normalized", False)))
+        if same in written:
+            mapping[index] = written[same]
+            continue
         values = np.ascontiguousarray(values, dtype=values.dtype.newbyteorder("<"))
         element = values.dtype.itemsize * values.shape[1]
         data, stride = values.tobytes(), None
@@ -205,5 +213,5 @@ def _carry_accessors(writer: GlbWriter, carried: dict) -> dict:
             accessor["min"] = [cast(v) for v in low]
             accessor["max"] = [cast(v) for v in high]
         writer.accessors.append(accessor)
-        mapping[index] = len(writer.accessors) - 1
+        mapping[index] = written[same] = len(writer.accessors) - 1
     return mapping

@@ -7,13 +7,16 @@ more waiting and the rest refused with :class:`ParserBusy`), each under an
 address-space limit (``RLIMIT_AS``), so that a file cannot take the server's
 memory and the server's event loop keeps its GIL. The parsed mesh comes back
 pickled. A worker that runs out of memory, or dies, refuses that one file
-(:class:`LimitError`) and the pool is started again.
+(:class:`LimitError`) and the pool is started again; so does one whose result
+is too large to send back (more than half the worker's memory once pickled), or
+that fails to send it.
 """
 
 from __future__ import annotations
 
 import multiprocessing
 import os
+import pickle
 import shutil
 import tempfile
 import threading
@@ -142,13 +145,44 @@ def _start_worker(memory_bytes: int, parent: int) -> None:
     resource.setrlimit(resource.RLIMIT_AS, (memory_bytes, hard))
 
 
+class _Tally:
+    """A file that keeps only the count of the bytes written to it."""
+
+    size = 0
+
+    def write(self, data) -> int:
+        size = memoryview(data).nbytes
+        self.size += size
+        return size
+
+
+def pickled_size(value) -> int:
+    """Bytes of ``value`` pickled (protocol 5), counted as they are written: the large
+    arrays are handed over as buffers, never copied."""
+    tally = _Tally()
+    pickle.Pickler(tally, protocol=5).dump(value)
+    return tally.size
+
+
 def _parse_in_worker(path: str, file_type: str, root: str | None, max_triangles: int,
-                     limits: LoadLimits | None, scenes: bool = False):
+                     limits: LoadLimits | None, scenes: bool = False,
+                     result_bytes: int | None = None):
     """``check_mesh_file`` in a parse worker, with every failure made a picklable
-    MeshError naming ``path`` (the caller replaces it with the upload's name)."""
+    MeshError naming ``path`` (the caller replaces it with the upload's name).
+
+    A result that would pickle to more than ``result_bytes`` is refused here
+    (OutOfMemory): sending it back needs it pickled whole in this worker, and
+    unpickled whole in the server."""
     try:
-        return check_mesh_file(path, file_type=file_type, max_triangles=max_triangles,
-                               root=root, limits=limits, scenes=scenes)
+        result = check_mesh_file(path, file_type=file_type, max_triangles=max_triangles,
+                                 root=root, limits=limits, scenes=scenes)
+        if result_bytes is not None:
+            size = pickled_size(result)
+            if size > result_bytes:
+                raise OutOfMemory(f"cannot load {path}: what it holds once read takes {size} "
+                                  f"bytes, more than the {result_bytes} this server hands over "
+                                  "for one file")
+        return result
     except MeshError:
         raise
     except MemoryError:
@@ -200,6 +234,10 @@ class ParsePool:
         restart are never refused, they wait.
     memory_bytes : int
         Address-space limit of each worker, in bytes.
+    result_bytes : int, optional
+        Most bytes a parsed file may take pickled to be sent back (default half of
+        ``memory_bytes``: the worker holds it and its pickle at once); past it the
+        file is refused (:class:`OutOfMemory`).
 
     The processes start on the first parse (a server that never parses never
     pays for them) with the spawn method: a worker forked from a threaded
@@ -207,8 +245,9 @@ class ParsePool:
     """
 
     def __init__(self, *, workers: int = 1, queue: int = 4,
-                 memory_bytes: int = PARSE_MEMORY_BYTES):
+                 memory_bytes: int = PARSE_MEMORY_BYTES, result_bytes: int | None = None):
         self.workers, self.queue, self.memory_bytes = max(1, workers), max(0, queue), memory_bytes
+        self.result_bytes = memory_bytes // 2 if result_bytes is None else result_bytes
         self._lock = threading.Lock()
         self._slots = threading.Semaphore(self.workers)
         self._admitted = 0
@@ -236,13 +275,17 @@ class ParsePool:
         try:
             return self.call(_parse_in_worker, str(path), file_type,
                              None if root is None else str(root), max_triangles, limits,
-                             scenes, admit=admit)
+                             scenes, self.result_bytes, admit=admit)
         except _WorkerDied:
             raise LimitError(f"cannot load {Path(path).name}: reading it needed more memory "
                              "than this server allows one file, or crashed the reader") from None
 
     def call(self, function, *args, admit: bool = True):
-        """Run the picklable ``function(*args)`` in a worker, waiting for a free one."""
+        """Run the picklable ``function(*args)`` in a worker, waiting for a free one.
+
+        Whatever goes wrong that is not the function's own MeshError (the worker
+        dies, its result cannot be pickled or sent back, a MemoryError doing so)
+        raises a LimitError subclass, and the pool is started afresh."""
         with self._lock:
             if self._closed:
                 raise ParserClosed("the server is shutting down; try again shortly")
@@ -268,6 +311,21 @@ class ParsePool:
                         raise ParserClosed("the server is shutting down; try again "
                                            "shortly") from None
                     raise _WorkerDied("the parse worker ran out of memory or crashed") from None
+                except (MeshError, ParserBusy):
+                    raise
+                except MemoryError:
+                    # sending a large result back (pickled whole in the worker):
+                    # its heap may stay grown, a fresh pool
+                    self._retire(executor, cancel=False)
+                    raise _WorkerDied("the parse worker ran out of memory sending its "
+                                      "result back") from None
+                except Exception:       # noqa: BLE001
+                    # not the job's own answer (the job makes every failure a MeshError)
+                    # but the hand-over's: its result could not be pickled or sent back
+                    self._retire(executor, cancel=False)
+                    traceback.print_exc()
+                    raise _WorkerDied("the parse worker could not send its result "
+                                      "back") from None
         finally:
             with self._lock:
                 self._admitted -= 1

@@ -22,7 +22,9 @@ fencing by attempt, nothing written when a part fails. The file is a zip
   records (``Scene.carried``: record, role, dtype, shape), the materials' glTF
   records, metadata, and each part's instance scales and the scene's world
   diagonal (``budget.scene_instances``, slow to derive for many nodes);
-- ``carried/<accessor>``: each carried accessor's values, little-endian, C order;
+- ``carried/<accessor>``: each carried accessor's values, little-endian, C order,
+  once for accessors aliasing one byte range (the others' entries in
+  ``scene.json`` name it as their ``alias``);
 - ``images/<i>``: each image file, byte for byte;
 - ``parts/<p>.pm``: each part's ``.pm`` file (``progressive.artefact``), without
   the materials (stored once above, shared by every part and given back on load).
@@ -308,13 +310,19 @@ def _without_materials(pm: ProgressiveMesh) -> ProgressiveMesh:
 def encode_asset(asset: SceneAsset) -> bytes:
     """The stored bytes of ``asset`` (module docstring)."""
     scene = asset.scene
-    carried = []
+    carried, first = [], {}
     for index in sorted(scene.carried):
         values, record, role = scene.carried[index]
-        values = np.ascontiguousarray(values)
-        carried.append({"index": int(index), "record": record, "role": role,
-                        "dtype": values.dtype.newbyteorder("<").str,
-                        "shape": list(values.shape)})
+        entry = {"index": int(index), "record": record, "role": role,
+                 "dtype": np.asarray(values).dtype.newbyteorder("<").str,
+                 "shape": list(np.shape(values))}
+        # accessors aliasing one byte range share one array (io.gltf reads them
+        # once): stored once, the others naming it
+        if id(values) in first:
+            entry["alias"] = first[id(values)]
+        else:
+            first[id(values)] = int(index)
+        carried.append(entry)
     materials = scene.materials
     head = {"format": ASSET_FORMAT, "document": scene.document,
             "parts": [{"index": p.index, "mesh": p.mesh, "name": p.name, "nodes": p.nodes}
@@ -328,12 +336,15 @@ def encode_asset(asset: SceneAsset) -> bytes:
     # the instances are stored, not derived on load: deriving them walks every
     # node of the scene, which for tens of thousands of nodes is slow
     instances, diagonal = _instances(asset)
-    head["instances"] = {str(p): scales for p, scales in instances.items()}
+    head["instances"] = {str(p): np.asarray(scales, np.float64).tolist()
+                         for p, scales in instances.items()}
     head["diagonal"] = diagonal
     out = io.BytesIO()
     with zipfile.ZipFile(out, "w") as archive:
         _member(archive, "scene.json", json.dumps(head).encode())
         for entry in carried:
+            if "alias" in entry:
+                continue
             values = scene.carried[entry["index"]][0]
             _member(archive, f"carried/{entry['index']}",
                     np.ascontiguousarray(values, dtype=entry["dtype"]).tobytes())
@@ -360,10 +371,13 @@ def decode_asset(data: bytes, *, source: str = "the artefact") -> SceneAsset:
                 materials = Materials(head["materials"], images)
             carried = {}
             for entry in head["carried"]:
-                values = np.frombuffer(archive.read(f"carried/{entry['index']}"),
-                                       dtype=np.dtype(entry["dtype"]))
-                carried[entry["index"]] = (values.reshape(entry["shape"]), entry["record"],
-                                           entry["role"])
+                if "alias" in entry:        # the same values as an earlier accessor's
+                    values = carried[entry["alias"]][0]
+                else:
+                    values = np.frombuffer(archive.read(f"carried/{entry['index']}"),
+                                           dtype=np.dtype(entry["dtype"])
+                                           ).reshape(entry["shape"])
+                carried[entry["index"]] = (values, entry["record"], entry["role"])
             parts = []
             for entry in head["parts"]:
                 pm = decode_progressive(archive.read(f"parts/{entry['index']}.pm"),
@@ -384,8 +398,10 @@ def decode_asset(data: bytes, *, source: str = "the artefact") -> SceneAsset:
                   as_is={int(k): v for k, v in head["as_is"].items()},
                   as_is_faces={int(k): v for k, v in head["as_is_faces"].items()})
     try:
-        instances = ({int(p): [float(x) for x in scales]
+        instances = ({int(p): np.asarray(scales, np.float64)
                       for p, scales in head["instances"].items()}, float(head["diagonal"]))
+        if any(scales.ndim != 1 for scales in instances[0].values()):
+            raise ValueError("instance scales are not lists of numbers")
     except (KeyError, ValueError, TypeError, AttributeError) as exc:
         raise ArtefactError(f"{source} is a scene without its instances ({exc})") from None
     if set(instances[0]) != {p.index for p in parts}:

@@ -2,13 +2,18 @@
 is answered by a 4xx whose message is one sentence naming no server path, leaving
 nothing in the data directory, or is built correctly; a scene whose part cannot be
 built fails and stores nothing. The files are those of tests/io/test_hostile_scenes.py.
+What a small file would cost once read (GPU instances, aliased accessors, expanded
+morph targets) is a 413, or built at most 20 times its size; the red team's full-size
+files also go to a real ``serve`` process, its peak RSS read from /proc.
 """
 
 from __future__ import annotations
 
 import re
 import time
+from pathlib import Path
 
+import httpx
 import numpy as np
 import pytest
 from fastapi.testclient import TestClient
@@ -16,13 +21,22 @@ from fastapi.testclient import TestClient
 from lodserver.api.main import create_app
 from lodserver.api.settings import Settings
 
+from ..conftest import glb_chunks
+from ..io import test_gltf
+from ..io.test_gltf import assert_valid
 from ..io.test_hostile_scenes import (
     Glb,
     _custom,
     _morphed,
+    aliased_clips,
+    instanced,
     one_sentence,
     skinned_document,
 )
+from ..server import server_process
+from ..test_scene_export import accessor_values
+
+gltf_validator = test_gltf.gltf_validator    # the session fixture, shared
 
 
 def _client(tmp_path, **overrides):
@@ -135,7 +149,6 @@ HOSTILE = {
     "channel to a missing sampler": (_edit(_set(["animations", 0, "channels", 0, "sampler"],
                                                 4)), "sampler 4"),
     "mesh weights of the wrong count": (_weights(_morphed([2])), "3 morph weights for 2"),
-    "1000 morph targets": (_morphed([1000], size=60), "1000 vertex attributes"),
     "300 custom attributes": (_custom([(f"_X{i}", "SCALAR") for i in range(300)]),
                               "300 vertex attributes"),
 }
@@ -161,6 +174,56 @@ def test_a_hostile_scene_upload_is_a_422_sentence_leaving_nothing(server, case):
     assert "hostile.glb" in message
     assert time.monotonic() - start < 60
     assert _stored(data) == []
+
+
+# what a small upload would cost once read, refused from its declarations (413)
+COSTLY = {
+    "70,000 GPU instances": (instanced(70_000), "69999 GPU instances"),
+    "60 samplers over distinct ranges of one view": (
+        aliased_clips(60, 20_000, distinct=True), "animations, skins and instancing accessors"),
+    "255 targets naming one accessor": (_morphed([255], size=100), "morph targets of mesh 0"),
+    "1000 morph targets": (_morphed([1000], size=60), "morph targets of mesh 0"),
+}
+
+
+@pytest.mark.parametrize("case", list(COSTLY))
+def test_a_costly_scene_upload_is_a_413_sentence_leaving_nothing(server, case):
+    client, data = server
+    glb, match = COSTLY[case]
+    response = _upload(client, glb)
+    assert response.status_code == 413, response.text
+    message = response.json()["message"]
+    one_sentence(message, data, data.parent)
+    assert re.search(match, message) and "hostile.glb" in message, message
+    assert _stored(data) == []
+
+
+def test_aliased_sampler_outputs_are_stored_and_written_once(tmp_path, gltf_validator):
+    """60 samplers whose outputs alias one bufferView: built, the artefact and every
+    scene body at most 20 times the upload (written once each, not 60 times), the
+    GLB valid, its samplers naming one accessor of the same values."""
+    source = aliased_clips(60, 20_000)
+    upload = source.glb()
+    with _client(tmp_path) as client:
+        created = client.post("/meshes", files={"file": ("clips.glb", upload)})
+        assert created.status_code == 202, created.text
+        body = _wait(client, created.json()["id"])
+        assert body["status"] == "ready", body.get("failure")
+        artefacts = [p for p in (tmp_path / "data" / "artefacts").rglob("*") if p.is_file()]
+        assert artefacts and sum(p.stat().st_size for p in artefacts) <= 20 * len(upload)
+        for route, params in (("chain", {"lods": "1,0.5"}),
+                              ("lod", {"format": "glb", "ratio": 0.5})):
+            level = client.get(f"/meshes/{body['id']}/{route}", params=params)
+            assert level.status_code == 200, level.text
+            assert len(level.content) <= 20 * len(upload)
+    assert_valid(gltf_validator, level.content, "the aliased clips")
+    document, binary = glb_chunks(level.content)
+    outputs = {s["output"] for s in document["animations"][0]["samplers"]}
+    assert len(document["animations"][0]["samplers"]) == 60 and len(outputs) == 1
+    first = source.document["animations"][0]["samplers"][0]["output"]
+    view = source.document["bufferViews"][source.document["accessors"][first]["bufferView"]]
+    expected = np.frombuffer(bytes(source.binary), "<f4", 20_000 * 3, view["byteOffset"])
+    assert np.array_equal(accessor_values(document, binary, outputs.pop()).ravel(), expected)
 
 
 def _zero_weights(glb):
@@ -241,3 +304,47 @@ def test_a_part_of_zero_area_faces_is_built_as_it_is(tmp_path):
         assert [(p["name"], p["faces"]) for p in body["parts"]] == [("grid", 32), ("flat", 10)]
         level = client.get(f"/meshes/{body['id']}/lod", params={"format": "glb", "ratio": 0.5})
         assert level.status_code == 200, level.text
+
+
+def _memory_mb(pid: int) -> dict:
+    """VmRSS and VmHWM (peak) of process ``pid``, MiB."""
+    fields = dict(line.split(":", 1) for line in
+                  Path(f"/proc/{pid}/status").read_text().splitlines() if ":" in line)
+    return {key: int(fields[key].split()[0]) // 1024 for key in ("VmRSS", "VmHWM")}
+
+
+def test_the_red_teams_scenes_against_a_real_server(tmp_path):
+    """The red team's files, full size, against a real ``serve`` process: 5M GPU
+    instances and 255 targets naming one accessor refused, 250 sampler outputs
+    aliasing one 12 MB bufferView built; the server's peak RSS grows by less than
+    512 MB over all three, artefact and bodies at most 20 times the upload."""
+    if not Path("/proc/self/status").is_file():
+        pytest.skip("peak RSS is read from /proc")
+    cases = [(instanced(5_000_000), 413, "4999999 GPU instances"),
+             (_morphed([255], size=100), 413, "morph targets of mesh 0"),
+             (aliased_clips(250, 1_000_000), 202, None)]
+    with server_process(tmp_path / "data", timeout=120) as (base, process):
+        before = _memory_mb(process.pid)["VmRSS"]
+        for glb, status, match in cases:
+            upload = glb.glb()
+            response = httpx.post(f"{base}/meshes", files={"file": ("hostile.glb", upload)},
+                                  timeout=300)
+            assert response.status_code == status, response.text
+            if match is not None:
+                assert match in response.json()["message"], response.text
+                continue
+            mesh = response.json()["id"]
+            deadline = time.monotonic() + 300
+            while (body := httpx.get(f"{base}/meshes/{mesh}").json())["status"] not in (
+                    "ready", "failed"):
+                assert time.monotonic() < deadline, "the aliased clips did not build in 300 s"
+                time.sleep(0.5)
+            assert body["status"] == "ready", body.get("failure")
+            artefacts = [p for p in (tmp_path / "data" / "artefacts").rglob("*") if p.is_file()]
+            assert sum(p.stat().st_size for p in artefacts) <= 20 * len(upload)
+            for route, params in (("chain", {"lods": "1,0.5"}),
+                                  ("lod", {"format": "glb", "ratio": 0.5})):
+                served = httpx.get(f"{base}/meshes/{mesh}/{route}", params=params, timeout=300)
+                assert served.status_code == 200 and len(served.content) <= 20 * len(upload)
+        peak = _memory_mb(process.pid)["VmHWM"]
+    assert peak - before < 512, f"the server grew from {before} MB to a peak of {peak} MB"

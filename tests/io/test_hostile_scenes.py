@@ -21,7 +21,7 @@ import time
 import numpy as np
 import pytest
 
-from lodserver.io.limits import LoadLimits
+from lodserver.io.limits import LimitError, LoadLimits
 from lodserver.io.scene import load_scene
 from lodserver.mesh import MeshError
 from lodserver.simplify.poses import scene_poses
@@ -373,7 +373,8 @@ def test_a_thousand_morph_targets_are_refused_before_allocating(tmp_path):
     # 19602 triangles x 3 corners x 3000 floats: 1.4 GB of corner values if allocated
     path = write(tmp_path, _morphed([1000], size=100))
     before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
-    with pytest.raises(MeshError, match="it has 1000 vertex attributes; at most 255") as e:
+    # the server's limits: past the carried-data budget, from the declarations
+    with pytest.raises(MeshError, match="240000000 for the morph targets of mesh 0") as e:
         load_scene(path, limits=LoadLimits())
     one_sentence(str(e.value), tmp_path)
     with pytest.raises(MeshError, match="at most 255"):
@@ -530,3 +531,140 @@ def test_lodserver_export_of_odd_but_valid_scenes_writes_levels(tmp_path, capsys
     scene = load_scene(output)
     assert len(scene.document["meshes"]) >= 2 and np.isfinite(
         scene.meshes[0].positions).all()
+
+
+# ---- what a small file may cost: GPU instances, aliased bytes, expanded targets --------
+def instanced(count: int, *, scale: bool = False) -> Glb:
+    """The plain grid (32 triangles) drawn by one node with ``count`` EXT_mesh_gpu_instancing
+    translations (and scales 1, 2, 3, ... with ``scale``)."""
+    glb = skinned_document(skin=False, animation=False)
+    steps = np.arange(count, dtype=np.float64)
+    attributes = {"TRANSLATION": glb.add(np.column_stack([2 * steps, 0 * steps, 0 * steps]),
+                                         "VEC3")}
+    if scale:
+        attributes["SCALE"] = glb.add(np.repeat(1 + steps[:, None], 3, axis=1), "VEC3")
+    glb.document["nodes"][0]["extensions"] = {
+        "EXT_mesh_gpu_instancing": {"attributes": attributes}}
+    glb.document["extensionsUsed"] = ["EXT_mesh_gpu_instancing"]
+    return glb
+
+
+def aliased_clips(samplers: int, keys: int, *, distinct: bool = False) -> Glb:
+    """The plain grid and ``samplers`` nodes, each animated by its own sampler whose
+    output accessor reads the same bufferView of ``keys`` translations: the same
+    bytes (one accessor identity), or with ``distinct`` each one key further in."""
+    glb = skinned_document(skin=False, animation=False)
+    times = glb.add(np.arange(keys, dtype=np.float64), "SCALAR", min=[0.0],
+                    max=[float(keys - 1)])
+    first = glb.add(np.random.default_rng(0).normal(size=(keys + samplers, 3)), "VEC3")
+    record = dict(glb.document["accessors"][first], count=keys)
+    glb.document["accessors"][first] = record
+    nodes = glb.document["nodes"]
+    outputs = [first]
+    for k in range(1, samplers):
+        glb.document["accessors"].append({**record, "byteOffset": 12 * k if distinct else 0})
+        outputs.append(len(glb.document["accessors"]) - 1)
+    start = len(nodes)
+    nodes.extend({"name": f"moved {k}"} for k in range(samplers))
+    glb.document["scenes"][0]["nodes"].extend(range(start, start + samplers))
+    glb.document["animations"] = [{"samplers": [{"input": times, "output": o} for o in outputs],
+                                   "channels": [{"sampler": k, "target": {
+                                       "node": start + k, "path": "translation"}}
+                                       for k in range(samplers)]}]
+    return glb
+
+
+@pytest.mark.parametrize("in_the_scene", [True, False])
+def test_gpu_instances_count_against_the_instance_limit(tmp_path, in_the_scene):
+    glb = instanced(70_000)
+    if not in_the_scene:        # drawn by no scene, its instances are still derived
+        glb.document["scenes"][0]["nodes"].remove(0)
+    path = write(tmp_path, glb)
+    with pytest.raises(LimitError, match="69999 GPU instances") as e:
+        load_scene(path, root=tmp_path, limits=LoadLimits())
+    one_sentence(str(e.value), tmp_path)
+    # within the limit: loaded, translations alone (12 bytes an instance)
+    assert load_scene(write(tmp_path, instanced(65_000), "within.glb"),
+                      limits=LoadLimits()).meshes[0].face_count == 32
+
+
+def test_gpu_instances_count_against_the_triangle_total(tmp_path):
+    # 5000 instances of 32 triangles: 160,000 placed
+    path = write(tmp_path, instanced(5000))
+    with pytest.raises(LimitError, match="160000 triangles after placing every mesh instance"):
+        load_scene(path, limits=LoadLimits(max_triangles=100_000))
+    assert load_scene(path, limits=LoadLimits(max_triangles=200_000)).meshes[0].face_count == 32
+
+
+def test_instance_scales_are_one_array_per_part_and_match_each_matrix(tmp_path):
+    from lodserver.budget import scene_instances
+    from lodserver.io.gltf import _local_matrix
+
+    count = 60_000
+    scene = load_scene(write(tmp_path, instanced(count, scale=True)), limits=LoadLimits())
+    instances, diagonal = scene_instances(scene)
+    assert isinstance(instances[0], np.ndarray) and instances[0].shape == (count,)
+    assert np.array_equal(instances[0], 1.0 + np.arange(count))
+    # the vectorised transforms are the ones a node's own TRS gives, to the bit
+    chosen = [0, 1, 12_345, count - 1]
+    columns = {name: scene.carried[index][0].astype(np.float64) for name, index in
+               scene.document["nodes"][0]["extensions"]["EXT_mesh_gpu_instancing"][
+                   "attributes"].items()}
+    from lodserver.budget import _instancing_matrices
+    ours = _instancing_matrices(columns, count)[chosen]
+    theirs = np.stack([_local_matrix({n.lower(): columns[n][i].tolist() for n in columns})
+                       for i in chosen])
+    assert np.array_equal(ours, theirs)
+    # the last instance sits at x = 2 (count - 1), scaled by count
+    assert diagonal > 2 * (count - 1)
+
+
+def test_aliased_sampler_outputs_are_read_once(tmp_path):
+    scene = load_scene(write(tmp_path, aliased_clips(60, 20_000)), limits=LoadLimits())
+    outputs = [s["output"] for s in scene.document["animations"][0]["samplers"]]
+    arrays = [scene.carried[o][0] for o in outputs]
+    assert len(set(outputs)) == 60 and all(a is arrays[0] for a in arrays)
+
+
+def test_sixty_outputs_over_distinct_ranges_of_one_view_are_refused(tmp_path):
+    # 60 x 20,000 keys x 12 bytes once read, from a file of 0.5 MB
+    path = write(tmp_path, aliased_clips(60, 20_000, distinct=True))
+    with pytest.raises(LimitError, match="for the animations, skins and instancing accessors"
+                       ) as e:
+        load_scene(path, limits=LoadLimits())
+    one_sentence(str(e.value), tmp_path)
+    assert load_scene(path).carried                 # unbounded: the trusted command line
+
+
+def test_255_targets_naming_one_accessor_are_refused_before_reading(tmp_path):
+    # 10,000 vertices x 255 targets x 3 float64: 61 MB from a file of about 480 KB
+    path = write(tmp_path, _morphed([255], size=100))
+    assert path.stat().st_size < 600_000
+    before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    with pytest.raises(LimitError, match="61200000 for the morph targets of mesh 0") as e:
+        load_scene(path, limits=LoadLimits())
+    one_sentence(str(e.value), tmp_path)
+    assert resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - before < 100_000     # KiB
+
+
+def test_every_shared_scene_loads_within_the_carried_budget(shared_meshes):
+    files = sorted([*shared_meshes.rglob("*.glb"), *shared_meshes.rglob("*.gltf")])
+    assert len(files) >= 7
+    for path in files:
+        try:
+            load_scene(path, root=path.parent, limits=LoadLimits())
+        except LimitError as exc:
+            pytest.fail(f"{path.name}: {exc}")
+        except MeshError as exc:            # SimpleMorph.gltf ships without its buffer
+            assert "is missing" in str(exc), f"{path.name}: {exc}"
+
+
+def test_joints_times_gpu_instances_are_counted(tmp_path):
+    # a skinned node of 65,000 instances: 130,000 joint transforms to derive
+    glb = skinned_document(animation=False)
+    translations = glb.add(np.zeros((65_000, 3)), "VEC3")
+    glb.document["nodes"][0]["extensions"] = {
+        "EXT_mesh_gpu_instancing": {"attributes": {"TRANSLATION": translations}}}
+    path = write(tmp_path, glb)
+    with pytest.raises(LimitError, match="16640000 for the joint transforms of skinned nodes"):
+        load_scene(path, limits=LoadLimits())
