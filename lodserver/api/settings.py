@@ -76,10 +76,14 @@ class Settings(BaseSettings):
         description="The browser viewer's files (default: the checkout's static/ folder, "
         "else the copy installed with the package).")
     heavy_requests: int = Field(2, ge=1, le=64, description="Slots for encoding responses "
-                                "that are in no cache (levels, packets of unprepared records "
-                                "or other bits: one slot; chains: all slots); the peak memory "
-                                "of reads is about this many full-detail json levels, or one "
-                                "chain.")
+                                "that are in no cache (levels, scene levels, chains, packets "
+                                "of unprepared records or other bits); a body takes one slot "
+                                "per heavy_slot_bytes of its estimated size begun, at most "
+                                "all; one of under 1/32 of a slot takes none.")
+    heavy_slot_bytes: int = Field(64 * 2**20, ge=1024, description="Estimated body bytes "
+                                  "one heavy slot stands for: bodies of at most "
+                                  "heavy_requests x this many bytes are encoded at once, or "
+                                  "one larger body alone.")
     heavy_wait_seconds: float = Field(1.0, ge=0, le=60, description="How long a request "
                                       "waits for a slot before a 503 with Retry-After.")
     body_file_bytes: int = Field(8 * 2**20, ge=0, description="Bodies larger than this "
