@@ -83,7 +83,7 @@ class Settings(BaseSettings):
                                 "that are in no cache (levels, scene levels, chains, packets "
                                 "of unprepared records or other bits); a body takes one slot "
                                 "per heavy_slot_bytes of its estimated size begun, at most "
-                                "all; one of under 1/32 of a slot takes none.")
+                                "all; one of at most 1/32 of a slot takes none.")
     heavy_slot_bytes: int = Field(64 * 2**20, ge=1024, description="Estimated body bytes "
                                   "one heavy slot stands for: bodies of at most "
                                   "heavy_requests x this many bytes are encoded at once, or "
