@@ -178,7 +178,8 @@ def main(argv=None) -> int:
     rng = random.Random(args.seed)
     args.out.parent.mkdir(parents=True, exist_ok=True)
     settings = {name: os.environ.get(f"LODSERVER_{name.upper()}") for name in
-                ("heavy_requests", "heavy_wait_seconds", "body_file_bytes", "body_cache_bytes")}
+                ("heavy_requests", "heavy_slot_bytes", "heavy_wait_seconds", "body_file_bytes",
+                 "body_cache_bytes", "loaded_meshes", "loaded_bytes")}
     document = {"machine": machine_info(PACKAGES), "server_settings_env": settings,
                 "results": []}
     with tempfile.TemporaryDirectory(prefix="lodserver-abuse-") as folder:

@@ -1,28 +1,33 @@
 """How a read request gets its body: from memory, from a body file, or encoded
 under the heavy-request limit.
 
-Encoding is what costs memory, above the mesh itself: a chain holds its level
-meshes, the GLB's pieces, then the joined body; a full-detail level as json, ply
-or obj, and a packet from base to full at other bits, hold several times the
-body they make. A large one also takes seconds of CPU. So
+Encoding is what costs memory, and an encoder's peak is a small multiple of the
+body it makes (the level's arrays, the format's pieces, then the joined body).
+What a body weighs is therefore its estimated size in bytes
+(``service.levels``: ``level_bytes``, ``packet_bytes``, ``chain_bytes``,
+``scene_bytes``), from counts, attribute widths and, for a scene, the bytes it
+carries as they are (animations, skins, instancing), never from faces alone. So
 
 1. a body already in the memory cache or in a body file is sent at once, never
    waiting for anything;
 2. otherwise one request per body encodes it (the others asking for the same
    body wait for that one, up to ``heavy_wait_seconds``, instead of encoding it
-   again), holding slots of a :class:`HeavyLimit` of ``heavy_requests`` slots: a
-   level or a packet takes one, a chain all of them. A request that cannot get
-   its slots within ``heavy_wait_seconds`` is answered 503 with ``Retry-After``;
+   again), holding ``ceil(estimate / heavy_slot_bytes)`` slots of a
+   :class:`HeavyLimit` of ``heavy_requests`` slots, at most all of them. A request
+   that cannot get its slots within ``heavy_wait_seconds`` is answered 503 with
+   ``Retry-After``;
 3. a body above ``body_file_bytes`` is written to a body file, dropped from
    memory (and the freed heap given back to the system, :func:`trim_memory`), and
    streamed from the file; smaller ones go to the memory cache.
 
-Work too small to matter (levels, chains of at most :data:`LIGHT_FACES` faces in
-all; packets cut from prepared records) is done without the limit. Reads
-therefore hold at most ``max(heavy_requests * level, chain)`` bytes of encoder
-memory at once, where *level* and *chain* are the peaks of the largest such
-request the server's meshes allow, plus the memory cache (128 MiB) and the light
-work of the requests in flight.
+A body estimated at no more than ``heavy_slot_bytes / LIGHT_SHARE`` (light work:
+small levels and chains, packets cut from prepared records) is made without the
+limit. Reads therefore encode at once bodies of at most ``heavy_requests *
+heavy_slot_bytes`` estimated bytes in all, or one larger body alone, plus the
+light work of the requests in flight; encoder memory is that times the
+encoders' peak factor, plus the memory cache (128 MiB). That holds for a scene
+whatever its triangle count: a level of a few triangles carrying hundreds of
+megabytes of animation weighs those megabytes.
 """
 
 from __future__ import annotations
@@ -44,10 +49,9 @@ from .headers import add_security_headers
 
 log = logging.getLogger(__name__)
 
-# Faces below which encoding a level (or a whole chain) is light work, done
-# without the limit: a json level of 65k faces is about 2 MB, a small fraction
-# of what a heavy request holds, and quick to encode.
-LIGHT_FACES = 65_536
+# A body of at most a slot's 1/LIGHT_SHARE is light work, made without the limit:
+# at the default 64 MiB slots, 2 MiB (the json form of about 60k faces).
+LIGHT_SHARE = 32
 
 
 class ServerBusy(HTTPException):
@@ -59,19 +63,40 @@ class ServerBusy(HTTPException):
 
 
 class HeavyLimit:
-    """At most ``slots`` slots of encoding work held at once.
+    """At most ``slots`` slots of ``slot_bytes`` bytes of encoding held at once.
 
-    A weighted counter rather than a ``BoundedSemaphore``: a chain takes every
-    slot at once, and taking several slots of a semaphore one by one lets two
-    chains each hold one and wait for the other until both time out.
+    A weighted counter rather than a ``BoundedSemaphore``: a large body takes
+    several slots at once, and taking several slots of a semaphore one by one
+    lets two such bodies each hold some and wait for the other until both time out.
+
+    Parameters
+    ----------
+    slots : int
+        ``heavy_requests``.
+    slot_bytes : int
+        ``heavy_slot_bytes``: the estimated body bytes one slot stands for.
     """
 
-    def __init__(self, slots: int):
+    def __init__(self, slots: int, slot_bytes: int = 64 * 2**20):
         if slots < 1:
             raise ValueError(f"heavy_requests must be at least 1, got {slots}")
-        self.slots = slots
+        if slot_bytes < 1:
+            raise ValueError(f"heavy_slot_bytes must be at least 1, got {slot_bytes}")
+        self.slots, self.slot_bytes = slots, slot_bytes
         self._free = slots
         self._changed = threading.Condition()
+
+    @property
+    def budget(self) -> int:
+        """Estimated body bytes all slots stand for: a body this large takes them all."""
+        return self.slots * self.slot_bytes
+
+    def weight(self, estimate: int) -> int:
+        """Slots for a body of ``estimate`` bytes: 0 (light) up to a slot's
+        1/:data:`LIGHT_SHARE`, else one per ``slot_bytes`` begun, at most all."""
+        if estimate <= self.slot_bytes // LIGHT_SHARE:
+            return 0
+        return min(self.slots, -(-int(estimate) // self.slot_bytes))
 
     @property
     def free(self) -> int:
@@ -157,16 +182,20 @@ class Bodies:
         return self._state.cache
 
     def respond(self, key: str, make: Callable[[], bytes | memoryview], *, media_type: str,
-                filename: str | None = None, weight: int = 1) -> Response:
+                estimate: Callable[[], int], filename: str | None = None) -> Response:
         """The response for the body named ``key`` (an ETag), made by ``make()``
-        unless a cache has it. ``weight``: slots ``make`` needs (0: light work,
-        done at once)."""
+        unless a cache has it. ``estimate()``: the body's estimated bytes, asked
+        only when it must be made; they set the slots ``make`` holds
+        (:meth:`HeavyLimit.weight`; 0: light work, done at once)."""
         headers = immutable_headers(key, filename)
         deadline = time.monotonic() + self.wait
+        weight = None
         while True:
             found = self._cached(key, media_type, headers)
             if found is not None:
                 return found
+            if weight is None:
+                weight = self.heavy.weight(estimate())
             if weight <= 0:
                 return self._keep(key, make, media_type, headers)
             flight, leading = self._join(key)
@@ -233,7 +262,8 @@ BodiesDep = Annotated[Bodies, Depends(get_bodies)]
 def add_bounded_reads(app: FastAPI, settings) -> None:
     """Body files, the heavy-request limit and the security headers, for ``app``."""
     files = BodyFiles(settings.data_dir / "bodies", settings.body_cache_bytes)
-    app.state.bodies = Bodies(app.state, files, HeavyLimit(settings.heavy_requests),
+    app.state.bodies = Bodies(app.state, files,
+                              HeavyLimit(settings.heavy_requests, settings.heavy_slot_bytes),
                               file_above=settings.body_file_bytes,
                               wait=settings.heavy_wait_seconds)
     add_security_headers(app, settings)

@@ -48,6 +48,7 @@ def open_store(settings: Settings) -> LocalStore:
     """The store the settings name: the data directory, with the catalogue and
     blobs of ``LODSERVER_CATALOG_URL`` and ``LODSERVER_STORE_URL`` when set."""
     return LocalStore(settings.data_dir, loaded_meshes=settings.loaded_meshes,
+                      loaded_bytes=settings.loaded_bytes,
                       catalog=settings.catalog_url, blobs=settings.store_url,
                       cache_bytes=settings.cache_bytes)
 

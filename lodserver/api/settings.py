@@ -11,7 +11,7 @@ from functools import lru_cache
 from pathlib import Path
 from typing import Annotated
 
-from pydantic import Field, SecretStr, field_validator
+from pydantic import Field, SecretStr, field_validator, model_validator
 from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict
 
 from ..io.limits import DEFAULT_MAX_TRIANGLES
@@ -19,7 +19,7 @@ from ..service.cache import DEFAULT_CACHE_BYTES
 from ..service.catalog import redact_url
 from ..service.jobs import LEASE_SECONDS, POLL_SECONDS
 from ..service.parsing import PARSE_MEMORY_BYTES
-from ..service.store import LOADED_CACHE_SIZE
+from ..service.store import LOADED_BYTES_PER_TRIANGLE, LOADED_CACHE_SIZE
 
 
 class Settings(BaseSettings):
@@ -63,10 +63,14 @@ class Settings(BaseSettings):
     parse_memory_bytes: int = Field(PARSE_MEMORY_BYTES, ge=2**30, description="Address space "
                                     "of each parse worker, in bytes (its imports take about "
                                     "0.5 GB); a file needing more is refused with 413.")
-    loaded_meshes: int = Field(LOADED_CACHE_SIZE, ge=1, le=4096, description="Progressive "
-                               "meshes kept in memory (least recently used dropped); each "
-                               "holds its arrays and packet records: 183 MB for a mesh of "
-                               "1.1M faces.")
+    loaded_meshes: int = Field(LOADED_CACHE_SIZE, ge=1, le=4096, description="Most "
+                               "progressive meshes and scenes kept in memory (least recently "
+                               "used dropped); loaded_bytes bounds their bytes too.")
+    loaded_bytes: int | None = Field(None, ge=2**20, description="Most bytes of loaded "
+                                     "meshes and scenes kept in memory (their arrays, carried "
+                                     "data and packet records; least recently used dropped, "
+                                     "the one in use kept); unset: what a mesh at "
+                                     "max_triangles takes, at least 64 MiB.")
     warm_kernels: bool = Field(True, description="Load the numba kernels at start-up, "
                                "before the first build needs them.")
     static_dir: Path = Field(default_factory=lambda: next(
@@ -76,10 +80,14 @@ class Settings(BaseSettings):
         description="The browser viewer's files (default: the checkout's static/ folder, "
         "else the copy installed with the package).")
     heavy_requests: int = Field(2, ge=1, le=64, description="Slots for encoding responses "
-                                "that are in no cache (levels, packets of unprepared records "
-                                "or other bits: one slot; chains: all slots); the peak memory "
-                                "of reads is about this many full-detail json levels, or one "
-                                "chain.")
+                                "that are in no cache (levels, scene levels, chains, packets "
+                                "of unprepared records or other bits); a body takes one slot "
+                                "per heavy_slot_bytes of its estimated size begun, at most "
+                                "all; one of at most 1/32 of a slot takes none.")
+    heavy_slot_bytes: int = Field(64 * 2**20, ge=1024, description="Estimated body bytes "
+                                  "one heavy slot stands for: bodies of at most "
+                                  "heavy_requests x this many bytes are encoded at once, or "
+                                  "one larger body alone.")
     heavy_wait_seconds: float = Field(1.0, ge=0, le=60, description="How long a request "
                                       "waits for a slot before a 503 with Retry-After.")
     body_file_bytes: int = Field(8 * 2**20, ge=0, description="Bodies larger than this "
@@ -92,6 +100,12 @@ class Settings(BaseSettings):
     @classmethod
     def _empty_token_is_none(cls, value):
         return None if value in ("", None) else value
+
+    @model_validator(mode="after")
+    def _loaded_bytes_by_triangles(self):
+        if self.loaded_bytes is None:       # room for a mesh at the limit, or many small
+            self.loaded_bytes = max(LOADED_BYTES_PER_TRIANGLE * self.max_triangles, 2**26)
+        return self
 
     @field_validator("catalog_url", "store_url", mode="before")
     @classmethod

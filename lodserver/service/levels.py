@@ -31,7 +31,7 @@ import orjson
 from ..io.glb import level_glb
 from ..io import encode_mesh
 from ..mesh import MeshError
-from ..packets import check_bits, grid_of, quantized_level
+from ..packets import MAX_BITS, check_bits, default_bits, grid_of, quantized_level
 from ..progressive.mesh import ProgressiveMesh
 
 FORMATS = {"glb": "model/gltf-binary", "obj": "model/obj", "ply": "application/octet-stream",
@@ -153,3 +153,113 @@ def json_in_slices(document: dict, *, copy: bool = True) -> bytes | memoryview:
         out += b"]"
     out += rest
     return bytes(out) if copy else memoryview(out).toreadonly()
+
+
+# ---- what a body weighs --------------------------------------------------------------
+# Estimates of a body's bytes, from counts and widths only (no encoding), for the
+# heavy-request limit (api/bodies.py): an encoder's peak memory is a small multiple
+# of the body it makes. They err on the large side: every number is given its
+# widest text, every wedge its own vertex row.
+
+# Bytes a document's fixed part may take: keys, grid, layout, materials link.
+_HEAD_BYTES = 4096
+# OBJ writes each coordinate with %.17g: at most 24 characters and a separator.
+_OBJ_FLOAT = 25
+# PLY (binary, as trimesh writes it): float64 x, y, z; a count byte and 3 int32.
+_PLY_VERTEX, _PLY_FACE = 24, 13
+
+
+def _text_int(largest: int) -> int:
+    """Bytes of a non-negative integer up to ``largest`` in JSON or OBJ text, with
+    its separator (and room for a sign)."""
+    return len(str(max(int(largest), 1))) + 2
+
+
+def level_bytes(pm: ProgressiveMesh, level: int, file_type: str,
+                bits: int | None = None) -> int:
+    """The estimated size of :func:`encode_level` ``(pm, level, file_type=...)``, in
+    bytes: close to it for large levels, above it for most (a GLB of many
+    materials repeats the vertices its materials share, a little more).
+
+    Parameters
+    ----------
+    pm : ProgressiveMesh
+    level : int
+        A level of ``pm`` (a vertex count).
+    file_type : str
+        One of :data:`FORMATS`.
+    bits : int, optional
+        The json form's position grid bits (default: the mesh's).
+
+    Returns
+    -------
+    int
+        Bytes: counts (vertices ``v``, faces ``f``, wedges ``w`` of ``d``
+        attribute columns) times what a format writes for each, plus the images.
+    """
+    v, f = int(level), int(pm.faces_at_level(level))
+    width = sum(int(x) for _, x in pm.attribute_layout)
+    w = int(pm.wedge_counts[level - pm.base_vertices]) if pm.has_attributes else 0
+    if file_type == "json":
+        cell = _text_int(2 ** (bits or default_bits(pm)))
+        size = v * (3 * cell + 2) + f * (3 * _text_int(v) + 2)
+        if pm.has_attributes:
+            size += w * (width * _text_int(2 ** MAX_BITS) + 2) + f * (3 * _text_int(w) + 2)
+        if pm.face_material is not None:
+            size += f * (_text_int(pm.materials.count if pm.materials else 0) + 1)
+        return _HEAD_BYTES + size
+    if file_type == "obj":
+        size = v * (3 * _OBJ_FLOAT + 3) + f * (3 * 3 * _text_int(max(v, w)) + 3)
+        return _HEAD_BYTES + size + w * ((3 + 2) * _OBJ_FLOAT + 6)      # vt and vn lines
+    if file_type == "ply":
+        return _HEAD_BYTES + v * _PLY_VERTEX + f * _PLY_FACE
+    return _HEAD_BYTES + _glb_geometry(pm, level) + _images(pm.materials)
+
+
+def _glb_geometry(pm: ProgressiveMesh, level: int) -> int:
+    """Bytes of a level's geometry in a GLB: a float32 row per vertex or wedge
+    (position and attribute columns), uint32 indices."""
+    width = sum(int(x) for _, x in pm.attribute_layout)
+    w = int(pm.wedge_counts[level - pm.base_vertices]) if pm.has_attributes else 0
+    return max(int(level), w) * 4 * (3 + width) + int(pm.faces_at_level(level)) * 12
+
+
+def _images(materials) -> int:
+    return sum(len(x) for x in materials.images) if materials is not None else 0
+
+
+def packet_bytes(pm: ProgressiveMesh, start: int, to: int, bits: int | None = None) -> int:
+    """The estimated working size of encoding the packet ``start -> to`` afresh, in
+    bytes: its encoder holds the quantized state of its finer end, as the json form
+    of that level does, so it weighs that json form."""
+    return level_bytes(pm, max(start, to), "json", bits)
+
+
+def chain_bytes(pm: ProgressiveMesh, levels) -> int:
+    """The estimated size of the GLB chain of ``levels`` of ``pm``, in bytes: each
+    level's geometry, the images once."""
+    return (_HEAD_BYTES + sum(_glb_geometry(pm, level) for level in levels)
+            + _images(pm.materials))
+
+
+def scene_bytes(asset, chain: list) -> int:
+    """The estimated size of a scene's GLB holding, for every level set in ``chain``
+    (part index -> level; one for a scene level, several for its chain), each part
+    at its level, in bytes: the parts' geometry, plus what the scene carries as it
+    is (animations, skins, instancing, meshes kept without levels: its accessors'
+    bytes), the images and the document.
+
+    ``asset`` is a ``scenes.SceneAsset``.
+    """
+    pms = asset.pms
+    geometry = sum(_glb_geometry(pms[p], level) for levels in chain
+                   for p, level in levels.items())
+    document = len(orjson.dumps(asset.scene.document))
+    return (_HEAD_BYTES + document + geometry + _images(asset.materials)
+            + carried_bytes(asset.scene.carried))
+
+
+def carried_bytes(carried: dict) -> int:
+    """Bytes of a scene's carried accessors (``Scene.carried``: index -> (values,
+    record, role)) as a GLB writes them: each accessor's values."""
+    return sum(int(np.asarray(values).nbytes) for values, _, _ in carried.values())

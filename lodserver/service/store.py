@@ -33,7 +33,8 @@ sources or artefacts no row names. An artefact that fails its checks when
 loaded is detected once: the mesh is marked failed with the reason and the
 file moved to ``quarantine/``, so later requests get that reason without a re-read.
 
-A loaded progressive mesh is kept in memory (bounded), and served again only
+A loaded progressive mesh or scene is kept in memory (bounded by count and by
+bytes, ``loaded.py``), and served again only
 after the catalogue row says the mesh is still ready with the same digest
 (one indexed read), so a delete or failure on another server is seen at once.
 
@@ -57,19 +58,21 @@ import tempfile
 import threading
 import time
 from abc import ABC, abstractmethod
-from collections import OrderedDict
 from pathlib import Path
 
 from ..io.files import write_atomic
+from ..io.limits import DEFAULT_MAX_TRIANGLES
 from ..progressive import ArtefactError, load_progressive, save_progressive
 from ..progressive.mesh import ProgressiveMesh
 from .blobs import Blobs, BlobNotFoundError, LocalBlobs, open_blobs, sha256_file
 from .cache import DEFAULT_CACHE_BYTES, ArtefactCache
 from .catalog import MAX_LOST, Catalog, Claim, MeshRecord, Status, new_owner, open_catalog
 from .errors import StorageFullError, StoreError, is_disk_full
+from .loaded import LOADED_BYTES_PER_TRIANGLE, LoadedArtefacts
 from .scenes import SceneAsset, artefact_summary, load_artefact, save_asset
 
-__all__ = ["CORRUPT_ARTEFACT", "ID_PATTERN", "LOADED_CACHE_SIZE", "Claim", "LeaseLostError",
+__all__ = ["CORRUPT_ARTEFACT", "ID_PATTERN", "LOADED_BYTES", "LOADED_BYTES_PER_TRIANGLE",
+           "LOADED_CACHE_SIZE", "Claim", "LeaseLostError",
            "LocalStore", "MeshRecord", "NotReadyError", "SourceLostError", "Status",
            "StorageFullError", "Store", "StoreError", "UnknownMeshError", "check_id",
            "is_disk_full"]
@@ -77,10 +80,12 @@ __all__ = ["CORRUPT_ARTEFACT", "ID_PATTERN", "LOADED_CACHE_SIZE", "Claim", "Leas
 log = logging.getLogger(__name__)
 
 ID_PATTERN = re.compile(r"^[A-Za-z0-9_-]{22}$")
-# Loaded progressive meshes kept in memory by default: serving a level must not
-# reread the file. Each holds its arrays and, once packets were asked for, its
-# encoded records: about 170 bytes per triangle (``io.limits``).
+# Loaded progressive meshes and scenes kept in memory by default: serving a level
+# must not reread the file. Each holds its arrays and, once packets were asked
+# for, its encoded records; what bounds them is their bytes (``loaded.py``): by
+# default room for one mesh at the default triangle limit.
 LOADED_CACHE_SIZE = 8
+LOADED_BYTES = LOADED_BYTES_PER_TRIANGLE * DEFAULT_MAX_TRIANGLES
 
 # The failure of a mesh whose artefact failed its checks when it was loaded.
 CORRUPT_ARTEFACT = "its stored artefact is corrupt"
@@ -256,7 +261,9 @@ class LocalStore(Store):
         The data directory; created if absent; locked while the store is open
         (:class:`StoreError` if another process has it).
     loaded_meshes : int
-        Progressive meshes kept in memory.
+        Most progressive meshes and scenes kept in memory.
+    loaded_bytes : int
+        Most bytes of them kept (``loaded.LoadedArtefacts``).
     catalog : Catalog or str, optional
         The catalogue or its URL (``catalog.open_catalog``); default SQLite in ``root``.
     blobs : Blobs or str, optional
@@ -266,11 +273,12 @@ class LocalStore(Store):
     """
 
     def __init__(self, root, *, loaded_meshes: int = LOADED_CACHE_SIZE,
+                 loaded_bytes: int = LOADED_BYTES,
                  catalog: Catalog | str | None = None, blobs: Blobs | str | None = None,
                  cache_bytes: int = DEFAULT_CACHE_BYTES):
-        if loaded_meshes < 1:
-            raise ValueError(f"loaded_meshes must be at least 1, got {loaded_meshes}")
-        self.loaded_meshes = loaded_meshes
+        # id -> the artefact at a digest: served again only while the row has it
+        self._loaded = LoadedArtefacts(count=loaded_meshes, nbytes=loaded_bytes)
+        self.loaded_meshes, self.loaded_bytes = loaded_meshes, loaded_bytes
         # absolute, so that the paths scrubbed from error messages are the ones used
         self.root = Path(root).absolute()
         self.tmp = self.root / "tmp"
@@ -299,8 +307,6 @@ class LocalStore(Store):
         self._cache = None if self.local_files else ArtefactCache(self.root / "cache",
                                                                   cache_bytes)
         self._lock = threading.RLock()
-        # id -> (digest, pm): served again only while the row has that digest
-        self._loaded: OrderedDict[str, tuple[str, ProgressiveMesh]] = OrderedDict()
         self._loading: dict[str, threading.Lock] = {}
         self._sweep()
 
@@ -426,8 +432,7 @@ class LocalStore(Store):
         record = self.catalog.delete(mesh_id=check_id(mesh_id))
         if record is None:
             raise UnknownMeshError(mesh_id)
-        with self._lock:
-            self._loaded.pop(mesh_id, None)
+        self._loaded.pop(mesh_id)
         # the row is gone first: a server loading this mesh now finds no row, never
         # a row without its files. The mesh is gone whatever happens to its files.
         keys = [source_key(record)]
@@ -530,10 +535,9 @@ class LocalStore(Store):
         # deleted or failed the mesh since it was loaded here.
         record = self._row(mesh_id)
         if record.status is not Status.READY:
-            with self._lock:
-                self._loaded.pop(mesh_id, None)
+            self._loaded.pop(mesh_id)
             raise NotReadyError(record)
-        cached = self._cached(record)
+        cached = self._loaded.get(mesh_id, record.digest)
         if cached is not None:
             return cached
         with self._lock:
@@ -542,25 +546,14 @@ class LocalStore(Store):
         # one object, and with it what is cached on it (its packet records).
         with loading:
             try:
-                pm = self._cached(record)
+                pm = self._loaded.get(mesh_id, record.digest)
                 if pm is None:
                     pm = self._read_artefact(record)
-                    with self._lock:
-                        self._loaded[mesh_id] = (record.digest, pm)
-                        while len(self._loaded) > self.loaded_meshes:
-                            self._loaded.popitem(last=False)
+                    self._loaded.put(mesh_id, record.digest, pm)
             finally:
                 with self._lock:
                     self._loading.pop(mesh_id, None)
         return pm
-
-    def _cached(self, record: MeshRecord) -> ProgressiveMesh | None:
-        with self._lock:
-            entry = self._loaded.get(record.id)
-            if entry is None or entry[0] != record.digest:
-                return None
-            self._loaded.move_to_end(record.id)
-            return entry[1]
 
     def _read_artefact(self, record: MeshRecord) -> ProgressiveMesh:
         """Decode a ready mesh's artefact; a missing or corrupt one fails the mesh

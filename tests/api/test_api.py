@@ -14,6 +14,7 @@ from hypothesis import strategies as st
 
 from lodserver.api.main import create_app
 from lodserver.api.settings import Settings
+from lodserver.service.store import LOADED_BYTES_PER_TRIANGLE
 from lodserver.io import load_mesh
 from lodserver import packets
 from lodserver.packets import apply_packet, state_from_json
@@ -456,5 +457,17 @@ def test_loaded_meshes_setting_reaches_the_store(tmp_path, monkeypatch):
     with _client(tmp_path, loaded_meshes=2) as client:
         assert client.app.state.store.loaded_meshes == 2
     monkeypatch.setenv("LODSERVER_LOADED_MESHES", "0")
+    with pytest.raises(ValueError):
+        Settings(data_dir=tmp_path / "data")
+
+
+def test_loaded_bytes_setting_defaults_to_a_mesh_at_the_triangle_limit(tmp_path, monkeypatch):
+    assert Settings(data_dir=tmp_path / "data", max_triangles=10**7).loaded_bytes == \
+        LOADED_BYTES_PER_TRIANGLE * 10**7
+    assert Settings(data_dir=tmp_path / "data", max_triangles=100).loaded_bytes == 2**26
+    monkeypatch.setenv("LODSERVER_LOADED_BYTES", str(300 * 2**20))
+    with _client(tmp_path) as client:
+        assert client.app.state.store.loaded_bytes == 300 * 2**20
+    monkeypatch.setenv("LODSERVER_LOADED_BYTES", "1000")
     with pytest.raises(ValueError):
         Settings(data_dir=tmp_path / "data")

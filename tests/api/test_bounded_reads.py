@@ -16,6 +16,7 @@ from lodserver.api import caching
 from lodserver.api.main import create_app
 from lodserver.api.routes import lods, materials
 from lodserver.api.settings import Settings
+from lodserver.service.levels import chain_bytes, level_bytes
 
 from ..conftest import headless_chromium
 from ..meshes import DATA, textured_spot_glb
@@ -188,9 +189,13 @@ def test_json_written_in_slices_is_the_bytes_orjson_writes_whole():
 
 
 # ---- the heavy-request limit ---------------------------------------------------------
-def test_heavy_requests_past_the_limit_are_503_with_retry_after(serve, monkeypatch):
-    monkeypatch.setattr(lods, "LIGHT_FACES", 0)    # spot is small: make its levels heavy
-    client, mesh_id, _ = serve(heavy_requests=1, heavy_wait_seconds=0.2, body_file_bytes=1024)
+# spot is small: slots of 1 KiB make every body of it heavy (light: at most 32 bytes)
+TINY_SLOTS = 1024
+
+
+def test_heavy_requests_past_the_limit_are_503_with_retry_after(serve):
+    client, mesh_id, _ = serve(heavy_requests=1, heavy_wait_seconds=0.2, body_file_bytes=1024,
+                               heavy_slot_bytes=TINY_SLOTS)
     cached = client.get(f"/meshes/{mesh_id}/lod", params={"vertices": 500})
     filed = client.get(f"/meshes/{mesh_id}/chain")
     heavy = client.app.state.bodies.heavy
@@ -216,9 +221,9 @@ def test_heavy_requests_past_the_limit_are_503_with_retry_after(serve, monkeypat
     assert heavy.free == 1
 
 
-def test_a_request_waits_briefly_for_a_slot(serve, monkeypatch):
-    monkeypatch.setattr(lods, "LIGHT_FACES", 0)
-    client, mesh_id, _ = serve(heavy_requests=1, heavy_wait_seconds=5)
+def test_a_request_waits_briefly_for_a_slot(serve):
+    client, mesh_id, _ = serve(heavy_requests=1, heavy_wait_seconds=5,
+                               heavy_slot_bytes=TINY_SLOTS)
     heavy = client.app.state.bodies.heavy
     held, go = threading.Event(), threading.Event()
 
@@ -246,8 +251,9 @@ def test_concurrent_requests_for_one_body_encode_it_once(serve, monkeypatch):
         return real(*args)
 
     monkeypatch.setattr(lods, "encode_lod_chain", slow)
-    monkeypatch.setattr(lods, "LIGHT_FACES", 0)     # light work is not shared, just done
-    client, mesh_id, _ = serve(heavy_requests=2, heavy_wait_seconds=10)
+    # light work is not shared, just done: tiny slots make the chain heavy
+    client, mesh_id, _ = serve(heavy_requests=2, heavy_wait_seconds=10,
+                               heavy_slot_bytes=TINY_SLOTS)
     results = []
 
     def get():
@@ -262,12 +268,26 @@ def test_concurrent_requests_for_one_body_encode_it_once(serve, monkeypatch):
     assert len({r.content for r in results}) == 1 and len(calls) == 1
 
 
-def test_chains_take_every_slot(serve, monkeypatch):
-    monkeypatch.setattr(lods, "LIGHT_FACES", 0)
-    client, mesh_id, _ = serve(heavy_requests=3, heavy_wait_seconds=0.2)
-    with client.app.state.bodies.heavy.hold(1, timeout=0):    # one level encoding
-        assert client.get(f"/meshes/{mesh_id}/lod", params={"vertices": 800}).status_code == 200
-        assert client.get(f"/meshes/{mesh_id}/chain").status_code == 503
+def test_bodies_take_slots_by_their_estimated_bytes(serve):
+    """A level estimated at one slot's bytes takes one slot; a chain estimated
+    past every slot's bytes takes them all, and waits while one is held."""
+    client, mesh_id, _ = serve()
+    pm = client.app.state.store.load(mesh_id=mesh_id)
+    level, ratios = pm.level_for(ratio=0.1), [1.0, 0.5, 0.25, 0.125]
+    slot = level_bytes(pm, level, "json")
+    chain = chain_bytes(pm, [pm.level_for(ratio=r) for r in ratios])
+    assert chain > 3 * slot                     # so the chain needs all 3 slots
+    client, mesh_id, _ = serve(heavy_requests=3, heavy_wait_seconds=0.2, heavy_slot_bytes=slot)
+    heavy = client.app.state.bodies.heavy
+    assert heavy.weight(slot) == 1 and heavy.weight(chain) == 3
+    assert heavy.weight(slot // 32) == 0       # light: no slot at all
+    with heavy.hold(2, timeout=0):             # two slots busy: one left, for the level
+        assert client.get(f"/meshes/{mesh_id}/lod", params={"vertices": level}).status_code \
+            == 200
+        chained = client.get(f"/meshes/{mesh_id}/chain",
+                             params={"lods": ",".join(map(str, ratios))})
+        assert chained.status_code == 503 and chained.headers["retry-after"] == "1"
+    assert heavy.free == 3
 
 
 # ---- packets at other bits -------------------------------------------------------------

@@ -12,6 +12,11 @@ from lodserver.service.store import (
     check_id,
 )
 
+from lodserver.io.scene import Scene
+from lodserver.packets import encode_records
+from lodserver.service.loaded import fixed_nbytes, loaded_nbytes, records_nbytes
+from lodserver.service.scenes import SceneAsset, ScenePart
+
 from ..conftest import record_calls
 from ..meshes import progressive
 
@@ -147,6 +152,64 @@ def test_loaded_meshes_are_bounded(tmp_path):
     store.load(mesh_id=ids[1])                  # drops the first from memory
     assert store.load(mesh_id=ids[0]) is not first
     store.close()
+
+
+def _two_meshes(store, tmp_path, pms):
+    ids = []
+    for name, pm in zip("ab", pms):
+        record = store.create(name=name, source=_source(tmp_path, f"{name}.obj"), file_type="obj",
+                              options={})
+        store.put_artefact(mesh_id=record.id, pm=pm)
+        ids.append(record.id)
+    return ids
+
+
+def test_loaded_meshes_are_bounded_by_bytes(tmp_path):
+    size = loaded_nbytes(progressive("grid"))
+    # room for one grid and a half: the second load drops the first
+    store = LocalStore(tmp_path / "data", loaded_meshes=8, loaded_bytes=size * 3 // 2)
+    ids = _two_meshes(store, tmp_path, [progressive("grid"), progressive("grid")])
+    first = store.load(mesh_id=ids[0])
+    assert loaded_nbytes(first) == size and store._loaded.held == size
+    assert store.load(mesh_id=ids[0]) is first
+    store.load(mesh_id=ids[1])
+    assert ids[0] not in store._loaded and store._loaded.held == size
+    assert store.load(mesh_id=ids[0]) is not first
+    store.close()
+    # one mesh past the bound alone is still kept: it is the one in use
+    store = LocalStore(tmp_path / "data", loaded_bytes=size // 2)
+    assert store.load(mesh_id=ids[1]) is store.load(mesh_id=ids[1])
+    store.close()
+
+
+def test_packet_records_count_once_encoded(tmp_path):
+    """Records encoded after a mesh is kept are measured when it is used next: the
+    bytes then pass the bound and the least recently used mesh is dropped."""
+    size = loaded_nbytes(progressive("grid"))
+    store = LocalStore(tmp_path / "data", loaded_bytes=2 * size + 1)
+    ids = _two_meshes(store, tmp_path, [progressive("grid"), progressive("grid")])
+    first = store.load(mesh_id=ids[0])
+    store.load(mesh_id=ids[1])
+    assert len(store._loaded) == 2 and store._loaded.held == 2 * size
+    encode_records(first)
+    assert records_nbytes(first) > 1
+    assert store.load(mesh_id=ids[0]) is first          # measured again: too many bytes
+    assert ids[1] not in store._loaded
+    assert store._loaded.held == size + records_nbytes(first)
+    store.close()
+
+
+def test_a_scene_counts_its_carried_bytes_once_however_aliased():
+    pm = progressive("grid")
+    values = np.zeros((250_000, 4), np.float32)         # 4 MB
+    carried = {0: (values, {}, "OTHER"), 1: (values, {}, "OTHER"),
+               2: (values[:10], {}, "OTHER")}          # a view inside the first
+    asset = SceneAsset(Scene({"asset": {"version": "2.0"}}, carried=carried),
+                       [ScenePart(0, 0, "grid", [0], pm)])
+    alone = fixed_nbytes(pm)
+    assert fixed_nbytes(asset) - alone - values.nbytes < 1000     # the document's JSON
+    asset.scene.carried[3] = (values.copy(), {}, "OTHER")
+    assert fixed_nbytes(asset) - alone - 2 * values.nbytes < 1000
 
 
 def test_an_artefact_stored_before_keys_named_digests_is_renamed_and_served(tmp_path):

@@ -1,8 +1,9 @@
 """Levels of detail and the vsplit packets between them (cacheable, by version).
 
 Bodies come from ``Bodies`` (``api/bodies.py``): from memory or a body file when
-encoded before, else encoded under the heavy-request limit (503 when it is
-taken), large ones written to a body file and streamed from it.
+encoded before, else encoded under the heavy-request limit, weighed by its
+estimated bytes (503 when its slots are taken), large ones written to a body
+file and streamed from it.
 
 Every route takes ``v``, the artefact's version as ``GET /meshes/{id}`` hands
 it out in its URLs: with it a response is cacheable for a year by any cache (a
@@ -21,13 +22,17 @@ from ...pipeline import DEFAULT_LODS, lod_chain, parse_lods
 from ...service.levels import (
     FORMATS,
     LevelError,
+    chain_bytes,
     check_level,
     checked_bits,
     encode_level,
+    level_bytes,
+    packet_bytes,
     resolve_level,
+    scene_bytes,
 )
 from ...service.scenes import SceneAsset, scene_chain_glb, scene_glb, scene_levels_for
-from ..bodies import LIGHT_FACES, BodiesDep
+from ..bodies import BodiesDep
 from ..caching import (
     VersionQuery,
     etag_for,
@@ -104,7 +109,7 @@ def level_response(pm, digest: str, policy: str, request: Request, bodies, *, me
         media_type=FORMATS[format],
         filename=None if format == "json" else
         f"{mesh_id}-{'' if part is None else f'part{part}-'}{level}.{format}",
-        weight=int(pm.faces_at_level(level) > LIGHT_FACES)), policy)
+        estimate=lambda: level_bytes(pm, level, format, bits)), policy)
 
 
 @router.get("/{mesh_id}/splits", responses={**_ERRORS, 200: {"content": {
@@ -145,7 +150,8 @@ def splits_response(pm, digest: str, policy: str, request: Request, bodies, *, s
     light = start == to or (bits is None and records_ready(pm, forward))
     return with_cache_control(bodies.respond(
         etag, lambda: packet_between(pm, start, to, bits=bits),
-        media_type="application/octet-stream", weight=0 if light else 1), policy)
+        media_type="application/octet-stream",
+        estimate=lambda: 0 if light else packet_bytes(pm, start, to, bits)), policy)
 
 
 MAX_CHAIN_LEVELS = 16
@@ -169,10 +175,10 @@ def get_chain(mesh_id: MeshId, store: StoreDep, bodies: BodiesDep, request: Requ
     node 0 the finest level, ``MSFT_lod`` naming the others, with
     ``MSFT_screencoverage`` hints.
 
-    The encoder holds the whole chain in memory while it builds it (several
-    times the body at peak), so an uncached chain of more than
-    ``LIGHT_FACES`` faces takes every heavy slot; it is then written to a body
-    file and streamed from it.
+    The encoder holds the whole chain in memory while it builds it, so an
+    uncached chain weighs the bytes of all its levels (``api/bodies.py``), and
+    one made with ``reach=cluster`` (which works on the full mesh) every heavy
+    slot; a large one is then written to a body file and streamed from it.
 
     A scene's chain is the scene with ``MSFT_lod`` on every node placing a part,
     level k of every part at scene ratio k (one budget over the parts)."""
@@ -183,7 +189,8 @@ def get_chain(mesh_id: MeshId, store: StoreDep, bodies: BodiesDep, request: Requ
     if isinstance(pm, SceneAsset):
         return _scene_chain(pm, digest, policy, request, bodies, mesh_id=mesh_id, ratios=ratios,
                             reach=reach)
-    faces = sum(pm.faces_at_level(pm.level_for(ratio=ratio)) for ratio in ratios)
+    levels = [pm.level_for(ratio=ratio) for ratio in ratios]
+    faces = sum(pm.faces_at_level(level) for level in levels)
     full = pm.faces_at_level(pm.vertex_count)
     if faces > MAX_CHAIN_FACES * full:
         raise LevelError(f"a chain's levels hold at most {MAX_CHAIN_FACES} times the mesh's "
@@ -191,11 +198,12 @@ def get_chain(mesh_id: MeshId, store: StoreDep, bodies: BodiesDep, request: Requ
     etag = etag_for(digest, "chain", ",".join(map(repr, ratios)), reach)
     if is_fresh(request, etag):
         return with_cache_control(immutable(None, media_type=FORMATS["glb"], etag=etag), policy)
-    # clustering (reach) works on the full mesh: never light
+    # clustering (reach) works on the full mesh: it takes every slot
     return with_cache_control(bodies.respond(
         etag, lambda: encode_lod_chain(*lod_chain(pm, ratios, reach=reach)[:2]),
         media_type=FORMATS["glb"], filename=f"{mesh_id}-lods.glb",
-        weight=0 if reach == "none" and faces <= LIGHT_FACES else bodies.heavy.slots), policy)
+        estimate=lambda: chain_bytes(pm, levels) if reach == "none" else bodies.heavy.budget),
+        policy)
 
 
 def _scene_levels(asset: SceneAsset, **criterion) -> dict:
@@ -220,11 +228,10 @@ def _scene_lod(asset: SceneAsset, digest: str, policy: str, request: Request, bo
     etag = etag_for(digest, "scene-lod", *(levels[p] for p in sorted(levels)))
     if is_fresh(request, etag):
         return with_cache_control(immutable(None, media_type=FORMATS["glb"], etag=etag), policy)
-    pms = asset.pms
-    drawn = sum(pms[p].faces_at_level(level) for p, level in levels.items())
     return with_cache_control(bodies.respond(
         etag, lambda: scene_glb(asset, levels), media_type=FORMATS["glb"],
-        filename=f"{mesh_id}-scene.glb", weight=int(drawn > LIGHT_FACES)), policy)
+        filename=f"{mesh_id}-scene.glb", estimate=lambda: scene_bytes(asset, [levels])),
+        policy)
 
 
 def _scene_chain(asset: SceneAsset, digest: str, policy: str, request: Request, bodies, *,
@@ -245,4 +252,4 @@ def _scene_chain(asset: SceneAsset, digest: str, policy: str, request: Request, 
     return with_cache_control(bodies.respond(
         etag, lambda: scene_chain_glb(asset, ratios, coverage_from_ratios(ratios)),
         media_type=FORMATS["glb"], filename=f"{mesh_id}-lods.glb",
-        weight=0 if faces <= LIGHT_FACES else bodies.heavy.slots), policy)
+        estimate=lambda: scene_bytes(asset, chain)), policy)
