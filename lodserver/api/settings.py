@@ -33,6 +33,18 @@ class Settings(BaseSettings):
                                     "endpoints; unset or empty: no token needed.")
     max_upload_bytes: int = Field(256 * 2**20, gt=0, description="Largest request body "
                                   "accepted by POST /meshes, in bytes.")
+    upload_idle_seconds: float = Field(30.0, gt=0, le=3600, description="An upload whose "
+                                       "body sends nothing for this long is cut (408) and "
+                                       "what it sent removed.")
+    upload_min_rate: int = Field(1024, ge=0, description="Bytes per second an upload's body "
+                                 "must average over each upload_rate_seconds of waiting for "
+                                 "it; a slower one is cut (408). 0: no minimum.")
+    upload_rate_seconds: float = Field(30.0, gt=0, le=3600, description="The period over "
+                                       "which upload_min_rate is measured (the first one is "
+                                       "the grace period of a new upload).")
+    concurrent_uploads: int = Field(16, ge=1, le=4096, description="Upload bodies received "
+                                    "at once; past that, POST /meshes answers 503 with "
+                                    "Retry-After before reading the body.")
     max_triangles: int = Field(DEFAULT_MAX_TRIANGLES, gt=0,
                                description="Most triangles a mesh may have after cleaning.")
     cors_origins: Annotated[list[str], NoDecode] = Field(

@@ -11,6 +11,14 @@ a ``Content-Length`` already over the limit is refused before reading anything.
 On any failure the folder and what was written into it are removed; whatever
 a killed process leaves there, the store removes when it next opens.
 
+A body that arrives too slowly holds a socket, an open file and a folder for
+nothing, so it is cut (408, the connection closed) when it sends nothing for
+``UploadPace.idle_seconds``, or less than ``UploadPace.min_rate`` on average
+over a period of waiting for it; only the time spent waiting for the client
+counts, so a server slow to write never blames its client. And only so many
+bodies are received at once (:class:`UploadSlots`); past that, 503 before a
+byte of the body is read.
+
 An upload is one mesh file, or a set (:mod:`lodserver.io.fileset`): several
 ``file`` parts (an OBJ with its MTL and textures, a ``.gltf`` with its
 ``.bin`` and images) or one ``.zip`` of them. :func:`prepare_source` turns a
@@ -21,11 +29,12 @@ from __future__ import annotations
 
 import re
 import shutil
+import time
 from dataclasses import dataclass, field
 from pathlib import Path, PurePath
 
 import anyio
-from fastapi import Request
+from fastapi import HTTPException, Request
 from python_multipart.exceptions import MultipartParseError
 from python_multipart.multipart import MultipartParser, parse_options_header
 from starlette.requests import ClientDisconnect
@@ -35,7 +44,7 @@ from ..io.fileset import (DEFAULT_SET_LIMITS, FileSetLimits, NoMeshFile, pack_se
                           plain_name)
 from ..io.limits import LimitError
 from ..mesh import MeshError
-from ..service.parsing import SET_TYPE
+from ..service.parsing import RETRY_AFTER, SET_TYPE, ParserBusy
 from ..service.store import StorageFullError, Store, is_disk_full
 
 # Form fields beside the files: a handful of build options, each short.
@@ -56,6 +65,72 @@ _UNPACKED = ".unpacked"
 
 class UnsupportedUpload(MeshError):
     """The body is not multipart, or the file's type is not one lodserver reads."""
+
+
+class UploadsBusy(ParserBusy):
+    """As many upload bodies as the server receives at once are arriving (503, Retry-After)."""
+
+
+@dataclass(frozen=True)
+class UploadPace:
+    """How slowly an upload's body may arrive before it is cut.
+
+    idle_seconds : float
+        Longest wait for the next bytes of the body (the first ones included).
+    min_rate : float
+        Bytes per second the body must average over each ``rate_seconds`` of
+        waiting for it; 0: no minimum.
+    rate_seconds : float
+        The period ``min_rate`` is measured over; the first is a new upload's grace.
+    """
+
+    idle_seconds: float = 30.0
+    min_rate: float = 1024.0
+    rate_seconds: float = 30.0
+
+
+DEFAULT_PACE = UploadPace()
+
+
+class UploadSlots:
+    """At most ``size`` bodies received at once, counted on the event loop (one thread)."""
+
+    def __init__(self, size: int):
+        self.size, self.taken = size, 0
+
+    def take(self) -> None:
+        """Count one more body; :class:`UploadsBusy` if all slots are taken."""
+        if self.taken >= self.size:
+            raise UploadsBusy(f"the server is already receiving {self.taken} uploads; try "
+                              f"again in {RETRY_AFTER} seconds")
+        self.taken += 1
+
+    def give_back(self) -> None:
+        self.taken -= 1
+
+
+def _too_slow(message: str) -> HTTPException:
+    # the client may still be sending: the connection is closed after the answer
+    return HTTPException(408, message, headers={"Connection": "close"})
+
+
+class _Clock:
+    """The time spent waiting for a body and the bytes it brought, checked
+    against an :class:`UploadPace` one period at a time."""
+
+    def __init__(self, pace: UploadPace):
+        self.pace, self.waited, self.received = pace, 0.0, 0
+
+    def count(self, received: int, waited: float) -> None:
+        pace = self.pace
+        self.waited += waited
+        self.received += received
+        if self.waited < pace.rate_seconds:
+            return
+        if pace.min_rate and self.received < pace.min_rate * self.waited:
+            raise _too_slow(f"the upload arrived at {self.received / self.waited:.0f} bytes "
+                            f"per second; this server needs at least {pace.min_rate:g}")
+        self.waited, self.received = 0.0, 0
 
 
 @dataclass
@@ -278,8 +353,23 @@ def _boundary(content_type: str) -> bytes:
     return boundary
 
 
+async def _next_chunk(stream, pace: UploadPace, clock: _Clock) -> bytes | None:
+    """The next chunk of the body (None at its end), within the pace's limits."""
+    started = time.monotonic()
+    try:
+        with anyio.fail_after(pace.idle_seconds):
+            chunk = await stream.__anext__()
+    except StopAsyncIteration:
+        return None
+    except TimeoutError:
+        raise _too_slow(f"the upload sent nothing for {pace.idle_seconds:g} seconds") from None
+    clock.count(len(chunk), time.monotonic() - started)
+    return chunk
+
+
 async def receive_upload(request: Request, *, limit: int, store: Store,
-                         limits: FileSetLimits = DEFAULT_SET_LIMITS) -> Upload:
+                         limits: FileSetLimits = DEFAULT_SET_LIMITS,
+                         pace: UploadPace = DEFAULT_PACE) -> Upload:
     """Stream the multipart body of ``request`` into a new folder of ``store.scratch``.
 
     Parameters
@@ -291,6 +381,8 @@ async def receive_upload(request: Request, *, limit: int, store: Store,
         Where the folder is made (``<data_dir>/tmp/``).
     limits : FileSetLimits
         How many files the form may hold, and their names.
+    pace : UploadPace
+        How slowly the body may arrive.
 
     Returns
     -------
@@ -301,6 +393,9 @@ async def receive_upload(request: Request, *, limit: int, store: Store,
     ------
     LimitError
         The body is larger than ``limit``.
+    HTTPException
+        408: the body sent nothing for ``pace.idle_seconds``, or arrived slower
+        than ``pace.min_rate``.
     UnsupportedUpload
         Not multipart/form-data.
     MeshError
@@ -319,7 +414,8 @@ async def receive_upload(request: Request, *, limit: int, store: Store,
     writer = _FormWriter(boundary, folder, limits)
     try:
         total, batch, batched = 0, [], 0
-        async for chunk in request.stream():
+        stream, clock = request.stream().__aiter__(), _Clock(pace)
+        while (chunk := await _next_chunk(stream, pace, clock)) is not None:
             total += len(chunk)
             if total > limit:
                 raise LimitError(f"the upload is larger than this server's limit of {limit} bytes")
