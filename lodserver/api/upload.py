@@ -40,8 +40,8 @@ from python_multipart.multipart import MultipartParser, parse_options_header
 from starlette.requests import ClientDisconnect
 
 from ..io import SUPPORTED_INPUT
-from ..io.fileset import (DEFAULT_SET_LIMITS, FileSetLimits, NoMeshFile, pack_set, pick_main,
-                          plain_name)
+from ..io.fileset import (DEFAULT_SET_LIMITS, FileSetLimits, NoMeshFile, check_name, pack_set,
+                          pick_main, plain_name)
 from ..io.limits import LimitError
 from ..mesh import MeshError
 from ..service.parsing import RETRY_AFTER, SET_TYPE, ParserBusy
@@ -249,7 +249,9 @@ class _FormWriter:
         if len(files) >= self.limits.max_files:
             raise MeshError(f"the form holds more than {self.limits.max_files} files")
         written = options[b"filename"].decode("utf-8", "replace")
-        filename = PurePath(written.replace("\\", "/")).name or "upload"
+        # the base name is what is kept (catalogue, messages); refused before its bytes are read
+        filename = check_name(PurePath(written.replace("\\", "/")).name or "upload",
+                              what="the file name")
         file_type = PurePath(filename).suffix.lower().lstrip(".")
         if file_type in SUPPORTED_INPUT:
             # nothing names a mesh file, so an unusual name is replaced (the

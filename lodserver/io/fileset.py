@@ -5,6 +5,9 @@ A mesh often comes as a set: an OBJ with its ``.mtl`` and textures, a
 parts or as one ``.zip``, from someone else, so everything here assumes the
 names and the archive are hostile:
 
+- every name a client gives that is kept (a file's, the ``name`` field) passes
+  :func:`check_name`: no control character (C0, DEL, C1), at most
+  :data:`MAX_NAME_BYTES` in UTF-8, so every catalogue stores it as it is;
 - a part's name is reduced to its base name and must be a plain one
   (:func:`plain_name`): no folder, no ``..``, no leading dot, no control
   characters; two parts may not share a name; a set has at most
@@ -44,8 +47,8 @@ from ..mesh import MeshError
 from .limits import LimitError
 from .load import SUPPORTED_INPUT
 
-__all__ = ["DEFAULT_SET_LIMITS", "FileSetLimits", "NoMeshFile", "load_warnings", "open_set", "pack_set",
-           "pick_main", "plain_name", "unpack_zip"]
+__all__ = ["DEFAULT_SET_LIMITS", "MAX_NAME_BYTES", "FileSetLimits", "NoMeshFile", "check_name",
+           "load_warnings", "open_set", "pack_set", "pick_main", "plain_name", "unpack_zip"]
 
 # Entries smaller than this are not held to the ratio limit: a short, repetitive
 # text (an MTL, a small OBJ) legitimately compresses by a lot, and cannot be a bomb.
@@ -54,7 +57,12 @@ RATIO_FREE_BYTES = 1 << 20
 _MAIN_TAG = b"lodserver-main:"
 # Junk that archivers add (macOS resource forks), skipped rather than refused.
 _JUNK_FOLDERS = ("__MACOSX",)
-_CONTROL = re.compile(r"[\x00-\x1f\x7f]")
+# Control characters: C0 (NUL among them, which PostgreSQL cannot store in text),
+# DEL and C1. None belongs in a name, and they hide what a name says in logs and pages.
+_CONTROL = re.compile(r"[\x00-\x1f\x7f-\x9f]")
+# UTF-8 bytes of a name a client gives (a file's or a mesh's): what most file
+# systems allow in one component.
+MAX_NAME_BYTES = 255
 
 
 class NoMeshFile(MeshError):
@@ -92,6 +100,44 @@ class FileSetLimits:
 DEFAULT_SET_LIMITS = FileSetLimits()
 
 
+def check_name(name: str, *, what: str = "name", max_bytes: int = MAX_NAME_BYTES) -> str:
+    """``name`` if it may be kept as a client gave it: the one rule for every name
+    stored, so that SQLite and PostgreSQL catalogues accept exactly the same names.
+
+    Parameters
+    ----------
+    name : str
+        A file's name or the ``name`` form field, as received.
+    what : str
+        What the name is, for the message ("the file name", "the form field 'name'").
+    max_bytes : int
+        Most UTF-8 bytes accepted.
+
+    Returns
+    -------
+    str
+        ``name``, unchanged.
+
+    Raises
+    ------
+    MeshError
+        ``name`` holds a control character (C0 including NUL, DEL, C1), is not
+        encodable as UTF-8 (a lone surrogate), or is longer than ``max_bytes``.
+    """
+    found = _CONTROL.search(name)
+    if found:
+        raise MeshError(f"{what} {name[:60]!r} holds the control character "
+                        f"U+{ord(found.group()):04X}; rename it")
+    try:
+        size = len(name.encode("utf-8"))
+    except UnicodeEncodeError:
+        raise MeshError(f"{what} {name[:60]!r} is not valid Unicode text") from None
+    if size > max_bytes:
+        raise MeshError(f"{what} {name[:60]!r}... is {size} bytes long in UTF-8; at most "
+                        f"{max_bytes} are accepted")
+    return name
+
+
 def plain_name(name: str, limits: FileSetLimits = DEFAULT_SET_LIMITS) -> str:
     """The base name of a client's file name, if it is safe to create as it is.
 
@@ -122,12 +168,9 @@ def _check_component(part: str, written: str, limits: FileSetLimits) -> None:
         raise MeshError(f"the file name {written!r} names no file")
     if part.startswith("."):
         raise MeshError(f"the file name {written!r} starts with a dot; rename it")
-    if _CONTROL.search(part) or ":" in part:
-        raise MeshError(f"the file name {written!r} has a control character or a colon; "
-                        "rename it")
-    if len(part.encode("utf-8", "surrogateescape")) > limits.max_name_bytes:
-        raise MeshError(f"the file name {written[:60]!r}... is longer than "
-                        f"{limits.max_name_bytes} bytes")
+    if ":" in part:
+        raise MeshError(f"the file name {written!r} has a colon; rename it")
+    check_name(part, what="the file name", max_bytes=limits.max_name_bytes)
 
 
 def is_mesh_name(name: str) -> bool:

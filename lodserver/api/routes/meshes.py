@@ -62,7 +62,8 @@ async def create_mesh(upload: UploadDep, jobs: JobsDep, response: Response) -> M
     try:
         form = MeshCreate.model_validate(fields)
     except ValidationError as exc:
-        raise MeshError("; ".join(f"form field {'.'.join(map(str, e['loc']))!r}: {e['msg']}"
+        raise MeshError("; ".join(f"form field {'.'.join(map(str, e['loc']))!r}: "
+                                  f"{e['msg'].removeprefix('Value error, ')}"
                                   for e in exc.errors())) from None
     # threads: a set is copied into one archive, a zip unpacked in a parse worker,
     # and the parse worker waited for (with the store's rename and row)
