@@ -68,7 +68,7 @@ async def get_upload(_: TokenDep, request: Request, settings: SettingsDep,
     slots.take()
     try:
         upload = await receive_upload(
-            request, limit=settings.max_upload_bytes, store=store,
+            request, limit=settings.max_upload_bytes, store=store, limits=settings.set_limits,
             pace=UploadPace(idle_seconds=settings.upload_idle_seconds,
                             min_rate=settings.upload_min_rate,
                             rate_seconds=settings.upload_rate_seconds))

@@ -22,7 +22,8 @@ byte of the body is read.
 An upload is one mesh file, or a set (:mod:`lodserver.io.fileset`): several
 ``file`` parts (an OBJ with its MTL and textures, a ``.gltf`` with its
 ``.bin`` and images) or one ``.zip`` of them. :func:`prepare_source` turns a
-set into the one archive the store keeps, after picking its main file.
+set into the one archive the store keeps, after picking its main file: a zip
+is checked and kept as it came, compressed, and is unpacked only by its parse.
 """
 
 from __future__ import annotations
@@ -40,8 +41,8 @@ from python_multipart.multipart import MultipartParser, parse_options_header
 from starlette.requests import ClientDisconnect
 
 from ..io import SUPPORTED_INPUT
-from ..io.fileset import (DEFAULT_SET_LIMITS, FileSetLimits, NoMeshFile, check_name, pack_set,
-                          pick_main, plain_name)
+from ..io.fileset import (DEFAULT_SET_LIMITS, FileSetLimits, NoMeshFile, check_name, list_zip,
+                          name_main, pack_set, pick_main, plain_name)
 from ..io.limits import LimitError
 from ..mesh import MeshError
 from ..service.parsing import RETRY_AFTER, SET_TYPE, ParserBusy
@@ -57,10 +58,9 @@ BATCH_BYTES = 1 * 2**20
 # starting with a dot; else it is saved under a fixed name. The files of a set
 # must keep their names (they name each other), so they follow io.fileset.plain_name.
 _PLAIN_NAME = re.compile(r"[^\W][\w .+,()\-]*")
-# Where a set's archive and an unpacked zip go inside the upload's folder: names
-# starting with a dot, which no uploaded file may have (plain_name), so they never clash.
+# Where a set's archive goes inside the upload's folder: a name starting with a
+# dot, which no uploaded file may have (plain_name), so it never clashes.
 _ARCHIVE = ".set.zip"
-_UNPACKED = ".unpacked"
 
 
 class UnsupportedUpload(MeshError):
@@ -289,7 +289,7 @@ class _FormWriter:
         self.ended = True
 
 
-def prepare_source(upload: Upload, *, main: str | None, unpack,
+def prepare_source(upload: Upload, *, main: str | None,
                    limits: FileSetLimits = DEFAULT_SET_LIMITS) -> Source:
     """What to parse and store for ``upload``: a lone mesh file as it is, a set as one archive.
 
@@ -298,9 +298,6 @@ def prepare_source(upload: Upload, *, main: str | None, unpack,
     upload : Upload
     main : str, optional
         The form field ``main``: which file of a set is the mesh.
-    unpack : callable
-        ``unpack(zip_path, folder, limits) -> names``, ``io.fileset.unpack_zip``
-        run where a hostile archive can do no harm (a parse worker).
     limits : FileSetLimits
 
     Raises
@@ -312,17 +309,18 @@ def prepare_source(upload: Upload, *, main: str | None, unpack,
         set, several mesh files and no ``main``, or a zip breaking the rules
         of :mod:`lodserver.io.fileset`.
 
-    Blocking (it may copy the set): call it from a thread.
+    A zip is listed, not unpacked (``io.fileset.list_zip``: its central
+    directory only), and kept compressed with the main file named in its
+    comment; its parse unpacks it once. Blocking (it may copy a set of form
+    parts into one archive): call it from a thread.
     """
     files = upload.files
     kinds = [PurePath(name).suffix.lower() for name, _ in files]
-    folder, names = upload.folder, [path.name for _, path in files]
+    names = [path.name for _, path in files]
     if ".zip" in kinds:
         if len(files) > 1:
             raise MeshError("send either one .zip or the files themselves, not both")
-        folder = upload.folder / _UNPACKED
-        folder.mkdir()
-        names = unpack(upload.path, folder, limits)
+        names = list_zip(upload.path, limits)
     elif len(files) == 1 and main is None:
         name, path = files[0]
         if upload.file_type not in SUPPORTED_INPUT:
@@ -337,10 +335,13 @@ def prepare_source(upload: Upload, *, main: str | None, unpack,
     # the name the client gave the main file (a lone file may have been renamed on disk)
     name = next((client for client, path in files if path.name == chosen),
                 PurePath(chosen).name)
-    if len(files) == 1 and ".zip" not in kinds:
+    if ".zip" in kinds:
+        name_main(upload.path, chosen)
+        return Source(upload.path, upload.folder, name, SET_TYPE, tuple(names))
+    if len(files) == 1:
         return Source(upload.path, upload.folder, name, upload.file_type, (name,))
     archive = upload.folder / _ARCHIVE
-    pack_set(folder, names, archive, main=chosen)
+    pack_set(upload.folder, names, archive, main=chosen)
     return Source(archive, upload.folder, name, SET_TYPE, tuple(names))
 
 

@@ -22,11 +22,14 @@ names and the archive are hostile:
   every entry at its declared size (and checks its CRC), so what is written is
   what was checked.
 
-The set is kept as one archive (:func:`pack_set`, stored uncompressed, the
-main file's name in the zip comment), so the catalogue keeps one source file
-per mesh; :func:`open_set` unpacks that archive, by the same checks, into a
-folder of its own and names the main file, which is then loaded with
-``root=`` that folder: references resolve only inside the set.
+The set is kept as one archive, so the catalogue keeps one source file per
+mesh: a zip as it was uploaded, still compressed, once :func:`list_zip` has
+checked it whole without extracting a byte (so it is unpacked only where it is
+parsed, once), with the main file's name written into its comment
+(:func:`name_main`); files sent as form parts packed into a new one
+(:func:`pack_set`, stored uncompressed). :func:`open_set` unpacks that archive,
+by the same checks, into a folder of its own and names the main file, which is
+then loaded with ``root=`` that folder: references resolve only inside the set.
 
 Every error is a :class:`~lodserver.mesh.MeshError` of one sentence naming
 entries as the client wrote them, never a server path.
@@ -48,7 +51,8 @@ from .limits import LimitError
 from .load import SUPPORTED_INPUT
 
 __all__ = ["DEFAULT_SET_LIMITS", "MAX_NAME_BYTES", "FileSetLimits", "NoMeshFile", "check_name",
-           "load_warnings", "open_set", "pack_set", "pick_main", "plain_name", "unpack_zip"]
+           "list_zip", "load_warnings", "name_main", "open_set", "pack_set", "pick_main",
+           "plain_name", "unpack_zip"]
 
 # Entries smaller than this are not held to the ratio limit: a short, repetitive
 # text (an MTL, a small OBJ) legitimately compresses by a lot, and cannot be a bomb.
@@ -78,7 +82,8 @@ class FileSetLimits:
     max_entries : int
         Entries of a zip, folders included.
     max_unpacked_bytes : int
-        Sum of the sizes a zip's files declare, in bytes (what extraction writes).
+        Sum of the sizes a zip's files declare, in bytes (what extraction writes);
+        a server ties it to its largest upload (``LODSERVER_ZIP_UNPACKED_RATIO``).
     max_ratio : float
         Largest uncompressed / compressed size of one entry above
         :data:`RATIO_FREE_BYTES`, and of the whole archive.
@@ -354,6 +359,72 @@ def _checked_entries(archive: zipfile.ZipFile, limits: FileSetLimits
     return entries
 
 
+def _check_declared(path: Path, limits: FileSetLimits) -> None:
+    """Refuse an archive whose end record declares too many entries, before zipfile
+    reads its central directory."""
+    entries, cd_bytes = _declared_entries(path)
+    # each central-directory entry is 46 bytes plus its name, extra field and comment
+    if entries > limits.max_entries or cd_bytes > limits.max_entries * 1024 + 65536:
+        raise LimitError(f"the archive declares {entries} entries in {cd_bytes} bytes; an "
+                         f"upload may have at most {limits.max_entries} entries")
+
+
+def _unreadable(exc: BaseException) -> MeshError:
+    # BadZipFile also says "Bad CRC-32 for file ..." naming only the entry
+    return MeshError(f"the archive is not a readable zip file ({exc})")
+
+
+# zipfile's own failures on a malformed archive (a ValueError among them)
+_ZIP_ERRORS = (zipfile.BadZipFile, zipfile.LargeZipFile, EOFError, NotImplementedError,
+               UnicodeDecodeError, ValueError)
+
+
+def list_zip(path, limits: FileSetLimits = DEFAULT_SET_LIMITS) -> list[str]:
+    """The files a client's zip would unpack to, after every check of :func:`unpack_zip`
+    that needs no decompression: nothing is extracted.
+
+    Parameters
+    ----------
+    path : path of the archive.
+    limits : FileSetLimits
+
+    Returns
+    -------
+    list of str
+        The files, as relative POSIX paths, in archive order (junk skipped).
+
+    Raises
+    ------
+    MeshError, LimitError
+        As :func:`unpack_zip`, but a corrupt entry (its CRC) is found only
+        when it is unpacked.
+
+    Reads only the end record and the central directory (bounded by
+    ``limits.max_entries``): safe to run in the server process.
+    """
+    path = Path(path)
+    _check_declared(path, limits)
+    try:
+        with zipfile.ZipFile(path) as archive:
+            return ["/".join(parts) for _, parts, kind in _checked_entries(archive, limits)
+                    if kind == "file"]
+    except MeshError:
+        raise
+    except _ZIP_ERRORS as exc:
+        raise _unreadable(exc) from None
+
+
+def name_main(archive, main: str) -> None:
+    """Write ``main`` into the comment of ``archive``, a zip :func:`list_zip` accepted,
+    so :func:`open_set` finds the main file: only its central directory is rewritten
+    in place, its compressed entries stay as they are."""
+    try:
+        with zipfile.ZipFile(archive, "a") as opened:
+            opened.comment = _MAIN_TAG + main.encode("utf-8")
+    except _ZIP_ERRORS as exc:
+        raise _unreadable(exc) from None
+
+
 def unpack_zip(path, folder, limits: FileSetLimits = DEFAULT_SET_LIMITS) -> list[str]:
     """Extract a client's zip into ``folder``, after checking all of it.
 
@@ -378,11 +449,7 @@ def unpack_zip(path, folder, limits: FileSetLimits = DEFAULT_SET_LIMITS) -> list
         removes ``folder``).
     """
     path, folder = Path(path), Path(folder)
-    entries, cd_bytes = _declared_entries(path)
-    # each central-directory entry is 46 bytes plus its name, extra field and comment
-    if entries > limits.max_entries or cd_bytes > limits.max_entries * 1024 + 65536:
-        raise LimitError(f"the archive declares {entries} entries in {cd_bytes} bytes; an "
-                         f"upload may have at most {limits.max_entries} entries")
+    _check_declared(path, limits)
     try:
         with zipfile.ZipFile(path) as archive:
             written = []
@@ -401,8 +468,7 @@ def unpack_zip(path, folder, limits: FileSetLimits = DEFAULT_SET_LIMITS) -> list
         raise
     except (zipfile.BadZipFile, zipfile.LargeZipFile, EOFError, NotImplementedError,
             UnicodeDecodeError, ValueError) as exc:
-        # BadZipFile also says "Bad CRC-32 for file ..." naming only the entry
-        raise MeshError(f"the archive is not a readable zip file ({exc})") from None
+        raise _unreadable(exc) from None
 
 
 def _make_folders(folder: Path, parts: list[str]) -> None:

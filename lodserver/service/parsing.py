@@ -143,12 +143,13 @@ def _start_worker(memory_bytes: int, parent: int) -> None:
 
 
 def _parse_in_worker(path: str, file_type: str, root: str | None, max_triangles: int,
-                     limits: LoadLimits | None, scenes: bool = False):
+                     limits: LoadLimits | None, scenes: bool = False,
+                     set_limits: FileSetLimits | None = None):
     """``check_mesh_file`` in a parse worker, with every failure made a picklable
     MeshError naming ``path`` (the caller replaces it with the upload's name)."""
     try:
         return check_mesh_file(path, file_type=file_type, max_triangles=max_triangles,
-                               root=root, limits=limits, scenes=scenes)
+                               root=root, limits=limits, scenes=scenes, set_limits=set_limits)
     except MeshError:
         raise
     except MemoryError:
@@ -226,7 +227,8 @@ class ParsePool:
         return self._admitted >= self.workers + self.queue
 
     def parse(self, path, *, file_type: str, root, max_triangles: int,
-              limits: LoadLimits | None, admit: bool = True, scenes: bool = False):
+              limits: LoadLimits | None, admit: bool = True, scenes: bool = False,
+              set_limits: FileSetLimits | None = None):
         """``check_mesh_file`` in a worker; see :func:`_parse_in_worker`.
 
         Raises ParserBusy (``admit`` and the queue is full), ParserClosed,
@@ -236,7 +238,7 @@ class ParsePool:
         try:
             return self.call(_parse_in_worker, str(path), file_type,
                              None if root is None else str(root), max_triangles, limits,
-                             scenes, admit=admit)
+                             scenes, set_limits, admit=admit)
         except _WorkerDied:
             raise LimitError(f"cannot load {Path(path).name}: reading it needed more memory "
                              "than this server allows one file, or crashed the reader") from None
