@@ -25,11 +25,13 @@ names and the archive are hostile:
 The set is kept as one archive, so the catalogue keeps one source file per
 mesh: a zip as it was uploaded, still compressed, once :func:`list_zip` has
 checked it whole without extracting a byte (so it is unpacked only where it is
-parsed, once), with the main file's name written into its comment
+parsed), with the main file's name written into its comment
 (:func:`name_main`); files sent as form parts packed into a new one
-(:func:`pack_set`, stored uncompressed). :func:`open_set` unpacks that archive,
-by the same checks, into a folder of its own and names the main file, which is
-then loaded with ``root=`` that folder: references resolve only inside the set.
+(:func:`pack_set`, stored uncompressed). :func:`open_set` checks that archive
+by the same rules and extracts its main file into a folder of its own, which
+is then loaded with ``root=`` that folder: references resolve only inside the
+set, and each file is extracted only when a reference names it, so the files
+of a set that the mesh never names are never written.
 
 Every error is a :class:`~lodserver.mesh.MeshError` of one sentence naming
 entries as the client wrote them, never a server path.
@@ -43,12 +45,14 @@ import shutil
 import stat
 import struct
 import zipfile
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path, PurePosixPath
 
 from ..mesh import MeshError
 from .limits import LimitError
 from .load import SUPPORTED_INPUT
+from .references import extract_on_demand
 
 __all__ = ["DEFAULT_SET_LIMITS", "MAX_NAME_BYTES", "FileSetLimits", "NoMeshFile", "check_name",
            "list_zip", "load_warnings", "name_main", "open_set", "pack_set", "pick_main",
@@ -454,14 +458,10 @@ def unpack_zip(path, folder, limits: FileSetLimits = DEFAULT_SET_LIMITS) -> list
         with zipfile.ZipFile(path) as archive:
             written = []
             for info, parts, kind in _checked_entries(archive, limits):
-                target = folder.joinpath(*parts)
-                _make_folders(folder, parts if kind == "dir" else parts[:-1])
                 if kind == "dir":
+                    _make_folders(folder, parts)
                     continue
-                flags = (os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_NOFOLLOW", 0)
-                         | getattr(os, "O_CLOEXEC", 0))
-                with archive.open(info) as source, open(os.open(target, flags, 0o600), "wb") as out:
-                    shutil.copyfileobj(source, out, 1 << 20)
+                _extract_file(archive, info, parts, folder)
                 written.append("/".join(parts))
             return written
     except MeshError:       # a ValueError too: not to be taken for zipfile's own
@@ -469,6 +469,18 @@ def unpack_zip(path, folder, limits: FileSetLimits = DEFAULT_SET_LIMITS) -> list
     except (zipfile.BadZipFile, zipfile.LargeZipFile, EOFError, NotImplementedError,
             UnicodeDecodeError, ValueError) as exc:
         raise _unreadable(exc) from None
+
+
+def _extract_file(archive: zipfile.ZipFile, info: zipfile.ZipInfo, parts: list[str],
+                  folder: Path) -> None:
+    """Write one checked entry to ``folder/parts...``, a new file in folders made here;
+    zipfile stops it at its declared size and checks its CRC."""
+    _make_folders(folder, parts[:-1])
+    flags = (os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_NOFOLLOW", 0)
+             | getattr(os, "O_CLOEXEC", 0))
+    with archive.open(info) as source, \
+            open(os.open(folder.joinpath(*parts), flags, 0o600), "wb") as out:
+        shutil.copyfileobj(source, out, 1 << 20)
 
 
 def _make_folders(folder: Path, parts: list[str]) -> None:
@@ -507,16 +519,63 @@ def pack_set(folder, names, archive, *, main: str) -> None:
         out.comment = _MAIN_TAG + main.encode("utf-8")
 
 
-def open_set(archive, folder, limits: FileSetLimits = DEFAULT_SET_LIMITS) -> Path:
-    """Unpack a set's archive into ``folder`` (by :func:`unpack_zip`'s checks) and
-    return the path of its main file: the one its comment names (:func:`pack_set`),
-    else its only mesh file (:func:`pick_main`)."""
-    names = unpack_zip(archive, folder, limits)
-    with zipfile.ZipFile(archive) as opened:
+@contextmanager
+def open_set(archive, folder, limits: FileSetLimits = DEFAULT_SET_LIMITS):
+    """Open a set's archive for one load: yields the path of its main file in ``folder``.
+
+    Parameters
+    ----------
+    archive : path of the set's zip (an uploaded zip, or :func:`pack_set`'s).
+    folder : path of an empty folder (it must exist), the load's ``root``.
+    limits : FileSetLimits
+
+    Every entry is checked first, as by :func:`unpack_zip`. The main file is the
+    one the archive's comment names (:func:`name_main`, :func:`pack_set`), else
+    its only mesh file (:func:`pick_main`); only it is extracted at once, and
+    any other file only when a reference of the mesh names it, while the block
+    runs (``io.references.extract_on_demand``): files of the set the mesh never
+    names are never written. The archive stays open until the block ends.
+
+    Raises
+    ------
+    MeshError, LimitError
+        As :func:`unpack_zip` (a corrupt entry when it is extracted), or as
+        :func:`pick_main`.
+    """
+    path, folder = Path(archive), Path(folder)
+    _check_declared(path, limits)
+    try:
+        opened = zipfile.ZipFile(path)
+    except _ZIP_ERRORS as exc:
+        raise _unreadable(exc) from None
+    with opened:
+        try:
+            files = {"/".join(parts): (info, parts)
+                     for info, parts, kind in _checked_entries(opened, limits) if kind == "file"}
+        except MeshError:
+            raise
+        except _ZIP_ERRORS as exc:
+            raise _unreadable(exc) from None
         comment = opened.comment
-    main = comment[len(_MAIN_TAG):].decode("utf-8", "replace") \
-        if comment.startswith(_MAIN_TAG) else None
-    return Path(folder) / pick_main(names, main)
+        main = comment[len(_MAIN_TAG):].decode("utf-8", "replace") \
+            if comment.startswith(_MAIN_TAG) else None
+        chosen = pick_main(list(files), main)
+        extracted = set()
+
+        def extract(parts: list[str]) -> None:
+            key = "/".join(parts)
+            if key in files and key not in extracted:
+                extracted.add(key)
+                try:
+                    _extract_file(opened, *files[key], folder)
+                except MeshError:
+                    raise
+                except _ZIP_ERRORS as exc:
+                    raise _unreadable(exc) from None
+
+        extract(files[chosen][1])
+        with extract_on_demand(folder, extract):
+            yield folder / chosen
 
 
 def load_warnings(report: dict | None) -> list[str]:

@@ -77,9 +77,10 @@ def check_mesh_file(path, *, file_type: str, max_triangles: int, root=None,
     root : path, optional
         The folder every file the mesh names must resolve inside (an upload's
         own folder, holding only it); None: relative to the file, unchecked.
-        A set is unpacked into a new folder inside ``root`` (else beside the
-        archive), which is then the root of its main file's references:
-        they resolve only inside the set. The folder is removed afterwards.
+        A set's main file is extracted into a new folder inside ``root`` (else
+        beside the archive), which is then the root of its references: they
+        resolve only inside the set, and each file is extracted when one names
+        it (``io.fileset.open_set``). The folder is removed afterwards.
     limits : LoadLimits, optional
         What the file may declare (checked before allocating for it).
     set_limits : FileSetLimits, optional
@@ -102,10 +103,10 @@ def check_mesh_file(path, *, file_type: str, max_triangles: int, root=None,
     if file_type == SET_TYPE:
         unpacked = Path(tempfile.mkdtemp(prefix="set-", dir=root or Path(path).parent))
         try:
-            main = open_set(path, unpacked, set_limits or DEFAULT_SET_LIMITS)
-            return check_mesh_file(main, file_type=main.suffix.lower().lstrip("."),
-                                   max_triangles=max_triangles, root=unpacked, limits=limits,
-                                   scenes=scenes)
+            with open_set(path, unpacked, set_limits or DEFAULT_SET_LIMITS) as main:
+                return check_mesh_file(main, file_type=main.suffix.lower().lstrip("."),
+                                       max_triangles=max_triangles, root=unpacked,
+                                       limits=limits, scenes=scenes)
         finally:
             shutil.rmtree(unpacked, ignore_errors=True)
     if scenes and file_type in ("gltf", "glb"):
