@@ -13,7 +13,7 @@ from ..service.jobs import JobRunner
 from ..service.parsing import RETRY_AFTER, ParserBusy
 from ..service.store import ID_PATTERN, Store
 from .settings import Settings, get_settings
-from .upload import Upload, receive_upload
+from .upload import Upload, UploadPace, UploadSlots, receive_upload
 
 SettingsDep = Annotated[Settings, Depends(get_settings)]
 
@@ -56,12 +56,24 @@ async def get_upload(_: TokenDep, request: Request, settings: SettingsDep,
     """The streamed upload, removed once the request is done with it.
 
     The token is checked first, so no body is read without it; and when the
-    parse queue is already full the upload is refused (503) before its body is read.
+    parse queue is already full, or ``concurrent_uploads`` bodies are arriving,
+    the upload is refused (503) before its body is read.
     """
     if jobs.parser is not None and jobs.parser.full:
         raise ParserBusy("the server is parsing as many uploads as it can; try again in "
                          f"{RETRY_AFTER} seconds")
-    upload = await receive_upload(request, limit=settings.max_upload_bytes, store=store)
+    slots = getattr(request.app.state, "upload_slots", None)
+    if slots is None:       # the first upload: on the event loop, no other can race it
+        slots = request.app.state.upload_slots = UploadSlots(settings.concurrent_uploads)
+    slots.take()
+    try:
+        upload = await receive_upload(
+            request, limit=settings.max_upload_bytes, store=store, limits=settings.set_limits,
+            pace=UploadPace(idle_seconds=settings.upload_idle_seconds,
+                            min_rate=settings.upload_min_rate,
+                            rate_seconds=settings.upload_rate_seconds))
+    finally:
+        slots.give_back()
     try:
         yield upload
     finally:

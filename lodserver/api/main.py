@@ -57,7 +57,7 @@ def build_runner(store: LocalStore, settings: Settings, parser: ParsePool) -> Jo
     """The job runner of a server (or of ``lodserver worker``) by the settings."""
     return JobRunner(store, workers=settings.workers, max_triangles=settings.max_triangles,
                      parser=parser, lease_seconds=settings.lease_seconds,
-                     poll_seconds=settings.queue_poll_seconds)
+                     poll_seconds=settings.queue_poll_seconds, set_limits=settings.set_limits)
 
 
 def _operation_id(route: APIRoute) -> str:

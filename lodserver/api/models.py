@@ -4,9 +4,9 @@ from __future__ import annotations
 
 from datetime import datetime, timezone
 
-from pydantic import BaseModel, Field
+from pydantic import BaseModel, Field, field_validator
 
-from ..io.fileset import load_warnings
+from ..io.fileset import MAX_NAME_BYTES, check_name, load_warnings
 from ..options import BuildOptions
 from ..service.store import MeshRecord, Status
 from .caching import version_of, versioned_urls
@@ -17,8 +17,15 @@ class MeshCreate(BuildOptions):
     (``options.BuildOptions``, the same names, defaults and ranges as the
     command line's) and a name."""
 
-    name: str | None = Field(None, min_length=1, max_length=200,
-                             description="A label; defaults to the uploaded file's name.")
+    name: str | None = Field(None, min_length=1, description="A label; defaults to the "
+                             f"uploaded file's name. At most {MAX_NAME_BYTES} bytes in "
+                             "UTF-8, no control characters.")
+
+    @field_validator("name")
+    @classmethod
+    def _kept_as_given(cls, value):
+        # io.fileset.check_name: the one rule for names, the same on every catalogue
+        return value if value is None else check_name(value, what="the name")
 
     def build_options(self) -> dict:
         """The options to store with the mesh and pass to ``build.build``, by name."""

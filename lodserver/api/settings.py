@@ -14,6 +14,7 @@ from typing import Annotated
 from pydantic import Field, SecretStr, field_validator, model_validator
 from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict
 
+from ..io.fileset import FileSetLimits
 from ..io.limits import DEFAULT_MAX_TRIANGLES
 from ..service.cache import DEFAULT_CACHE_BYTES
 from ..service.catalog import redact_url
@@ -33,6 +34,26 @@ class Settings(BaseSettings):
                                     "endpoints; unset or empty: no token needed.")
     max_upload_bytes: int = Field(256 * 2**20, gt=0, description="Largest request body "
                                   "accepted by POST /meshes, in bytes.")
+    upload_idle_seconds: float = Field(30.0, gt=0, le=3600, description="An upload whose "
+                                       "body sends nothing for this long is cut (408) and "
+                                       "what it sent removed.")
+    upload_min_rate: int = Field(1024, ge=0, description="Bytes per second an upload's body "
+                                 "must average over each upload_rate_seconds of waiting for "
+                                 "it; a slower one is cut (408). 0: no minimum.")
+    upload_rate_seconds: float = Field(30.0, gt=0, le=3600, description="The period over "
+                                       "which upload_min_rate is measured (the first one is "
+                                       "the grace period of a new upload).")
+    concurrent_uploads: int = Field(16, ge=1, le=4096, description="Upload bodies received "
+                                    "at once; past that, POST /meshes answers 503 with "
+                                    "Retry-After before reading the body.")
+    zip_unpacked_ratio: float = Field(4.0, gt=0, le=1024, description="A zip upload may "
+                                      "unpack to at most this many times max_upload_bytes "
+                                      "(what its files declare, checked before any is "
+                                      "written).")
+    queued_source_bytes: int = Field(4 * 2**30, gt=0, description="Bytes of uploads kept "
+                                     "while their builds are queued or running (the stored "
+                                     "files: a zip compressed); an upload that would pass it "
+                                     "is answered 503 with Retry-After.")
     max_triangles: int = Field(DEFAULT_MAX_TRIANGLES, gt=0,
                                description="Most triangles a mesh may have after cleaning.")
     cors_origins: Annotated[list[str], NoDecode] = Field(
@@ -95,6 +116,13 @@ class Settings(BaseSettings):
                                  "streamed from it; smaller ones are cached in memory.")
     body_cache_bytes: int = Field(2 * 2**30, ge=0, description="Most bytes of body files "
                                   "kept (least recently used removed).")
+
+    @property
+    def set_limits(self) -> FileSetLimits:
+        """What an upload of several files or a zip may hold, its unpacked size tied
+        to the largest upload."""
+        return FileSetLimits(max_unpacked_bytes=int(self.zip_unpacked_ratio
+                                                    * self.max_upload_bytes))
 
     @field_validator("token", mode="before")
     @classmethod

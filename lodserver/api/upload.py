@@ -11,31 +11,41 @@ a ``Content-Length`` already over the limit is refused before reading anything.
 On any failure the folder and what was written into it are removed; whatever
 a killed process leaves there, the store removes when it next opens.
 
+A body that arrives too slowly holds a socket, an open file and a folder for
+nothing, so it is cut (408, the connection closed) when it sends nothing for
+``UploadPace.idle_seconds``, or less than ``UploadPace.min_rate`` on average
+over a period of waiting for it; only the time spent waiting for the client
+counts, so a server slow to write never blames its client. And only so many
+bodies are received at once (:class:`UploadSlots`); past that, 503 before a
+byte of the body is read.
+
 An upload is one mesh file, or a set (:mod:`lodserver.io.fileset`): several
 ``file`` parts (an OBJ with its MTL and textures, a ``.gltf`` with its
 ``.bin`` and images) or one ``.zip`` of them. :func:`prepare_source` turns a
-set into the one archive the store keeps, after picking its main file.
+set into the one archive the store keeps, after picking its main file: a zip
+is checked and kept as it came, compressed, and is unpacked only by its parse.
 """
 
 from __future__ import annotations
 
 import re
 import shutil
+import time
 from dataclasses import dataclass, field
 from pathlib import Path, PurePath
 
 import anyio
-from fastapi import Request
+from fastapi import HTTPException, Request
 from python_multipart.exceptions import MultipartParseError
 from python_multipart.multipart import MultipartParser, parse_options_header
 from starlette.requests import ClientDisconnect
 
 from ..io import SUPPORTED_INPUT
-from ..io.fileset import (DEFAULT_SET_LIMITS, FileSetLimits, NoMeshFile, pack_set, pick_main,
-                          plain_name)
+from ..io.fileset import (DEFAULT_SET_LIMITS, FileSetLimits, NoMeshFile, check_name, list_zip,
+                          name_main, pack_set, pick_main, plain_name)
 from ..io.limits import LimitError
 from ..mesh import MeshError
-from ..service.parsing import SET_TYPE
+from ..service.parsing import RETRY_AFTER, SET_TYPE, ParserBusy
 from ..service.store import StorageFullError, Store, is_disk_full
 
 # Form fields beside the files: a handful of build options, each short.
@@ -48,14 +58,79 @@ BATCH_BYTES = 1 * 2**20
 # starting with a dot; else it is saved under a fixed name. The files of a set
 # must keep their names (they name each other), so they follow io.fileset.plain_name.
 _PLAIN_NAME = re.compile(r"[^\W][\w .+,()\-]*")
-# Where a set's archive and an unpacked zip go inside the upload's folder: names
-# starting with a dot, which no uploaded file may have (plain_name), so they never clash.
+# Where a set's archive goes inside the upload's folder: a name starting with a
+# dot, which no uploaded file may have (plain_name), so it never clashes.
 _ARCHIVE = ".set.zip"
-_UNPACKED = ".unpacked"
 
 
 class UnsupportedUpload(MeshError):
     """The body is not multipart, or the file's type is not one lodserver reads."""
+
+
+class UploadsBusy(ParserBusy):
+    """As many upload bodies as the server receives at once are arriving (503, Retry-After)."""
+
+
+@dataclass(frozen=True)
+class UploadPace:
+    """How slowly an upload's body may arrive before it is cut.
+
+    idle_seconds : float
+        Longest wait for the next bytes of the body (the first ones included).
+    min_rate : float
+        Bytes per second the body must average over each ``rate_seconds`` of
+        waiting for it; 0: no minimum.
+    rate_seconds : float
+        The period ``min_rate`` is measured over; the first is a new upload's grace.
+    """
+
+    idle_seconds: float = 30.0
+    min_rate: float = 1024.0
+    rate_seconds: float = 30.0
+
+
+DEFAULT_PACE = UploadPace()
+
+
+class UploadSlots:
+    """At most ``size`` bodies received at once, counted on the event loop (one thread)."""
+
+    def __init__(self, size: int):
+        self.size, self.taken = size, 0
+
+    def take(self) -> None:
+        """Count one more body; :class:`UploadsBusy` if all slots are taken."""
+        if self.taken >= self.size:
+            raise UploadsBusy(f"the server is already receiving {self.taken} uploads; try "
+                              f"again in {RETRY_AFTER} seconds")
+        self.taken += 1
+
+    def give_back(self) -> None:
+        self.taken -= 1
+
+
+def _too_slow(message: str) -> HTTPException:
+    # the client may still be sending: the connection is closed after the answer
+    return HTTPException(408, message, headers={"Connection": "close"})
+
+
+class _Clock:
+    """The time spent waiting for a body and the bytes it brought, checked
+    against an :class:`UploadPace` one period at a time."""
+
+    def __init__(self, pace: UploadPace):
+        self.pace, self.waited, self.received = pace, 0.0, 0
+
+    def count(self, received: int, waited: float) -> None:
+        pace = self.pace
+        self.waited += waited
+        self.received += received
+        if self.waited < pace.rate_seconds:
+            return
+        if pace.min_rate and self.received < pace.min_rate * self.waited:
+            raise _too_slow(f"the upload arrived at {self.received / self.waited:.0f} bytes "
+                            f"per second; this server needs at least {pace.min_rate:g}")
+        self.waited, self.received = 0.0, 0
 
 
 @dataclass
@@ -174,7 +249,9 @@ class _FormWriter:
         if len(files) >= self.limits.max_files:
             raise MeshError(f"the form holds more than {self.limits.max_files} files")
         written = options[b"filename"].decode("utf-8", "replace")
-        filename = PurePath(written.replace("\\", "/")).name or "upload"
+        # the base name is what is kept (catalogue, messages); refused before its bytes are read
+        filename = check_name(PurePath(written.replace("\\", "/")).name or "upload",
+                              what="the file name")
         file_type = PurePath(filename).suffix.lower().lstrip(".")
         if file_type in SUPPORTED_INPUT:
             # nothing names a mesh file, so an unusual name is replaced (the
@@ -212,7 +289,7 @@ class _FormWriter:
         self.ended = True
 
 
-def prepare_source(upload: Upload, *, main: str | None, unpack,
+def prepare_source(upload: Upload, *, main: str | None,
                    limits: FileSetLimits = DEFAULT_SET_LIMITS) -> Source:
     """What to parse and store for ``upload``: a lone mesh file as it is, a set as one archive.
 
@@ -221,9 +298,6 @@ def prepare_source(upload: Upload, *, main: str | None, unpack,
     upload : Upload
     main : str, optional
         The form field ``main``: which file of a set is the mesh.
-    unpack : callable
-        ``unpack(zip_path, folder, limits) -> names``, ``io.fileset.unpack_zip``
-        run where a hostile archive can do no harm (a parse worker).
     limits : FileSetLimits
 
     Raises
@@ -235,17 +309,18 @@ def prepare_source(upload: Upload, *, main: str | None, unpack,
         set, several mesh files and no ``main``, or a zip breaking the rules
         of :mod:`lodserver.io.fileset`.
 
-    Blocking (it may copy the set): call it from a thread.
+    A zip is listed, not unpacked (``io.fileset.list_zip``: its central
+    directory only), and kept compressed with the main file named in its
+    comment; its parse unpacks it once. Blocking (it may copy a set of form
+    parts into one archive): call it from a thread.
     """
     files = upload.files
     kinds = [PurePath(name).suffix.lower() for name, _ in files]
-    folder, names = upload.folder, [path.name for _, path in files]
+    names = [path.name for _, path in files]
     if ".zip" in kinds:
         if len(files) > 1:
             raise MeshError("send either one .zip or the files themselves, not both")
-        folder = upload.folder / _UNPACKED
-        folder.mkdir()
-        names = unpack(upload.path, folder, limits)
+        names = list_zip(upload.path, limits)
     elif len(files) == 1 and main is None:
         name, path = files[0]
         if upload.file_type not in SUPPORTED_INPUT:
@@ -260,10 +335,13 @@ def prepare_source(upload: Upload, *, main: str | None, unpack,
     # the name the client gave the main file (a lone file may have been renamed on disk)
     name = next((client for client, path in files if path.name == chosen),
                 PurePath(chosen).name)
-    if len(files) == 1 and ".zip" not in kinds:
+    if ".zip" in kinds:
+        name_main(upload.path, chosen)
+        return Source(upload.path, upload.folder, name, SET_TYPE, tuple(names))
+    if len(files) == 1:
         return Source(upload.path, upload.folder, name, upload.file_type, (name,))
     archive = upload.folder / _ARCHIVE
-    pack_set(folder, names, archive, main=chosen)
+    pack_set(upload.folder, names, archive, main=chosen)
     return Source(archive, upload.folder, name, SET_TYPE, tuple(names))
 
 
@@ -278,8 +356,23 @@ def _boundary(content_type: str) -> bytes:
     return boundary
 
 
+async def _next_chunk(stream, pace: UploadPace, clock: _Clock) -> bytes | None:
+    """The next chunk of the body (None at its end), within the pace's limits."""
+    started = time.monotonic()
+    try:
+        with anyio.fail_after(pace.idle_seconds):
+            chunk = await stream.__anext__()
+    except StopAsyncIteration:
+        return None
+    except TimeoutError:
+        raise _too_slow(f"the upload sent nothing for {pace.idle_seconds:g} seconds") from None
+    clock.count(len(chunk), time.monotonic() - started)
+    return chunk
+
+
 async def receive_upload(request: Request, *, limit: int, store: Store,
-                         limits: FileSetLimits = DEFAULT_SET_LIMITS) -> Upload:
+                         limits: FileSetLimits = DEFAULT_SET_LIMITS,
+                         pace: UploadPace = DEFAULT_PACE) -> Upload:
     """Stream the multipart body of ``request`` into a new folder of ``store.scratch``.
 
     Parameters
@@ -291,6 +384,8 @@ async def receive_upload(request: Request, *, limit: int, store: Store,
         Where the folder is made (``<data_dir>/tmp/``).
     limits : FileSetLimits
         How many files the form may hold, and their names.
+    pace : UploadPace
+        How slowly the body may arrive.
 
     Returns
     -------
@@ -301,6 +396,9 @@ async def receive_upload(request: Request, *, limit: int, store: Store,
     ------
     LimitError
         The body is larger than ``limit``.
+    HTTPException
+        408: the body sent nothing for ``pace.idle_seconds``, or arrived slower
+        than ``pace.min_rate``.
     UnsupportedUpload
         Not multipart/form-data.
     MeshError
@@ -319,7 +417,8 @@ async def receive_upload(request: Request, *, limit: int, store: Store,
     writer = _FormWriter(boundary, folder, limits)
     try:
         total, batch, batched = 0, [], 0
-        async for chunk in request.stream():
+        stream, clock = request.stream().__aiter__(), _Clock(pace)
+        while (chunk := await _next_chunk(stream, pace, clock)) is not None:
             total += len(chunk)
             if total > limit:
                 raise LimitError(f"the upload is larger than this server's limit of {limit} bytes")

@@ -5,6 +5,9 @@ A mesh often comes as a set: an OBJ with its ``.mtl`` and textures, a
 parts or as one ``.zip``, from someone else, so everything here assumes the
 names and the archive are hostile:
 
+- every name a client gives that is kept (a file's, the ``name`` field) passes
+  :func:`check_name`: no control character (C0, DEL, C1), at most
+  :data:`MAX_NAME_BYTES` in UTF-8, so every catalogue stores it as it is;
 - a part's name is reduced to its base name and must be a plain one
   (:func:`plain_name`): no folder, no ``..``, no leading dot, no control
   characters; two parts may not share a name; a set has at most
@@ -19,11 +22,16 @@ names and the archive are hostile:
   every entry at its declared size (and checks its CRC), so what is written is
   what was checked.
 
-The set is kept as one archive (:func:`pack_set`, stored uncompressed, the
-main file's name in the zip comment), so the catalogue keeps one source file
-per mesh; :func:`open_set` unpacks that archive, by the same checks, into a
-folder of its own and names the main file, which is then loaded with
-``root=`` that folder: references resolve only inside the set.
+The set is kept as one archive, so the catalogue keeps one source file per
+mesh: a zip as it was uploaded, still compressed, once :func:`list_zip` has
+checked it whole without extracting a byte (so it is unpacked only where it is
+parsed), with the main file's name written into its comment
+(:func:`name_main`); files sent as form parts packed into a new one
+(:func:`pack_set`, stored uncompressed). :func:`open_set` checks that archive
+by the same rules and extracts its main file into a folder of its own, which
+is then loaded with ``root=`` that folder: references resolve only inside the
+set, and each file is extracted only when a reference names it, so the files
+of a set that the mesh never names are never written.
 
 Every error is a :class:`~lodserver.mesh.MeshError` of one sentence naming
 entries as the client wrote them, never a server path.
@@ -37,15 +45,18 @@ import shutil
 import stat
 import struct
 import zipfile
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path, PurePosixPath
 
 from ..mesh import MeshError
 from .limits import LimitError
 from .load import SUPPORTED_INPUT
+from .references import extract_on_demand
 
-__all__ = ["DEFAULT_SET_LIMITS", "FileSetLimits", "NoMeshFile", "load_warnings", "open_set", "pack_set",
-           "pick_main", "plain_name", "unpack_zip"]
+__all__ = ["DEFAULT_SET_LIMITS", "MAX_NAME_BYTES", "FileSetLimits", "NoMeshFile", "check_name",
+           "list_zip", "load_warnings", "name_main", "open_set", "pack_set", "pick_main",
+           "plain_name", "unpack_zip"]
 
 # Entries smaller than this are not held to the ratio limit: a short, repetitive
 # text (an MTL, a small OBJ) legitimately compresses by a lot, and cannot be a bomb.
@@ -54,7 +65,12 @@ RATIO_FREE_BYTES = 1 << 20
 _MAIN_TAG = b"lodserver-main:"
 # Junk that archivers add (macOS resource forks), skipped rather than refused.
 _JUNK_FOLDERS = ("__MACOSX",)
-_CONTROL = re.compile(r"[\x00-\x1f\x7f]")
+# Control characters: C0 (NUL among them, which PostgreSQL cannot store in text),
+# DEL and C1. None belongs in a name, and they hide what a name says in logs and pages.
+_CONTROL = re.compile(r"[\x00-\x1f\x7f-\x9f]")
+# UTF-8 bytes of a name a client gives (a file's or a mesh's): what most file
+# systems allow in one component.
+MAX_NAME_BYTES = 255
 
 
 class NoMeshFile(MeshError):
@@ -70,7 +86,8 @@ class FileSetLimits:
     max_entries : int
         Entries of a zip, folders included.
     max_unpacked_bytes : int
-        Sum of the sizes a zip's files declare, in bytes (what extraction writes).
+        Sum of the sizes a zip's files declare, in bytes (what extraction writes);
+        a server ties it to its largest upload (``LODSERVER_ZIP_UNPACKED_RATIO``).
     max_ratio : float
         Largest uncompressed / compressed size of one entry above
         :data:`RATIO_FREE_BYTES`, and of the whole archive.
@@ -90,6 +107,44 @@ class FileSetLimits:
 
 # The limits of a server that sets none (frozen: safe to share as a default).
 DEFAULT_SET_LIMITS = FileSetLimits()
+
+
+def check_name(name: str, *, what: str = "name", max_bytes: int = MAX_NAME_BYTES) -> str:
+    """``name`` if it may be kept as a client gave it: the one rule for every name
+    stored, so that SQLite and PostgreSQL catalogues accept exactly the same names.
+
+    Parameters
+    ----------
+    name : str
+        A file's name or the ``name`` form field, as received.
+    what : str
+        What the name is, for the message ("the file name", "the form field 'name'").
+    max_bytes : int
+        Most UTF-8 bytes accepted.
+
+    Returns
+    -------
+    str
+        ``name``, unchanged.
+
+    Raises
+    ------
+    MeshError
+        ``name`` holds a control character (C0 including NUL, DEL, C1), is not
+        encodable as UTF-8 (a lone surrogate), or is longer than ``max_bytes``.
+    """
+    found = _CONTROL.search(name)
+    if found:
+        raise MeshError(f"{what} {name[:60]!r} holds the control character "
+                        f"U+{ord(found.group()):04X}; rename it")
+    try:
+        size = len(name.encode("utf-8"))
+    except UnicodeEncodeError:
+        raise MeshError(f"{what} {name[:60]!r} is not valid Unicode text") from None
+    if size > max_bytes:
+        raise MeshError(f"{what} {name[:60]!r}... is {size} bytes long in UTF-8; at most "
+                        f"{max_bytes} are accepted")
+    return name
 
 
 def plain_name(name: str, limits: FileSetLimits = DEFAULT_SET_LIMITS) -> str:
@@ -122,12 +177,9 @@ def _check_component(part: str, written: str, limits: FileSetLimits) -> None:
         raise MeshError(f"the file name {written!r} names no file")
     if part.startswith("."):
         raise MeshError(f"the file name {written!r} starts with a dot; rename it")
-    if _CONTROL.search(part) or ":" in part:
-        raise MeshError(f"the file name {written!r} has a control character or a colon; "
-                        "rename it")
-    if len(part.encode("utf-8", "surrogateescape")) > limits.max_name_bytes:
-        raise MeshError(f"the file name {written[:60]!r}... is longer than "
-                        f"{limits.max_name_bytes} bytes")
+    if ":" in part:
+        raise MeshError(f"the file name {written!r} has a colon; rename it")
+    check_name(part, what="the file name", max_bytes=limits.max_name_bytes)
 
 
 def is_mesh_name(name: str) -> bool:
@@ -311,6 +363,72 @@ def _checked_entries(archive: zipfile.ZipFile, limits: FileSetLimits
     return entries
 
 
+def _check_declared(path: Path, limits: FileSetLimits) -> None:
+    """Refuse an archive whose end record declares too many entries, before zipfile
+    reads its central directory."""
+    entries, cd_bytes = _declared_entries(path)
+    # each central-directory entry is 46 bytes plus its name, extra field and comment
+    if entries > limits.max_entries or cd_bytes > limits.max_entries * 1024 + 65536:
+        raise LimitError(f"the archive declares {entries} entries in {cd_bytes} bytes; an "
+                         f"upload may have at most {limits.max_entries} entries")
+
+
+def _unreadable(exc: BaseException) -> MeshError:
+    # BadZipFile also says "Bad CRC-32 for file ..." naming only the entry
+    return MeshError(f"the archive is not a readable zip file ({exc})")
+
+
+# zipfile's own failures on a malformed archive (a ValueError among them)
+_ZIP_ERRORS = (zipfile.BadZipFile, zipfile.LargeZipFile, EOFError, NotImplementedError,
+               UnicodeDecodeError, ValueError)
+
+
+def list_zip(path, limits: FileSetLimits = DEFAULT_SET_LIMITS) -> list[str]:
+    """The files a client's zip would unpack to, after every check of :func:`unpack_zip`
+    that needs no decompression: nothing is extracted.
+
+    Parameters
+    ----------
+    path : path of the archive.
+    limits : FileSetLimits
+
+    Returns
+    -------
+    list of str
+        The files, as relative POSIX paths, in archive order (junk skipped).
+
+    Raises
+    ------
+    MeshError, LimitError
+        As :func:`unpack_zip`, but a corrupt entry (its CRC) is found only
+        when it is unpacked.
+
+    Reads only the end record and the central directory (bounded by
+    ``limits.max_entries``): safe to run in the server process.
+    """
+    path = Path(path)
+    _check_declared(path, limits)
+    try:
+        with zipfile.ZipFile(path) as archive:
+            return ["/".join(parts) for _, parts, kind in _checked_entries(archive, limits)
+                    if kind == "file"]
+    except MeshError:
+        raise
+    except _ZIP_ERRORS as exc:
+        raise _unreadable(exc) from None
+
+
+def name_main(archive, main: str) -> None:
+    """Write ``main`` into the comment of ``archive``, a zip :func:`list_zip` accepted,
+    so :func:`open_set` finds the main file: only its central directory is rewritten
+    in place, its compressed entries stay as they are."""
+    try:
+        with zipfile.ZipFile(archive, "a") as opened:
+            opened.comment = _MAIN_TAG + main.encode("utf-8")
+    except _ZIP_ERRORS as exc:
+        raise _unreadable(exc) from None
+
+
 def unpack_zip(path, folder, limits: FileSetLimits = DEFAULT_SET_LIMITS) -> list[str]:
     """Extract a client's zip into ``folder``, after checking all of it.
 
@@ -335,31 +453,34 @@ def unpack_zip(path, folder, limits: FileSetLimits = DEFAULT_SET_LIMITS) -> list
         removes ``folder``).
     """
     path, folder = Path(path), Path(folder)
-    entries, cd_bytes = _declared_entries(path)
-    # each central-directory entry is 46 bytes plus its name, extra field and comment
-    if entries > limits.max_entries or cd_bytes > limits.max_entries * 1024 + 65536:
-        raise LimitError(f"the archive declares {entries} entries in {cd_bytes} bytes; an "
-                         f"upload may have at most {limits.max_entries} entries")
+    _check_declared(path, limits)
     try:
         with zipfile.ZipFile(path) as archive:
             written = []
             for info, parts, kind in _checked_entries(archive, limits):
-                target = folder.joinpath(*parts)
-                _make_folders(folder, parts if kind == "dir" else parts[:-1])
                 if kind == "dir":
+                    _make_folders(folder, parts)
                     continue
-                flags = (os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_NOFOLLOW", 0)
-                         | getattr(os, "O_CLOEXEC", 0))
-                with archive.open(info) as source, open(os.open(target, flags, 0o600), "wb") as out:
-                    shutil.copyfileobj(source, out, 1 << 20)
+                _extract_file(archive, info, parts, folder)
                 written.append("/".join(parts))
             return written
     except MeshError:       # a ValueError too: not to be taken for zipfile's own
         raise
     except (zipfile.BadZipFile, zipfile.LargeZipFile, EOFError, NotImplementedError,
             UnicodeDecodeError, ValueError) as exc:
-        # BadZipFile also says "Bad CRC-32 for file ..." naming only the entry
-        raise MeshError(f"the archive is not a readable zip file ({exc})") from None
+        raise _unreadable(exc) from None
+
+
+def _extract_file(archive: zipfile.ZipFile, info: zipfile.ZipInfo, parts: list[str],
+                  folder: Path) -> None:
+    """Write one checked entry to ``folder/parts...``, a new file in folders made here;
+    zipfile stops it at its declared size and checks its CRC."""
+    _make_folders(folder, parts[:-1])
+    flags = (os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_NOFOLLOW", 0)
+             | getattr(os, "O_CLOEXEC", 0))
+    with archive.open(info) as source, \
+            open(os.open(folder.joinpath(*parts), flags, 0o600), "wb") as out:
+        shutil.copyfileobj(source, out, 1 << 20)
 
 
 def _make_folders(folder: Path, parts: list[str]) -> None:
@@ -398,16 +519,63 @@ def pack_set(folder, names, archive, *, main: str) -> None:
         out.comment = _MAIN_TAG + main.encode("utf-8")
 
 
-def open_set(archive, folder, limits: FileSetLimits = DEFAULT_SET_LIMITS) -> Path:
-    """Unpack a set's archive into ``folder`` (by :func:`unpack_zip`'s checks) and
-    return the path of its main file: the one its comment names (:func:`pack_set`),
-    else its only mesh file (:func:`pick_main`)."""
-    names = unpack_zip(archive, folder, limits)
-    with zipfile.ZipFile(archive) as opened:
+@contextmanager
+def open_set(archive, folder, limits: FileSetLimits = DEFAULT_SET_LIMITS):
+    """Open a set's archive for one load: yields the path of its main file in ``folder``.
+
+    Parameters
+    ----------
+    archive : path of the set's zip (an uploaded zip, or :func:`pack_set`'s).
+    folder : path of an empty folder (it must exist), the load's ``root``.
+    limits : FileSetLimits
+
+    Every entry is checked first, as by :func:`unpack_zip`. The main file is the
+    one the archive's comment names (:func:`name_main`, :func:`pack_set`), else
+    its only mesh file (:func:`pick_main`); only it is extracted at once, and
+    any other file only when a reference of the mesh names it, while the block
+    runs (``io.references.extract_on_demand``): files of the set the mesh never
+    names are never written. The archive stays open until the block ends.
+
+    Raises
+    ------
+    MeshError, LimitError
+        As :func:`unpack_zip` (a corrupt entry when it is extracted), or as
+        :func:`pick_main`.
+    """
+    path, folder = Path(archive), Path(folder)
+    _check_declared(path, limits)
+    try:
+        opened = zipfile.ZipFile(path)
+    except _ZIP_ERRORS as exc:
+        raise _unreadable(exc) from None
+    with opened:
+        try:
+            files = {"/".join(parts): (info, parts)
+                     for info, parts, kind in _checked_entries(opened, limits) if kind == "file"}
+        except MeshError:
+            raise
+        except _ZIP_ERRORS as exc:
+            raise _unreadable(exc) from None
         comment = opened.comment
-    main = comment[len(_MAIN_TAG):].decode("utf-8", "replace") \
-        if comment.startswith(_MAIN_TAG) else None
-    return Path(folder) / pick_main(names, main)
+        main = comment[len(_MAIN_TAG):].decode("utf-8", "replace") \
+            if comment.startswith(_MAIN_TAG) else None
+        chosen = pick_main(list(files), main)
+        extracted = set()
+
+        def extract(parts: list[str]) -> None:
+            key = "/".join(parts)
+            if key in files and key not in extracted:
+                extracted.add(key)
+                try:
+                    _extract_file(opened, *files[key], folder)
+                except MeshError:
+                    raise
+                except _ZIP_ERRORS as exc:
+                    raise _unreadable(exc) from None
+
+        extract(files[chosen][1])
+        with extract_on_demand(folder, extract):
+            yield folder / chosen
 
 
 def load_warnings(report: dict | None) -> list[str]:

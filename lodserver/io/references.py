@@ -19,6 +19,11 @@ taken relative to the referring file, symlinks and ``..`` included.
 The file is opened with ``O_NONBLOCK`` (a fifo must not hang the reader) and
 checked again on the open descriptor, and only the bytes its size promised
 are read, never more than the caller's limit.
+
+A ``root`` may be filled on demand (:func:`extract_on_demand`, a set's archive
+in :mod:`.fileset`): each name is offered to its extractor, after the checks
+above and before the file is looked for, so only the files a mesh names are
+ever written.
 """
 
 from __future__ import annotations
@@ -26,6 +31,8 @@ from __future__ import annotations
 import os
 import re
 import stat
+from contextlib import contextmanager
+from contextvars import ContextVar
 from pathlib import Path, PurePosixPath
 from urllib.parse import unquote
 
@@ -39,6 +46,23 @@ _PSEUDO_FILE_SYSTEMS = ("/proc", "/sys", "/dev")
 
 class MissingReferenceError(MeshError):
     """A referenced file does not exist (an OBJ's missing ``mtllib`` is only reported)."""
+
+
+# (real path of a root, its extractor) while a load fills that root on demand
+_ON_DEMAND: ContextVar[tuple[str, object] | None] = ContextVar("on_demand", default=None)
+
+
+@contextmanager
+def extract_on_demand(root, extract):
+    """While the block runs, a name resolved inside ``root`` is first passed to
+    ``extract(parts)`` (its normalised components below ``root``, a list of str),
+    which writes that file into ``root`` if it has one of that name and returns;
+    the name is then looked for as usual."""
+    token = _ON_DEMAND.set((os.path.realpath(root), extract))
+    try:
+        yield
+    finally:
+        _ON_DEMAND.reset(token)
 
 
 def resolve_reference(uri: str, folder: Path, root: Path | None, what: str, *,
@@ -102,6 +126,9 @@ def resolve_reference(uri: str, folder: Path, root: Path | None, what: str, *,
             parts.pop()
         else:
             parts.append(part)
+    demand = _ON_DEMAND.get()
+    if demand is not None and demand[0] == str(root) and parts:
+        demand[1](parts)
     # every component below root must be a real directory (or, last, a regular file)
     file = root
     for at, part in enumerate(parts):

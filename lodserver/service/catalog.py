@@ -200,6 +200,8 @@ class Catalog(ABC):
                         "ORDER BY created, id"),
             "ahead": ("SELECT COUNT(*) FROM meshes WHERE status = 'queued' AND "
                       "(created < ? OR (created = ? AND id < ?))"),
+            "held": ("SELECT COALESCE(SUM(source_bytes), 0) FROM meshes WHERE status IN "
+                     "('queued', 'building')"),
             "artefacts": "SELECT id, file_type, status, digest FROM meshes",
             "lease": "SELECT lease_owner, lease_until FROM meshes WHERE id = ?",
         }
@@ -301,6 +303,12 @@ class Catalog(ABC):
     def queued_before(self, record: MeshRecord) -> int:
         """How many queued rows a claim takes before ``record`` (claims go oldest first)."""
         rows, _ = self._run(self._sql["ahead"], (record.created, record.created, record.id))
+        return int(rows[0][0])
+
+    def held_source_bytes(self) -> int:
+        """Sum of ``source_bytes`` over the queued and building rows (their sources
+        are kept until the build is done)."""
+        rows, _ = self._run(self._sql["held"])
         return int(rows[0][0])
 
     def artefacts(self) -> list[tuple[str, str, str, str | None]]:

@@ -36,6 +36,7 @@ import numpy as np
 
 from ..build import build
 from ..io import LoadReport
+from ..io.fileset import FileSetLimits
 from ..io.limits import DEFAULT_MAX_TRIANGLES, LoadLimits
 from ..io.scene import Scene
 from ..mesh import Mesh, MeshError
@@ -119,6 +120,8 @@ class JobRunner:
         The lease of a claimed build (:data:`LEASE_SECONDS`).
     poll_seconds : float
         How often idle workers look for builds queued by other processes.
+    set_limits : FileSetLimits, optional
+        What a stored set (a zip) may unpack to when it is parsed.
 
     Until :meth:`start`, only the builds :meth:`submit`-ted here are claimed.
     ``ready`` is set once the kernels are warm (``start(warm=True)``) or at
@@ -127,7 +130,8 @@ class JobRunner:
 
     def __init__(self, store: Store, *, workers: int = 1,
                  max_triangles: int = DEFAULT_MAX_TRIANGLES, parser: ParsePool | None = None,
-                 lease_seconds: float = LEASE_SECONDS, poll_seconds: float = POLL_SECONDS):
+                 lease_seconds: float = LEASE_SECONDS, poll_seconds: float = POLL_SECONDS,
+                 set_limits: FileSetLimits | None = None):
         if lease_seconds <= 0 or poll_seconds <= 0:
             raise ValueError("lease_seconds and poll_seconds must be positive")
         self.store = store
@@ -136,6 +140,7 @@ class JobRunner:
         self.parser = parser
         self.lease_seconds = float(lease_seconds)
         self.poll_seconds = float(poll_seconds)
+        self.set_limits = set_limits
         self.ready = threading.Event()
         self.warmed_at: float | None = None
         # Meshes parsed when their upload was checked, for their build to reuse:
@@ -219,9 +224,10 @@ class JobRunner:
             if self.parser is None:
                 return check_mesh_file(source, file_type=file_type, root=root,
                                        max_triangles=self.max_triangles, limits=limits,
-                                       scenes=True)
+                                       set_limits=self.set_limits, scenes=True)
             return self.parser.parse(source, file_type=file_type, root=root, limits=limits,
-                                     max_triangles=self.max_triangles, admit=admit, scenes=True)
+                                     max_triangles=self.max_triangles, admit=admit, scenes=True,
+                                     set_limits=self.set_limits)
         except MeshError as exc:
             message = scrub(str(exc), {source: name, root: "the upload",
                                        getattr(self.store, "root", None): "the server"})

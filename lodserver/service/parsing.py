@@ -80,9 +80,10 @@ def check_mesh_file(path, *, file_type: str, max_triangles: int, root=None,
     root : path, optional
         The folder every file the mesh names must resolve inside (an upload's
         own folder, holding only it); None: relative to the file, unchecked.
-        A set is unpacked into a new folder inside ``root`` (else beside the
-        archive), which is then the root of its main file's references:
-        they resolve only inside the set. The folder is removed afterwards.
+        A set's main file is extracted into a new folder inside ``root`` (else
+        beside the archive), which is then the root of its references: they
+        resolve only inside the set, and each file is extracted when one names
+        it (``io.fileset.open_set``). The folder is removed afterwards.
     limits : LoadLimits, optional
         What the file may declare (checked before allocating for it).
     set_limits : FileSetLimits, optional
@@ -105,10 +106,10 @@ def check_mesh_file(path, *, file_type: str, max_triangles: int, root=None,
     if file_type == SET_TYPE:
         unpacked = Path(tempfile.mkdtemp(prefix="set-", dir=root or Path(path).parent))
         try:
-            main = open_set(path, unpacked, set_limits or DEFAULT_SET_LIMITS)
-            return check_mesh_file(main, file_type=main.suffix.lower().lstrip("."),
-                                   max_triangles=max_triangles, root=unpacked, limits=limits,
-                                   scenes=scenes)
+            with open_set(path, unpacked, set_limits or DEFAULT_SET_LIMITS) as main:
+                return check_mesh_file(main, file_type=main.suffix.lower().lstrip("."),
+                                       max_triangles=max_triangles, root=unpacked,
+                                       limits=limits, scenes=scenes)
         finally:
             shutil.rmtree(unpacked, ignore_errors=True)
     if scenes and file_type in ("gltf", "glb"):
@@ -166,7 +167,8 @@ def pickled_size(value) -> int:
 
 def _parse_in_worker(path: str, file_type: str, root: str | None, max_triangles: int,
                      limits: LoadLimits | None, scenes: bool = False,
-                     result_bytes: int | None = None):
+                     result_bytes: int | None = None,
+                     set_limits: FileSetLimits | None = None):
     """``check_mesh_file`` in a parse worker, with every failure made a picklable
     MeshError naming ``path`` (the caller replaces it with the upload's name).
 
@@ -175,7 +177,8 @@ def _parse_in_worker(path: str, file_type: str, root: str | None, max_triangles:
     unpickled whole in the server."""
     try:
         result = check_mesh_file(path, file_type=file_type, max_triangles=max_triangles,
-                                 root=root, limits=limits, scenes=scenes)
+                                 root=root, limits=limits, scenes=scenes,
+                                 set_limits=set_limits)
         if result_bytes is not None:
             size = pickled_size(result)
             if size > result_bytes:
@@ -265,7 +268,8 @@ class ParsePool:
         return self._admitted >= self.workers + self.queue
 
     def parse(self, path, *, file_type: str, root, max_triangles: int,
-              limits: LoadLimits | None, admit: bool = True, scenes: bool = False):
+              limits: LoadLimits | None, admit: bool = True, scenes: bool = False,
+              set_limits: FileSetLimits | None = None):
         """``check_mesh_file`` in a worker; see :func:`_parse_in_worker`.
 
         Raises ParserBusy (``admit`` and the queue is full), ParserClosed,
@@ -275,7 +279,7 @@ class ParsePool:
         try:
             return self.call(_parse_in_worker, str(path), file_type,
                              None if root is None else str(root), max_triangles, limits,
-                             scenes, self.result_bytes, admit=admit)
+                             scenes, self.result_bytes, set_limits, admit=admit)
         except _WorkerDied:
             raise LimitError(f"cannot load {Path(path).name}: reading it needed more memory "
                              "than this server allows one file, or crashed the reader") from None

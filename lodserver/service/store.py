@@ -227,6 +227,17 @@ class Store(ABC):
             offset += len(page)
         return ahead
 
+    def held_source_bytes(self) -> int:
+        """Bytes of the sources kept for builds not yet done (queued or building): what
+        the queue holds on disk or in the object store. This default pages through
+        :meth:`list`; a store with a catalogue asks it."""
+        held, offset = 0, 0
+        while page := self.list(limit=1000, offset=offset):
+            held += sum(record.source_bytes for record in page
+                        if record.status in (Status.QUEUED, Status.BUILDING))
+            offset += len(page)
+        return held
+
     def close(self) -> None:
         """Release resources; the default holds none."""
 
@@ -613,6 +624,9 @@ class LocalStore(Store):
     def queue_position(self, *, mesh_id: str) -> int | None:
         record = self._row(mesh_id)
         return self.catalog.queued_before(record) if record.status is Status.QUEUED else None
+
+    def held_source_bytes(self) -> int:
+        return self.catalog.held_source_bytes()
 
     def close(self) -> None:
         self.catalog.close()

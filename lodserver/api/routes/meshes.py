@@ -8,12 +8,12 @@ from fastapi import APIRouter, Query, Response
 from fastapi.concurrency import run_in_threadpool
 from pydantic import ValidationError
 
-from ...io.fileset import unpack_zip
+from ...io.limits import LimitError
 from ...mesh import MeshError
 from ...service.store import Status
-from ..deps import JobsDep, MeshId, StoreDep, TokenDep, UploadDep
+from ..deps import JobsDep, MeshId, SettingsDep, StoreDep, TokenDep, UploadDep
 from ..models import MeshCreate, MeshCreated, MeshList, MeshPublic, Message, report_warnings
-from ..upload import prepare_source
+from ..upload import UploadsBusy, prepare_source
 
 router = APIRouter(prefix="/meshes", tags=["meshes"])
 
@@ -33,41 +33,59 @@ _UPLOAD_BODY = {
                for name, field in MeshCreate.model_json_schema()["properties"].items()},
         }}}},
 }
-_ERRORS = {code: {"model": Message} for code in (401, 404, 409, 413, 415, 422, 503, 507)}
+_ERRORS = {code: {"model": Message} for code in (401, 404, 408, 409, 413, 415, 422, 503,
+                                                   507)}
+# Seconds a client refused for a full build queue is told to wait: builds take that long.
+QUEUE_RETRY_AFTER = 30
 
 
-def _unpack_in(parser):
-    """``io.fileset.unpack_zip`` in a parse worker (a hostile archive's memory and
-    time are the worker's), or here when the server parses in-process."""
-    if parser is None:
-        return unpack_zip
-    return lambda archive, folder, limits: parser.call(unpack_zip, str(archive), str(folder),
-                                                        limits)
+def _check_room(store, *, size: int, budget: int) -> None:
+    """Refuse a source of ``size`` bytes that would take the sources the build queue
+    holds past ``budget`` bytes: 503 while builds may free room, 413 if it never fits.
+    Checked before the parse, so concurrent uploads may pass it together by at most
+    what the parse queue admits."""
+    if size > budget:
+        raise LimitError(f"the upload keeps {size} bytes while it is built; this server "
+                         f"keeps at most {budget} for all queued builds")
+    held = store.held_source_bytes()
+    if held + size > budget:
+        raise UploadsBusy(f"the server holds {held} bytes of uploads waiting to be built; "
+                          f"try again in {QUEUE_RETRY_AFTER} seconds",
+                          retry_after=QUEUE_RETRY_AFTER)
 
 
 @router.post("", status_code=202, response_model=MeshCreated,
              openapi_extra={"requestBody": _UPLOAD_BODY},
-             responses={code: _ERRORS[code] for code in (401, 413, 415, 422, 503, 507)})
-async def create_mesh(upload: UploadDep, jobs: JobsDep, response: Response) -> MeshCreated:
+             responses={code: _ERRORS[code] for code in (401, 408, 413, 415, 422, 503, 507)})
+async def create_mesh(upload: UploadDep, jobs: JobsDep, settings: SettingsDep,
+                      response: Response) -> MeshCreated:
     """Upload a mesh (or a set of files, or a zip); its progressive mesh is built in
     the background (poll the href).
 
     The file is parsed and checked before the answer (a parse worker process,
-    a few at a time): 503 with Retry-After when that queue is full, 507 when
-    the server has no disk space for it. ``warnings`` says what the load left
-    out (a material library named but not uploaded, data not kept).
+    a few at a time): 503 with Retry-After when that queue is full, when as
+    many bodies are arriving as the server takes at once, or when the uploads
+    waiting for their builds hold the server's budget of bytes; 408 for a body
+    that stalls or trickles; 507 when the server has no disk space for it.
+    ``warnings`` says what the load left out (a material library named but not
+    uploaded, data not kept).
     """
     fields = dict(upload.fields)
     main = fields.pop("main", None)
     try:
         form = MeshCreate.model_validate(fields)
     except ValidationError as exc:
-        raise MeshError("; ".join(f"form field {'.'.join(map(str, e['loc']))!r}: {e['msg']}"
+        raise MeshError("; ".join(f"form field {'.'.join(map(str, e['loc']))!r}: "
+                                  f"{e['msg'].removeprefix('Value error, ')}"
                                   for e in exc.errors())) from None
-    # threads: a set is copied into one archive, a zip unpacked in a parse worker,
-    # and the parse worker waited for (with the store's rename and row)
+    # threads: a set is copied into one archive (a zip only listed: it is unpacked
+    # once, by its parse), the catalogue asked, and the parse worker waited for
+    # (with the store's rename and row)
     source = await run_in_threadpool(prepare_source, upload, main=main,
-                                     unpack=_unpack_in(jobs.parser))
+                                     limits=settings.set_limits)
+    size = source.path.stat().st_size
+    await run_in_threadpool(_check_room, jobs.store, size=size,
+                            budget=settings.queued_source_bytes)
     record, report = await run_in_threadpool(
         jobs.accept, source=source.path, root=source.root, name=form.name or source.name,
         file_type=source.file_type, options=form.build_options(), with_report=True)
