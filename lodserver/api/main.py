@@ -34,9 +34,12 @@ async def lifespan(app: FastAPI):
     jobs = build_runner(store, settings, parser)
     jobs.start(warm=settings.warm_kernels)
     app.state.store, app.state.jobs, app.state.cache = store, jobs, BodyCache()
+    app.state.readiness = health.Readiness({"catalogue": store.catalog.ping,
+                                            "store": store.blobs.ping})
     try:
         yield
     finally:
+        app.state.readiness.close()
         await run_in_threadpool(jobs.shutdown)
         # packet records still queued for background encoding are dropped (a
         # later request schedules them again); the one being encoded finishes
