@@ -7,6 +7,11 @@ Data flow: ``io.load_mesh`` -> ``quadrics`` -> ``decimate`` -> ``progressive``
 command line and the HTTP form alike.
 """
 
+from .numba_cache import ensure_writable_cache
+
+# before any kernel module is imported: numba needs a writable cache folder to decorate one
+ensure_writable_cache()
+
 
 def _version() -> str:
     """The installed distribution's version; in a bare checkout, pyproject.toml's."""
