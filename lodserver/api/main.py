@@ -39,7 +39,6 @@ async def lifespan(app: FastAPI):
     try:
         yield
     finally:
-        app.state.readiness.close()
         await run_in_threadpool(jobs.shutdown)
         # packet records still queued for background encoding are dropped (a
         # later request schedules them again); the one being encoded finishes

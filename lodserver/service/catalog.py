@@ -411,11 +411,11 @@ class PostgresCatalog(Catalog):
         self._probe_lock = threading.Lock()
         self._create_schema()
 
-    def _connect(self, seconds: float | None = None):
+    def _connect(self, seconds: float | None = None, **options):
         seconds = self._connect_seconds if seconds is None else seconds
         try:
             return self._psycopg.connect(self.url, autocommit=True,
-                                         connect_timeout=max(1, math.ceil(seconds)))
+                                         connect_timeout=max(1, math.ceil(seconds)), **options)
         except self._psycopg.OperationalError as exc:
             raise CatalogUnavailable(f"cannot reach the catalogue at {redact_url(self.url)}: "
                                      f"{_first_line(exc)}") from None
@@ -450,7 +450,8 @@ class PostgresCatalog(Catalog):
 
     def ping(self, *, timeout: float) -> None:
         """``SELECT 1`` on a connection kept for the probe; a broken one is replaced
-        once (the server restarted since), with ``timeout`` to connect."""
+        once (the server restarted since). ``timeout`` bounds the connection and,
+        through TCP_USER_TIMEOUT, a query whose packets go unanswered."""
         psycopg = self._psycopg
         with self._probe_lock:
             if self._probe is not None:
@@ -460,7 +461,7 @@ class PostgresCatalog(Catalog):
                 except psycopg.Error:
                     self._probe.close()
                     self._probe = None
-            connection = self._connect(timeout)
+            connection = self._connect(timeout, tcp_user_timeout=math.ceil(timeout * 1000))
             try:
                 connection.execute("SELECT 1")
             except psycopg.Error as exc:
@@ -501,10 +502,15 @@ class PostgresCatalog(Catalog):
         with self._lock:
             self._closed = True
             idle, self._idle = self._idle, []
-        with self._probe_lock:
-            if self._probe is not None:
-                idle.append(self._probe)
-                self._probe = None
+        # a probe stuck on an unanswering server holds the lock: its connection
+        # is then left to the process's exit rather than waited for
+        if self._probe_lock.acquire(timeout=1.0):
+            try:
+                if self._probe is not None:
+                    idle.append(self._probe)
+                    self._probe = None
+            finally:
+                self._probe_lock.release()
         for connection in idle:
             connection.close()
 

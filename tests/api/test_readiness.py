@@ -58,15 +58,12 @@ def test_one_probe_per_period_however_many_ask():
     async def scenario():
         readiness = Readiness({"catalogue": lambda timeout: calls.append(timeout)},
                               fresh=0.5)
-        try:
-            answers = await asyncio.gather(*(readiness.problem() for _ in range(50)))
-            assert answers == [None] * 50
-            assert calls == [PROBE_SECONDS]
-            await asyncio.sleep(0.6)
-            assert await readiness.problem() is None
-            assert len(calls) == 2
-        finally:
-            readiness.close()
+        answers = await asyncio.gather(*(readiness.problem() for _ in range(50)))
+        assert answers == [None] * 50
+        assert calls == [2 * PROBE_SECONDS]     # its own timeouts: twice the deadline
+        await asyncio.sleep(0.6)
+        assert await readiness.problem() is None
+        assert len(calls) == 2
 
     asyncio.run(scenario())
 
@@ -97,7 +94,6 @@ def test_a_hanging_probe_is_a_503_within_its_deadline_and_never_runs_twice():
             assert problem == "the store cannot be used right now"
         finally:
             release.set()
-            readiness.close()
 
     asyncio.run(scenario())
 
@@ -130,23 +126,25 @@ def _through(proxy: TcpProxy, url: str) -> str:
 
 
 @pytest.fixture
-def shared_server(tmp_path, postgres_url, s3_url, s3_endpoint):  # noqa: F811
+def shared_server(request, tmp_path, postgres_url, s3_url, s3_endpoint):  # noqa: F811
     """A real server whose catalogue (PostgreSQL) and store (S3) are reached through
-    proxies; yields (httpx client, catalogue proxy, store proxy)."""
+    proxies, with more settings from an indirect parameter; yields (httpx client,
+    catalogue proxy, store proxy, server process)."""
     database, objects = urlsplit(postgres_url), urlsplit(s3_endpoint)
     with TcpProxy((database.hostname, database.port)) as catalogue, \
             TcpProxy((objects.hostname, objects.port)) as store:
         env = {"LODSERVER_CATALOG_URL": _through(catalogue, postgres_url),
                "LODSERVER_STORE_URL": s3_url,
-               "AWS_ENDPOINT_URL": _through(store, s3_endpoint)}
+               "AWS_ENDPOINT_URL": _through(store, s3_endpoint),
+               **getattr(request, "param", {})}
         with server_process(tmp_path / "data", env=env, timeout=120,
-                            log=tmp_path / "server.log") as (base, _), \
+                            log=tmp_path / "server.log") as (base, process), \
                 httpx.Client(base_url=base, timeout=60) as client:
-            yield client, catalogue, store
+            yield client, catalogue, store, process
 
 
 def test_readyz_follows_postgresql_and_s3_going_away_and_coming_back(shared_server):
-    client, catalogue, store = shared_server
+    client, catalogue, store, _ = shared_server
     assert client.get("/readyz").json() == {"status": "ok", "ready": True}
     assert client.get("/meshes").status_code == 200
 
@@ -185,3 +183,22 @@ def test_readyz_follows_postgresql_and_s3_going_away_and_coming_back(shared_serv
     finally:
         store.restore()
     _until(client, 200)
+
+
+# A node that only serves: a building node's queue poll waits on the same
+# unanswering database with no timeout of its own, which holds up its shutdown
+# whatever the probe does.
+@pytest.mark.parametrize("shared_server", [{"LODSERVER_WORKERS": "0"}], indirect=True)
+def test_a_probe_stuck_on_an_unanswering_database_does_not_hold_up_the_shutdown(
+        shared_server):
+    client, catalogue, _, process = shared_server
+    catalogue.hang()
+    try:
+        _not_ready(_until(client, 503), "catalogue")
+        started = time.monotonic()
+        process.terminate()
+        process.wait(timeout=60)
+        # the probe's thread is a daemon, and closing the catalogue does not wait for it
+        assert time.monotonic() - started < 30
+    finally:
+        catalogue.restore()

@@ -14,9 +14,9 @@ from __future__ import annotations
 
 import asyncio
 import logging
+import threading
 import time
 from collections.abc import Callable
-from concurrent.futures import ThreadPoolExecutor
 from functools import partial
 
 from fastapi import APIRouter, Request
@@ -43,20 +43,21 @@ class Readiness:
     probes : {name: callable(timeout=seconds)}
         One call per dependency that raises when it cannot be used (``ping`` of
         the catalogue and of the blob store); ``name`` goes into the message.
+        Its own timeouts are given twice the deadline: the deadline answers
+        first, and the probe's thread still ends soon after.
 
-    Each probe runs in a thread of this object's own (never on the event loop,
-    never queued behind the requests' threads), at most one per dependency at a
-    time: a probe still running from an earlier check, because its dependency
-    hangs, is waited for again rather than started twice. Requests arriving
-    together share one round.
+    Each probe runs in a daemon thread of its own (never on the event loop,
+    never queued behind the requests' threads, never holding up the process's
+    exit), at most one per dependency at a time: a probe still running from an
+    earlier check, because its dependency hangs, is waited for again rather
+    than started twice. Requests arriving together share one round.
     """
 
     def __init__(self, probes: dict[str, Callable[..., None]], *,
                  deadline: float = PROBE_SECONDS, fresh: float = FRESH_SECONDS):
-        self._probes = {name: partial(probe, timeout=deadline) for name, probe in probes.items()}
+        self._probes = {name: partial(probe, timeout=2 * deadline)
+                        for name, probe in probes.items()}
         self._deadline, self._fresh = deadline, fresh
-        self._executor = ThreadPoolExecutor(max_workers=max(1, len(probes)),
-                                            thread_name_prefix="lodserver-readiness")
         self._running: dict[str, asyncio.Future] = {}
         self._answer: tuple[float, str | None] | None = None
         self._round = asyncio.Lock()
@@ -79,11 +80,10 @@ class Readiness:
         return None
 
     async def _probe_all(self) -> str | None:
-        loop = asyncio.get_running_loop()
         for name, probe in self._probes.items():
             running = self._running.get(name)
             if running is None or running.done():
-                self._running[name] = loop.run_in_executor(self._executor, probe)
+                self._running[name] = _in_thread(name, probe)
         futures = dict(self._running)
         done, _ = await asyncio.wait(futures.values(), timeout=self._deadline)
         problems = []
@@ -102,10 +102,33 @@ class Readiness:
                 log.warning("ready again: the %s answer", " and the ".join(self._probes))
         return problem
 
-    def close(self) -> None:
-        """Stop the probe threads (a probe still waiting on its dependency is left
-        to finish on its own)."""
-        self._executor.shutdown(wait=False, cancel_futures=True)
+
+
+def _in_thread(name: str, probe: Callable[[], None]) -> asyncio.Future:
+    """A future of the running loop settled by ``probe()`` run in a daemon thread."""
+    loop = asyncio.get_running_loop()
+    future = loop.create_future()
+
+    def settle(error: BaseException | None) -> None:
+        if not future.done():
+            if error is None:
+                future.set_result(None)
+            else:
+                future.set_exception(error)
+
+    def run() -> None:
+        try:
+            probe()
+            error = None
+        except Exception as exc:     # noqa: BLE001 (any failure means "not ready")
+            error = exc
+        try:
+            loop.call_soon_threadsafe(settle, error)
+        except RuntimeError:         # the loop closed meanwhile: nobody is waiting
+            pass
+
+    threading.Thread(target=run, name=f"lodserver-readiness-{name}", daemon=True).start()
+    return future
 
 
 @router.get("/healthz", responses={503: {"description": "Up, but the kernels are still "
