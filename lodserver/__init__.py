@@ -8,6 +8,11 @@ artefact) -> ``packets`` -> ``service`` (store, jobs) -> ``api`` -> ``static/``
 command line and the HTTP form alike.
 """
 
+from .numba_cache import ensure_writable_cache
+
+# before any kernel module is imported: numba needs a writable cache folder to decorate one
+ensure_writable_cache()
+
 
 def _version() -> str:
     """The installed distribution's version; in a bare checkout, pyproject.toml's."""

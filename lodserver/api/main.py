@@ -34,6 +34,8 @@ async def lifespan(app: FastAPI):
     jobs = build_runner(store, settings, parser)
     jobs.start(warm=settings.warm_kernels)
     app.state.store, app.state.jobs, app.state.cache = store, jobs, BodyCache()
+    app.state.readiness = health.Readiness({"catalogue": store.catalog.ping,
+                                            "store": store.blobs.ping})
     try:
         yield
     finally:

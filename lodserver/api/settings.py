@@ -11,7 +11,7 @@ from functools import lru_cache
 from pathlib import Path
 from typing import Annotated
 
-from pydantic import Field, SecretStr, field_validator, model_validator
+from pydantic import Field, SecretStr, ValidationInfo, field_validator, model_validator
 from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict
 
 from ..io.fileset import FileSetLimits
@@ -30,8 +30,13 @@ class Settings(BaseSettings):
 
     data_dir: Path = Field(Path("lodserver-data"),
                            description="Directory of the catalogue, sources and artefacts.")
-    token: SecretStr | None = Field(None, description="Bearer token required by write "
-                                    "endpoints; unset or empty: no token needed.")
+    # token_file before token: token's validator reads it (fields validate in order)
+    token_file: Path | None = Field(None, description="A file holding the bearer token (a "
+                                    "Docker or Kubernetes secret), its trailing newline "
+                                    "ignored; instead of token, never with it.")
+    token: SecretStr | None = Field(None, validate_default=True, description="Bearer token "
+                                    "required by write endpoints; unset or empty: no token "
+                                    "needed.")
     max_upload_bytes: int = Field(256 * 2**20, gt=0, description="Largest request body "
                                   "accepted by POST /meshes, in bytes.")
     upload_idle_seconds: float = Field(30.0, gt=0, le=3600, description="An upload whose "
@@ -126,8 +131,14 @@ class Settings(BaseSettings):
 
     @field_validator("token", mode="before")
     @classmethod
-    def _empty_token_is_none(cls, value):
-        return None if value in ("", None) else value
+    def _token_or_its_file(cls, value, info: ValidationInfo):
+        value = None if value in ("", None) else value
+        path = info.data.get("token_file")
+        if path is None:
+            return value
+        if value is not None:
+            raise ValueError("set LODSERVER_TOKEN or LODSERVER_TOKEN_FILE, not both")
+        return read_token_file(path)
 
     @model_validator(mode="after")
     def _loaded_bytes_by_triangles(self):
@@ -135,9 +146,9 @@ class Settings(BaseSettings):
             self.loaded_bytes = max(LOADED_BYTES_PER_TRIANGLE * self.max_triangles, 2**26)
         return self
 
-    @field_validator("catalog_url", "store_url", mode="before")
+    @field_validator("token_file", "catalog_url", "store_url", mode="before")
     @classmethod
-    def _empty_url_is_none(cls, value):
+    def _empty_is_none(cls, value):
         return None if value in ("", None) else value
 
     @field_validator("catalog_url")
@@ -158,6 +169,22 @@ class Settings(BaseSettings):
                 return json.loads(value)
             return [origin.strip() for origin in value.split(",") if origin.strip()]
         return value
+
+
+def read_token_file(path: Path) -> str:
+    """The token in the file at ``path``: its text without the trailing newline
+    that ``echo`` and most editors add. An unreadable or empty file is a
+    ValueError (an empty token would leave the writes open)."""
+    try:
+        token = Path(path).read_text(encoding="utf-8").rstrip("\r\n")
+    except OSError as exc:
+        raise ValueError(f"cannot read the token file {str(path)!r} "
+                         f"({exc.strerror or type(exc).__name__})") from None
+    except UnicodeDecodeError:
+        raise ValueError(f"the token file {str(path)!r} is not UTF-8 text") from None
+    if not token:
+        raise ValueError(f"the token file {str(path)!r} is empty")
+    return token
 
 
 @lru_cache

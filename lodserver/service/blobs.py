@@ -33,6 +33,7 @@ import hashlib
 import os
 import re
 import shutil
+import stat
 import uuid
 from abc import ABC, abstractmethod
 from collections.abc import Iterator
@@ -121,6 +122,12 @@ class Blobs(ABC):
     @abstractmethod
     def keys(self, prefix: str = "") -> Iterator[str]:
         """The keys under ``prefix`` (a key's leading segments, or ''), in no order."""
+
+    @abstractmethod
+    def ping(self, *, timeout: float) -> None:
+        """Return once the store's root can be used, within about ``timeout`` seconds;
+        else a :class:`StoreError`. The readiness probe: one cheap call (a folder's
+        stat, an object store's HEAD of its bucket)."""
 
     def local_path(self, key: str) -> Path | None:
         """The object's own file when the store is a local folder (read it, never
@@ -246,6 +253,18 @@ class LocalBlobs(Blobs):
         path = self._path(key)
         return path if path.is_file() else None
 
+    def ping(self, *, timeout: float) -> None:
+        # a folder answers at once or hangs (a lost network mount): the caller
+        # bounds the wait, there is nothing to pass the timeout to
+        try:
+            if not stat.S_ISDIR(os.stat(self.root).st_mode):
+                raise StoreError("the store's folder is not a folder")
+        except OSError as exc:
+            raise StoreError(f"the store's folder cannot be used: "
+                             f"{exc.strerror or type(exc).__name__}") from None
+        if not os.access(self.root, os.W_OK | os.X_OK):
+            raise StoreError("the store's folder is not writable")
+
 
 def _local_error(exc: OSError, key: str, doing: str) -> StoreError:
     """One sentence, no path: missing, disk full, or the OS's reason."""
@@ -304,11 +323,13 @@ class FsspecBlobs(Blobs):
             raise StoreError(f"the store URL scheme {protocol!r} is not available "
                              f"({exc}); for s3:// install lodserver[distributed]") from None
         self.root = rest.strip("/")
-        self._put_options = {"chunksize": max(int(part_bytes), 5 * 2**20)} \
-            if protocol in ("s3", "s3a") else {}
+        self._s3 = protocol in ("s3", "s3a")
+        self._probe_options = {**defaults, **fs_options}
+        self._probe_fs = None
+        self._put_options = {"chunksize": max(int(part_bytes), 5 * 2**20)} if self._s3 else {}
         if not self.root:
             raise StoreError("an object-store URL names a bucket: s3://bucket/prefix")
-        if check and protocol in ("s3", "s3a"):
+        if check and self._s3:
             # info, not exists: exists says False for an endpoint that is down too
             self._call("reaching", self.root.split("/")[0], self.fs.info,
                        self.root.split("/")[0])
@@ -388,6 +409,28 @@ class FsspecBlobs(Blobs):
             self._call("deleting", key, self.fs.rm_file, self._path(key))
         except BlobNotFoundError:
             pass
+
+    def ping(self, *, timeout: float) -> None:
+        """S3: a HEAD of the bucket, through a file system of its own whose
+        connection and read time out after ``timeout`` and which never retries, so
+        a store that is down is said so within about ``timeout``. Other fsspec
+        stores (``memory://``) are not probed."""
+        if not self._s3:
+            return
+        if self._probe_fs is None:
+            import fsspec
+
+            protocol = self.url.split("://", 1)[0]
+            config = {**self._probe_options.get("config_kwargs", {}),
+                      "connect_timeout": timeout, "read_timeout": timeout,
+                      "retries": {"total_max_attempts": 1}}
+            probe_fs = fsspec.filesystem(protocol, **{**self._probe_options,
+                                                      "config_kwargs": config,
+                                                      "skip_instance_cache": True})
+            probe_fs.retries = 1        # s3fs's own retry loop, over botocore's
+            self._probe_fs = probe_fs
+        bucket = self.root.split("/")[0]
+        self._call("reaching", bucket, self._probe_fs.info, bucket)
 
     def keys(self, prefix: str = "") -> Iterator[str]:
         base = self._path(prefix) if prefix else self.root

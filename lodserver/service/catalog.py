@@ -35,6 +35,7 @@ from __future__ import annotations
 
 import errno
 import json
+import math
 import os
 import secrets
 import socket
@@ -217,6 +218,12 @@ class Catalog(ABC):
     def _create_schema(self) -> None:
         """Create the table and indexes, and add missing columns, under a lock."""
 
+    @abstractmethod
+    def ping(self, *, timeout: float) -> None:
+        """Return once the database answers a trivial query, within about ``timeout``
+        seconds; raise (:class:`CatalogUnavailable`, ``sqlite3.Error``, OSError) if it
+        cannot. The readiness probe: cheap, and never queued behind the builds."""
+
     def close(self) -> None:
         """Close the connections."""
 
@@ -353,6 +360,16 @@ class SqliteCatalog(Catalog):
             rows = cursor.fetchall()
             return rows, (cursor.rowcount if cursor.rowcount >= 0 else len(rows))
 
+    def ping(self, *, timeout: float) -> None:
+        # a read of the table, not SELECT 1, which SQLite answers without the file;
+        # the shared connection held longer than the timeout counts as a failure
+        if not self._lock.acquire(timeout=timeout):
+            raise CatalogUnavailable(f"the catalogue was busy for {timeout:g} s")
+        try:
+            self._db.execute("SELECT 1 FROM meshes LIMIT 1").fetchall()
+        finally:
+            self._lock.release()
+
     def _create_schema(self) -> None:
         with self._lock:
             # IMMEDIATE: the write lock first, so two processes opening a new
@@ -397,12 +414,16 @@ class PostgresCatalog(Catalog):
         self._lock = threading.Lock()
         self._slots = threading.BoundedSemaphore(max(1, connections))
         self._closed = False
+        # the readiness probe's own connection: never waits for a pool slot
+        self._probe = None
+        self._probe_lock = threading.Lock()
         self._create_schema()
 
-    def _connect(self):
+    def _connect(self, seconds: float | None = None, **options):
+        seconds = self._connect_seconds if seconds is None else seconds
         try:
             return self._psycopg.connect(self.url, autocommit=True,
-                                         connect_timeout=max(1, int(self._connect_seconds)))
+                                         connect_timeout=max(1, math.ceil(seconds)), **options)
         except self._psycopg.OperationalError as exc:
             raise CatalogUnavailable(f"cannot reach the catalogue at {redact_url(self.url)}: "
                                      f"{_first_line(exc)}") from None
@@ -435,6 +456,31 @@ class PostgresCatalog(Catalog):
                 return rows, count
         raise AssertionError("unreachable")
 
+    def ping(self, *, timeout: float) -> None:
+        """``SELECT 1`` on a connection kept for the probe; a broken one is replaced
+        once (the server restarted since). ``timeout`` bounds the connection and,
+        through TCP_USER_TIMEOUT, a query whose packets go unanswered."""
+        psycopg = self._psycopg
+        with self._probe_lock:
+            if self._probe is not None:
+                try:
+                    self._probe.execute("SELECT 1")
+                    return
+                except psycopg.Error:
+                    self._probe.close()
+                    self._probe = None
+            connection = self._connect(timeout, tcp_user_timeout=math.ceil(timeout * 1000))
+            try:
+                connection.execute("SELECT 1")
+            except psycopg.Error as exc:
+                connection.close()
+                raise CatalogUnavailable(f"the catalogue at {redact_url(self.url)} failed: "
+                                         f"{_first_line(exc)}") from None
+            if self._closed:
+                connection.close()
+            else:
+                self._probe = connection
+
     def _give_back(self, connection) -> None:
         with self._lock:
             if self._closed or connection.closed:
@@ -464,6 +510,15 @@ class PostgresCatalog(Catalog):
         with self._lock:
             self._closed = True
             idle, self._idle = self._idle, []
+        # a probe stuck on an unanswering server holds the lock: its connection
+        # is then left to the process's exit rather than waited for
+        if self._probe_lock.acquire(timeout=1.0):
+            try:
+                if self._probe is not None:
+                    idle.append(self._probe)
+                    self._probe = None
+            finally:
+                self._probe_lock.release()
         for connection in idle:
             connection.close()
 
