@@ -366,10 +366,10 @@ def _largest_scale(matrices: np.ndarray) -> np.ndarray:
 
 
 def _carried_float(scene, index):
-    from .io.gltf import _as_float
+    from .io.gltf_attributes import as_float
 
     values, record, _ = scene.carried[index]
-    return _as_float(np.asarray(values), record)
+    return as_float(np.asarray(values), record)
 
 
 def _instancing_matrices(columns: dict, count: int) -> np.ndarray:

@@ -117,9 +117,9 @@ def kernels_cold(method: str = "qem") -> bool:
     """
     try:
         if method == "cluster":
-            from .simplify.octree import _octree_kernel as kernel
+            from .simplify.octree import MAIN_KERNEL as kernel
         else:
-            from .simplify.collapse import _decimate_kernel as kernel
+            from .simplify.collapse import MAIN_KERNEL as kernel
         cache = kernel._cache
         if not hasattr(cache, "_cache_file"):
             return False        # cache=False: compiled every run, nothing to announce

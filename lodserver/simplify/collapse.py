@@ -612,3 +612,7 @@ def check_collapse(mesh: Mesh, a: int, b: int, options: DecimateOptions = Decima
     reason, s, cost, p = _check_kernel(int(a), int(b), verts, faces, wedges, kernel_options)
     return Verdict(None if reason == LEGAL else REASON_NAMES[reason], int(s),
                    verts.origin + scale * p, float(cost))
+
+
+# The compiled kernel whose on-disk cache build.kernels_cold reads to tell a first run.
+MAIN_KERNEL = _decimate_kernel

@@ -259,3 +259,7 @@ def _octree_kernel(unit, faces, quadrics, fine_depth):
         active = active[:kept]
     return (log_s[:nk], log_r[:nk], log_p[:nk], log_e[:nk], killed_off[:nk + 1],
             killed[:nkilled], moved_off[:nk + 1], moved[:nmoved])
+
+
+# The compiled kernel whose on-disk cache build.kernels_cold reads to tell a first run.
+MAIN_KERNEL = _octree_kernel
