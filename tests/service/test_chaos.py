@@ -1,0 +1,158 @@
+"""Chaos on a shared deployment of real processes (``lodserver serve``, a
+PostgreSQL server of the test's own, moto's S3 behind a TCP gate): the
+catalogue stopped in the instant between an artefact's write and the row that
+makes it done. It ends with the build done exactly once and the bucket and
+the rows counted against each other: every object has its row, every done
+row its object."""
+
+import time
+from urllib.parse import urlsplit
+
+import httpx
+import pytest
+
+from lodserver.service.catalog import open_catalog
+
+from ..meshes import DATA
+from ..server import server_process
+from ..services.gate import Gate
+from ..services.postgres import postgres_cluster  # noqa: F401 (fixture)
+from ..services.s3 import (  # noqa: F401 (s3_endpoint: a fixture)
+    _boto_credentials, _remove_bucket, s3_endpoint, s3_environment)
+
+# Generous: the machine is shared and a cold numba cache compiles for a minute.
+BUILD_TIMEOUT = 300
+# Long enough that a restart of PostgreSQL on a loaded machine fits in it.
+LEASE_SECONDS = 30.0
+POLL_SECONDS = 0.2
+
+
+@pytest.fixture
+def bucket(s3_endpoint):
+    """A fresh bucket on the S3 server (not behind the gate): (boto3 client, name)."""
+    import uuid
+
+    import boto3
+
+    client = boto3.client("s3", endpoint_url=s3_endpoint, **_boto_credentials())
+    name = f"lodserver-chaos-{uuid.uuid4().hex[:12]}"
+    client.create_bucket(Bucket=name)
+    try:
+        yield client, name
+    finally:
+        _remove_bucket(client, name)
+
+
+@pytest.fixture
+def gate(s3_endpoint):
+    """A :class:`Gate` in front of the S3 server."""
+    where = urlsplit(s3_endpoint)
+    gate = Gate((where.hostname, where.port))
+    try:
+        yield gate
+    finally:
+        gate.close()
+
+
+def _env(catalog_url, store_url, endpoint, **more):
+    return {"LODSERVER_CATALOG_URL": catalog_url, "LODSERVER_STORE_URL": store_url,
+            "LODSERVER_LEASE_SECONDS": str(LEASE_SECONDS),
+            "LODSERVER_QUEUE_POLL_SECONDS": str(POLL_SECONDS),
+            **s3_environment(endpoint), **more}
+
+
+def _keys(client, name) -> set[str]:
+    """Every key of the bucket, without the store's prefix."""
+    found = set()
+    for page in client.get_paginator("list_objects_v2").paginate(Bucket=name):
+        found.update(item["Key"].removeprefix("prefix/") for item in page.get("Contents", []))
+    return found
+
+
+def _check_no_orphans(catalog, keys: set[str]) -> None:
+    """Each object has its row (a source: a queued or building row; an artefact: the
+    ready row naming its digest) and each ready row has its artefact."""
+    rows = {mesh_id: (file_type, status, digest)
+            for mesh_id, file_type, status, digest in catalog.artefacts()}
+    wanted = set()
+    for mesh_id, (file_type, status, digest) in rows.items():
+        if status in ("queued", "building"):
+            wanted.add(f"sources/{mesh_id}.{file_type}")
+        elif status == "ready":
+            wanted.add(f"artefacts/{mesh_id}.{digest}.pm")
+    assert keys == wanted, (f"objects without a row: {sorted(keys - wanted)}; rows without "
+                            f"their object: {sorted(wanted - keys)}")
+
+
+def _upload(client, path) -> str:
+    with open(path, "rb") as file:
+        created = client.post("/meshes", files={"file": (path.name, file)})
+    assert created.status_code == 202, created.text
+    return created.json()["id"]
+
+
+def _poll(what, until, timeout, pause=0.05):
+    """``what()`` once ``until(value)`` holds, polling up to ``timeout`` seconds."""
+    deadline = time.monotonic() + timeout
+    while True:
+        value = what()
+        if until(value):
+            return value
+        assert time.monotonic() < deadline, f"still {value!r} after {timeout} s"
+        time.sleep(pause)
+
+
+def _status(client, mesh_id):
+    try:
+        response = client.get(f"/meshes/{mesh_id}")
+    except httpx.TransportError:
+        return None
+    return response.json()["status"] if response.status_code == 200 else response.status_code
+
+
+def test_postgres_stopped_between_the_artefact_and_its_row(postgres_cluster, bucket, gate,
+                                                          tmp_path):
+    """The server's PUT of the artefact goes through to S3 but its answer is held
+    by the gate: the build is paused after the object exists and before the row
+    says done. PostgreSQL is stopped then, the answer released (the builder now
+    writes to a catalogue that is down), PostgreSQL started again: the build is
+    done once, under its first claim, with exactly its artefact in the bucket."""
+    url, stop_postgres, start_postgres = postgres_cluster
+    s3, name = bucket
+    env = _env(url, f"s3://{name}/prefix", gate.endpoint)
+    log = tmp_path / "server.log"
+    with server_process(tmp_path / "a", env=env, timeout=120, log=log) as (base, _), \
+            httpx.Client(base_url=base, timeout=60) as client:
+        gate.hold_answer_to(f"/{name}/prefix/artefacts/".encode())
+        mesh_id = _upload(client, DATA / "spot.obj")
+        assert gate.seen.wait(BUILD_TIMEOUT), (client.get(f"/meshes/{mesh_id}").json(),
+                                               _keys(s3, name))
+        # the object is in the bucket (its body may follow the request's head)...
+        _poll(lambda: _keys(s3, name), lambda keys: any(k.startswith("artefacts/")
+                                                       for k in keys), 60)
+        # ...and the row is not done: the builder waits for the store's answer
+        assert client.get(f"/meshes/{mesh_id}").json()["status"] == "building"
+        stop_postgres()
+        gate.release()
+        _poll(lambda: log.read_text(errors="replace"),
+              lambda text: "cannot be marked ready yet" in text, 60)
+        down = client.get(f"/meshes/{mesh_id}")
+        assert down.status_code == 503 and "Retry-After" in down.headers, down.text
+        start_postgres()
+        _poll(lambda: _status(client, mesh_id), lambda status: status in ("ready", "failed"),
+              BUILD_TIMEOUT)
+        body = client.get(f"/meshes/{mesh_id}").json()
+        assert body["status"] == "ready", body
+        level = client.get(f"/meshes/{mesh_id}/lod", params={"ratio": 0.5, "format": "glb"})
+        assert level.status_code == 200 and level.content[:4] == b"glTF"
+    catalog = open_catalog(url, data_dir=tmp_path)
+    try:
+        record = catalog.get(mesh_id=mesh_id)
+        assert record.attempt == 1                  # claimed once, done once
+        rows, _ = catalog._run("SELECT COUNT(*) FROM meshes")
+        assert rows[0][0] == 1
+        keys = _keys(s3, name)
+        assert keys == {f"artefacts/{mesh_id}.{record.digest}.pm"}
+        _check_no_orphans(catalog, keys)
+    finally:
+        catalog.close()
