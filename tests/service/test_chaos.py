@@ -1,10 +1,11 @@
 """Chaos on a shared deployment of real processes (``lodserver serve``, a
 PostgreSQL server of the test's own, moto's S3 behind a TCP gate): the
 catalogue stopped in the instant between an artefact's write and the row that
-makes it done. It ends with the build done exactly once and the bucket and
-the rows counted against each other: every object has its row, every done
-row its object."""
+makes it done, and builders whose clocks are 30 s off. Each ends with the
+build done exactly once; the first also counts the bucket and the rows
+against each other: every object has its row, every done row its object."""
 
+import os
 import time
 from urllib.parse import urlsplit
 
@@ -16,7 +17,7 @@ from lodserver.service.catalog import open_catalog
 from ..meshes import DATA
 from ..server import server_process
 from ..services.gate import Gate
-from ..services.postgres import postgres_cluster  # noqa: F401 (fixture)
+from ..services.postgres import postgres_cluster, postgres_server, postgres_url  # noqa: F401
 from ..services.s3 import (  # noqa: F401 (s3_endpoint: a fixture)
     _boto_credentials, _remove_bucket, s3_endpoint, s3_environment)
 
@@ -154,5 +155,73 @@ def test_postgres_stopped_between_the_artefact_and_its_row(postgres_cluster, buc
         keys = _keys(s3, name)
         assert keys == {f"artefacts/{mesh_id}.{record.digest}.pm"}
         _check_no_orphans(catalog, keys)
+    finally:
+        catalog.close()
+
+
+@pytest.mark.parametrize("skew", [-30.0, 30.0])
+def test_leases_run_on_the_databases_clock(postgres_url, skew, tmp_path, capsys):  # noqa: F811
+    """A ``lodserver worker`` whose clock is ``skew`` seconds off (time.time shifted
+    in the process by a sitecustomize) builds under a lease that the database
+    dates: its expiry is at most a lease ahead of PostgreSQL's clock, neither
+    ``skew`` past it (held late) nor behind it (stolen at once), and a worker
+    with the right clock started beside it does not take the build over."""
+    import trimesh
+
+    from ..meshes import _grid
+    from .test_shared_servers import _worker
+
+    # a build of many seconds, long enough for a second worker to start beside it
+    positions, faces = _grid(900, 900)
+    source = tmp_path / "field.ply"
+    trimesh.Trimesh(positions, faces, process=False).export(source, encoding="binary")
+
+    shifted = tmp_path / "shifted"
+    shifted.mkdir()
+    (shifted / "sitecustomize.py").write_text(
+        "import time\n"
+        f"_time, _time_ns = time.time, time.time_ns\n"
+        f"time.time = lambda: _time() + {skew!r}\n"
+        f"time.time_ns = lambda: _time_ns() + {int(skew * 1e9)}\n")
+    lease = 3.0
+    env = {"LODSERVER_CATALOG_URL": postgres_url,
+           "LODSERVER_STORE_URL": str(tmp_path / "shared" / "store"),
+           "LODSERVER_LEASE_SECONDS": str(lease), "LODSERVER_QUEUE_POLL_SECONDS": "0.2"}
+    off_env = {**env, "PYTHONPATH": os.pathsep.join(
+        [str(shifted), *filter(None, [os.environ.get("PYTHONPATH")])])}
+    catalog = open_catalog(postgres_url, data_dir=tmp_path)
+    clock = "SELECT EXTRACT(EPOCH FROM clock_timestamp())::float8"
+    try:
+        catalog._run("DELETE FROM meshes")
+        with server_process(tmp_path / "web", env={**env, "LODSERVER_WORKERS": "0"},
+                            timeout=120, log=tmp_path / "web.log") as (base, _), \
+                httpx.Client(base_url=base, timeout=60) as client:
+            mesh_id = _upload(client, source)
+            with _worker(tmp_path / "off", off_env):
+                record = _poll(lambda: catalog.get(mesh_id=mesh_id),
+                               lambda r: r.status.value != "queued" and r.progress > 0.01
+                               or r.status.value == "ready", BUILD_TIMEOUT)
+                assert record.status.value == "building", "built before it could be watched"
+                now = catalog._run(clock)[0][0][0]
+                # the worker's own writes carry its clock: the shift is in effect
+                assert abs(record.updated - now - skew) < 10, (record.updated - now, skew)
+                ahead = [catalog.lease(mesh_id=mesh_id)[1] - catalog._run(clock)[0][0][0]]
+                with _worker(tmp_path / "right", env):
+                    _poll(lambda: (tmp_path / "right.log").read_text(errors="replace"),
+                          lambda text: "building from the queue" in text, BUILD_TIMEOUT)
+                    assert catalog.get(mesh_id=mesh_id).status.value == "building", \
+                        "built before the second worker was up"
+                    while (record := catalog.get(mesh_id=mesh_id)).status.value == "building":
+                        until = catalog.lease(mesh_id=mesh_id)[1]
+                        if until is not None:
+                            ahead.append(until - catalog._run(clock)[0][0][0])
+                        time.sleep(0.1)
+            assert record.status.value == "ready", record
+            assert record.attempt == 1, "the build was taken over"
+            assert 0 < min(ahead) and max(ahead) <= lease + 0.5, (min(ahead), max(ahead))
+            with capsys.disabled():
+                print(f"\n[clock {skew:+g} s] lease expiry ahead of the database's clock: "
+                      f"{min(ahead):.2f}-{max(ahead):.2f} s over {len(ahead)} looks "
+                      f"(lease {lease} s); one claim")
     finally:
         catalog.close()
