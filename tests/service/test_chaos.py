@@ -225,3 +225,95 @@ def test_leases_run_on_the_databases_clock(postgres_url, skew, tmp_path, capsys)
                       f"(lease {lease} s); one claim")
     finally:
         catalog.close()
+
+
+def test_a_worker_killed_and_another_paused_past_its_lease(postgres_url, tmp_path):  # noqa: F811
+    """Three ``lodserver worker`` processes: the first to claim the build is killed
+    (SIGKILL) mid-build, the one that takes it over is paused (SIGSTOP) past its
+    lease, a third takes it over and completes it; the paused one, resumed, is
+    fenced and stops. The build is done once (three claims), with one artefact
+    in the shared store and no source left."""
+    import signal
+    import subprocess
+    import sys
+
+    from .test_shared_servers import _big_mesh
+
+    lease = 3.0
+    store = tmp_path / "shared" / "store"
+    env = {**os.environ, "LODSERVER_CATALOG_URL": postgres_url, "LODSERVER_STORE_URL": str(store),
+           "LODSERVER_LEASE_SECONDS": str(lease), "LODSERVER_QUEUE_POLL_SECONDS": "0.2",
+           "LODSERVER_WARM_KERNELS": "false"}
+    workers, logs = {}, {}
+
+    def start(name):
+        logs[name] = tmp_path / f"{name}.log"
+        with open(logs[name], "wb") as out:
+            workers[name] = subprocess.Popen(
+                [sys.executable, "-m", "lodserver.cli", "worker", "--data",
+                 str(tmp_path / name), "--log-level", "warning"],
+                env=env, stdout=out, stderr=subprocess.STDOUT)
+
+    def holder():
+        owner = catalog.lease(mesh_id=mesh_id)[0]
+        return next((name for name in workers if owner and owner.startswith(nodes.get(name, "?"))),
+                    None)
+
+    def building(attempt):
+        return _poll(lambda: catalog.get(mesh_id=mesh_id),
+                     lambda r: r.status.value == "ready" or (r.attempt == attempt and
+                                                             r.progress > 0.01), BUILD_TIMEOUT)
+
+    catalog = open_catalog(postgres_url, data_dir=tmp_path)
+    catalog._run("DELETE FROM meshes")
+    nodes = {}
+    try:
+        with server_process(tmp_path / "web", timeout=120, log=tmp_path / "web.log",
+                            env={k: v for k, v in env.items() if k.startswith("LODSERVER_")}
+                            | {"LODSERVER_WORKERS": "0"}) as (base, _), \
+                httpx.Client(base_url=base, timeout=60) as client:
+            mesh_id = _upload(client, _big_mesh(tmp_path))
+            for name in ("a", "b"):
+                start(name)
+            for name in ("a", "b"):
+                _poll(lambda: (tmp_path / name / "node").exists(), bool, BUILD_TIMEOUT)
+                nodes[name] = (tmp_path / name / "node").read_text().strip() + "/"
+            record = building(1)
+            assert record.status.value == "building", "built before the kill"
+            killed = holder()
+            workers[killed].send_signal(signal.SIGKILL)
+            workers[killed].wait()
+            record = building(2)
+            assert record.status.value == "building", "built before the pause"
+            paused = holder()
+            assert paused not in (None, killed)
+            workers[paused].send_signal(signal.SIGSTOP)
+            start("c")
+            _poll(lambda: (tmp_path / "c" / "node").exists(), bool, BUILD_TIMEOUT)
+            nodes["c"] = (tmp_path / "c" / "node").read_text().strip() + "/"
+            record = _poll(lambda: catalog.get(mesh_id=mesh_id),
+                           lambda r: r.status.value in ("ready", "failed"), BUILD_TIMEOUT)
+            assert record.status.value == "ready", record
+            assert record.attempt == 3, record.attempt
+            workers[paused].send_signal(signal.SIGCONT)
+            _poll(lambda: logs[paused].read_text(errors="replace"),
+                  lambda text: "lost its lease" in text or "no longer held" in text, 60)
+            for name in (paused, "c"):
+                workers[name].send_signal(signal.SIGTERM)
+                assert workers[name].wait(timeout=60) == 0, logs[name].read_text()
+            final = catalog.get(mesh_id=mesh_id)
+            assert (final.status.value, final.attempt, final.digest) == \
+                ("ready", 3, record.digest)
+            level = client.get(f"/meshes/{mesh_id}/lod", params={"ratio": 0.1, "format": "glb"})
+            assert level.status_code == 200 and level.content[:4] == b"glTF"
+        assert catalog._run("SELECT COUNT(*) FROM meshes")[0][0][0] == 1
+        assert [p.name for p in (store / "artefacts").iterdir()] == \
+            [f"{mesh_id}.{record.digest}.pm"]
+        assert list((store / "sources").iterdir()) == []
+    finally:
+        for process in workers.values():
+            if process.poll() is None:
+                process.send_signal(signal.SIGCONT)
+                process.kill()
+                process.wait()
+        catalog.close()
