@@ -41,6 +41,7 @@ import secrets
 import socket
 import sqlite3
 import threading
+import time
 from abc import ABC, abstractmethod
 from dataclasses import dataclass, field
 from enum import Enum
@@ -350,7 +351,7 @@ class SqliteCatalog(Catalog):
         self._lock = threading.RLock()
         self._db = sqlite3.connect(self.path, check_same_thread=False, isolation_level=None,
                                    timeout=busy_seconds)
-        self._db.execute("PRAGMA journal_mode=WAL")
+        _switch_to_wal(self._db, busy_seconds)
         self._db.execute("PRAGMA synchronous=NORMAL")
         self._create_schema()
 
@@ -387,6 +388,36 @@ class SqliteCatalog(Catalog):
     def close(self) -> None:
         with self._lock:
             self._db.close()
+
+
+def _switch_to_wal(db: sqlite3.Connection, busy_seconds: float) -> None:
+    """Put the file in WAL mode, waiting up to ``busy_seconds`` for other openers.
+
+    The switch takes the file's exclusive lock and, unlike other statements,
+    answers "database is locked" at once instead of calling the busy handler
+    when another connection holds any lock: several processes opening a new
+    file at once would fail at random. So it is retried, with a growing pause,
+    until the file is in WAL mode (switched by whichever opener got the lock
+    first) or the wait is over. A file already in WAL mode needs no lock.
+    """
+    deadline = time.monotonic() + busy_seconds
+    pause = 0.002
+    while True:
+        try:
+            if db.execute("PRAGMA journal_mode").fetchone()[0].lower() == "wal":
+                return
+            if db.execute("PRAGMA journal_mode=WAL").fetchone()[0].lower() == "wal":
+                return
+            reason = "the file did not switch to WAL mode"
+        except sqlite3.OperationalError as exc:
+            if "locked" not in str(exc) and "busy" not in str(exc):
+                raise
+            reason = str(exc)
+        if time.monotonic() >= deadline:
+            raise sqlite3.OperationalError(f"{reason} (waited {busy_seconds:g} s for other "
+                                           "openers)")
+        time.sleep(pause)
+        pause = min(2 * pause, 0.05)
 
 
 class PostgresCatalog(Catalog):

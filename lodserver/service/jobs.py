@@ -40,6 +40,7 @@ from ..io.fileset import FileSetLimits
 from ..io.limits import DEFAULT_MAX_TRIANGLES, LoadLimits
 from ..io.scene import Scene
 from ..mesh import Mesh, MeshError
+from .catalog import CatalogUnavailable
 from .parsing import ParsePool, ParserClosed, check_mesh_file
 from .scenes import SceneReport, build_scene
 from .store import (Claim, LeaseLostError, MeshRecord, Store, StorageFullError, StoreError,
@@ -360,6 +361,10 @@ class JobRunner:
             settled = True  # deleted meanwhile, or another process builds it now
         except ParserClosed:
             pass            # shutting down: requeued below
+        except CatalogUnavailable as exc:
+            # not the mesh's fault: it is given back below if the catalogue answers
+            # again, else its lease runs out and any process builds it again
+            log.warning("the build of mesh %s stopped: %s", mesh_id, exc)
         except Exception as exc:
             settled = True
             if isinstance(exc, StorageFullError) or is_disk_full(exc):
@@ -440,7 +445,8 @@ class JobRunner:
             return False  # a cut-short decimation is not the mesh's progressive mesh
         pm.metadata["source"] = record.name
         pm.metadata["load_report"] = report.as_dict()
-        store.put_artefact(mesh_id=mesh_id, pm=pm, attempt=attempt)
+        store.put_artefact(mesh_id=mesh_id, pm=pm, attempt=attempt,
+                           patience=self.lease_seconds)
         _prepare_packets(store, mesh_id)
         return True
 
@@ -462,7 +468,8 @@ class JobRunner:
         asset.metadata.update(source=record.name, load_report=report.as_dict(),
                               options=asset.parts[0].pm.metadata.get("options",
                                                                      dict(record.options)))
-        store.put_artefact(mesh_id=mesh_id, pm=asset, attempt=attempt)
+        store.put_artefact(mesh_id=mesh_id, pm=asset, attempt=attempt,
+                           patience=self.lease_seconds)
         _prepare_packets(store, mesh_id)
         return True
 

@@ -66,7 +66,8 @@ from ..progressive import ArtefactError, load_progressive, save_progressive
 from ..progressive.mesh import ProgressiveMesh
 from .blobs import Blobs, BlobNotFoundError, LocalBlobs, open_blobs, sha256_file
 from .cache import DEFAULT_CACHE_BYTES, ArtefactCache
-from .catalog import MAX_LOST, Catalog, Claim, MeshRecord, Status, new_owner, open_catalog
+from .catalog import (MAX_LOST, Catalog, CatalogUnavailable, Claim, MeshRecord, Status,
+                      new_owner, open_catalog)
 from .errors import StorageFullError, StoreError, is_disk_full
 from .loaded import LOADED_BYTES_PER_TRIANGLE, LoadedArtefacts
 from .scenes import SceneAsset, artefact_summary, load_artefact, save_asset
@@ -198,10 +199,11 @@ class Store(ABC):
 
     @abstractmethod
     def put_artefact(self, *, mesh_id: str, pm: ProgressiveMesh | SceneAsset,
-                     attempt: int | None = None) -> MeshRecord:
+                     attempt: int | None = None, patience: float = 0.0) -> MeshRecord:
         """Store the built artefact (a progressive mesh, or a scene's parts and
         document as one file: ``scenes.SceneAsset``), mark the mesh ready and drop
-        its source."""
+        its source. While the catalogue cannot be reached, marking it ready is
+        tried again for up to ``patience`` seconds (a builder gives its lease)."""
 
     @abstractmethod
     def load(self, *, mesh_id: str) -> ProgressiveMesh | SceneAsset:
@@ -506,7 +508,7 @@ class LocalStore(Store):
         self.blobs.delete(source_key(record))
 
     def put_artefact(self, *, mesh_id: str, pm: ProgressiveMesh | SceneAsset,
-                     attempt: int | None = None) -> MeshRecord:
+                     attempt: int | None = None, patience: float = 0.0) -> MeshRecord:
         record = self._row(mesh_id)
         folder = self.scratch(prefix="artefact-")
         try:
@@ -524,12 +526,14 @@ class LocalStore(Store):
             shutil.rmtree(folder, ignore_errors=True)
         summary = artefact_summary(pm)
         try:
-            ready = self._update(mesh_id, attempt, status=Status.READY.value, progress=1.0,
-                                 failure=None, summary=summary, digest=digest,
-                                 lease_owner=None, lease_until=None)
-        except LeaseLostError:
-            # Another process holds the build now: it may be storing this very key
-            # (builds are deterministic), so the object is left for it.
+            ready = self._mark_ready(mesh_id, attempt, patience, status=Status.READY.value,
+                                     progress=1.0, failure=None, summary=summary, digest=digest,
+                                     lease_owner=None, lease_until=None)
+        except (LeaseLostError, CatalogUnavailable):
+            # Another process holds the build now and may be storing this very key
+            # (builds are deterministic); or the catalogue stayed out of reach and
+            # the row may name the key (a commit whose answer was lost). Either
+            # way the object is left: the row, or the next build, names it.
             raise
         except BaseException as exc:
             # deleted while building (no row can ever name this key again), or the
@@ -539,6 +543,34 @@ class LocalStore(Store):
             raise
         self.blobs.delete(source_key(record))
         return ready
+
+    def _mark_ready(self, mesh_id: str, attempt: int | None, patience: float,
+                    **values) -> MeshRecord:
+        """The fenced write that makes a build done, tried again with a growing pause
+        for up to ``patience`` seconds while the catalogue is unreachable (restarted,
+        failed over): the artefact is stored already, and giving up throws the
+        build away. A write refused after an attempt whose answer was lost is the
+        done row when that row names this very artefact (the lost answer was a
+        commit), not a lost lease."""
+        deadline = time.monotonic() + patience
+        pause, unsure = 0.05, False
+        while True:
+            try:
+                return self._update(mesh_id, attempt, **values)
+            except LeaseLostError:
+                if unsure:
+                    record = self._row(mesh_id)
+                    if record.status is Status.READY and record.digest == values["digest"]:
+                        return record
+                raise
+            except CatalogUnavailable as exc:
+                unsure = True
+                if time.monotonic() + pause > deadline:
+                    raise
+                log.warning("mesh %s is built but cannot be marked ready yet (trying again): "
+                            "%s", mesh_id, exc)
+                time.sleep(pause)
+                pause = min(2 * pause, 2.0)
 
     # ---- loading -------------------------------------------------------------
     def load(self, *, mesh_id: str) -> ProgressiveMesh:

@@ -196,6 +196,33 @@ def test_schema_is_created_once_by_concurrent_openers(catalog_url, tmp_path, req
     _open(catalog_url, tmp_path).close()              # and again, idempotent
 
 
+def test_fresh_sqlite_files_opened_at_once_never_report_locked(tmp_path):
+    """Switching a new file to WAL mode takes its exclusive lock and is refused at
+    once (no busy handler) while another opener holds any lock: many rounds of six
+    openers racing on a new file each, so that the race is met, not hoped for."""
+    for round_ in range(100):
+        url = f"sqlite://{tmp_path}/round-{round_}/catalogue.sqlite3"
+        start, opened, errors = threading.Barrier(6), [], []
+
+        def open_one():
+            start.wait()
+            try:
+                opened.append(_open(url, tmp_path))
+            except Exception as exc:      # noqa: BLE001 - the assertion below names it
+                errors.append(exc)
+
+        threads = [threading.Thread(target=open_one) for _ in range(6)]
+        for thread in threads:
+            thread.start()
+        for thread in threads:
+            thread.join()
+        for catalog in opened:
+            catalog.close()
+        assert errors == [], f"round {round_}: {errors}"
+        with sqlite3.connect(tmp_path / f"round-{round_}" / "catalogue.sqlite3") as check:
+            assert check.execute("PRAGMA journal_mode").fetchone()[0] == "wal"
+
+
 def test_an_old_sqlite_catalogue_gains_the_queue_columns(tmp_path):
     """A data directory written before leases: its rows stay, and are claimable."""
     path = tmp_path / "catalogue.sqlite3"

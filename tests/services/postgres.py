@@ -43,8 +43,9 @@ def _binaries() -> Path | None:
     return Path(found[-1]).parent if found else None
 
 
-def _start_cluster(folder: Path) -> tuple[str, list[str]]:
-    """initdb + pg_ctl start in ``folder``; the URL and the stop command."""
+def _start_cluster(folder: Path) -> tuple[str, list[str], list[str]]:
+    """initdb + pg_ctl start in ``folder``; the URL, the stop command and the start
+    command (a test that stops the server starts it again with it)."""
     bin_dir = _binaries()
     if bin_dir is None:
         need("PostgreSQL is not installed (Debian: apt-get install postgresql); "
@@ -55,18 +56,18 @@ def _start_cluster(folder: Path) -> tuple[str, list[str]]:
         as_user = ["runuser", "-u", "postgres", "--"]
     port = _free_port()
     data = folder / "data"
+    start = [str(bin_dir / "pg_ctl"), "-D", str(data), "-l", str(folder / "server.log"),
+             "-w", "-t", "60", "-o", f"-c listen_addresses=127.0.0.1 -p {port} "
+             f"-k {folder} -c fsync=off -c max_connections=200", "start"]
     for command in ([str(bin_dir / "initdb"), "-D", str(data), "-U", "postgres", "-A", "trust",
-                     "--no-sync"],
-                    [str(bin_dir / "pg_ctl"), "-D", str(data), "-l", str(folder / "server.log"),
-                     "-w", "-t", "60", "-o", f"-c listen_addresses=127.0.0.1 -p {port} "
-                     f"-k {folder} -c fsync=off -c max_connections=200", "start"]):
+                     "--no-sync"], start):
         done = subprocess.run([*as_user, *command], capture_output=True, text=True)
         if done.returncode:
             # the folder's parents must be searchable by the postgres user (TMPDIR)
             raise RuntimeError(f"{Path(command[0]).name} failed: "
                                f"{(done.stderr or done.stdout).strip()[-500:]}")
     stop = [*as_user, str(bin_dir / "pg_ctl"), "-D", str(data), "-m", "fast", "-w", "stop"]
-    return f"postgresql://postgres@127.0.0.1:{port}/postgres", stop
+    return f"postgresql://postgres@127.0.0.1:{port}/postgres", stop, [*as_user, *start]
 
 
 @pytest.fixture(scope="session")
@@ -83,8 +84,29 @@ def postgres_server():
     folder = Path(tempfile.mkdtemp(prefix="lodserver-pg-"))
     stop = None
     try:
-        url, stop = _start_cluster(folder)
+        url, stop, _ = _start_cluster(folder)
         yield url
+    finally:
+        if stop is not None:
+            subprocess.run(stop, capture_output=True)
+        shutil.rmtree(folder, ignore_errors=True)
+
+
+@pytest.fixture
+def postgres_cluster():
+    """A PostgreSQL server of the test's own, which it may stop and start again:
+    ``(url, stop, start)``, each a callable; stopped at the end. Needs the server
+    binaries even when ``LODSERVER_TEST_POSTGRES_URL`` names a shared server."""
+    try:
+        import psycopg  # noqa: F401
+    except ImportError:
+        need("psycopg is not installed (pip install -e '.[distributed]')")
+    folder = Path(tempfile.mkdtemp(prefix="lodserver-pg-"))
+    stop = None
+    try:
+        url, stop, start = _start_cluster(folder)
+        run = (lambda command: subprocess.run(command, capture_output=True, check=True))
+        yield url, (lambda: run(stop)), (lambda: run(start))
     finally:
         if stop is not None:
             subprocess.run(stop, capture_output=True)
