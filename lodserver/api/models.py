@@ -107,13 +107,20 @@ class MeshPublic(BaseModel):
     scene: bool = Field(False, description="Once ready: whether the mesh is a glTF scene "
                         "kept with its node tree (several parts, skins, animations, cameras).")
     parts: list[PartPublic] = Field(default_factory=list, description="Once ready: its parts, "
-                                    "one per glTF mesh of a scene, one for a single mesh.")
+                                    "one per glTF mesh of a scene, one for a single mesh. "
+                                    "Empty in the list of meshes (GET /meshes), which gives "
+                                    "part_count: a scene may have thousands.")
+    part_count: int = Field(0, description="Once ready: how many parts it has.")
     created: datetime
     updated: datetime
 
     @classmethod
-    def from_record(cls, record: MeshRecord) -> MeshPublic:
+    def from_record(cls, record: MeshRecord, *, parts: bool = True) -> MeshPublic:
+        """The record as a client sees it; ``parts=False`` (the list of meshes)
+        leaves the parts out and says only how many there are, so that the list's
+        size depends on the number of meshes, not on their parts."""
         summary = record.summary
+        listed = _parts(record) if parts else []
         return cls(
             id=record.id, name=record.name, status=record.status, progress=record.progress,
             file_type=record.file_type, source_bytes=record.source_bytes, options=record.options,
@@ -125,7 +132,8 @@ class MeshPublic(BaseModel):
             warnings=report_warnings(summary.get("metadata", {}).get("load_report")),
             failure=record.failure,
             version=version_of(record.digest) if record.status is Status.READY else None,
-            urls=_urls(record), scene=bool(summary.get("scene")), parts=_parts(record),
+            urls=_urls(record), scene=bool(summary.get("scene")),
+            parts=listed, part_count=_part_count(record),
             created=datetime.fromtimestamp(record.created, timezone.utc),
             updated=datetime.fromtimestamp(record.updated, timezone.utc))
 
@@ -143,6 +151,14 @@ def _urls(record: MeshRecord) -> dict | None:
     if urls is not None and record.summary.get("scene"):
         del urls["splits"]
     return urls
+
+
+def _part_count(record: MeshRecord) -> int:
+    """How many parts ``_parts`` lists, without making them."""
+    summary = record.summary
+    if record.status is not Status.READY or "vertices" not in summary:
+        return 0
+    return len(summary["parts"]) if summary.get("scene") else 1
 
 
 def _parts(record: MeshRecord) -> list[PartPublic]:

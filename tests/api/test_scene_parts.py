@@ -302,3 +302,13 @@ def test_a_mesh_placed_by_many_nodes_is_a_scene_not_a_flattened_bomb(tmp_path):
     path.write_bytes(response.content)
     scene = load_scene(path)
     assert len(scene.document["nodes"]) == 60_000 and len(scene.meshes) == 1
+
+
+def test_the_list_of_meshes_counts_parts_and_the_mesh_itself_lists_them(served):
+    """A scene may have thousands of parts: the list of meshes stays the size of
+    its meshes, and the mesh itself lists them."""
+    client, body = served
+    listed = next(m for m in client.get("/meshes").json()["meshes"] if m["id"] == body["id"])
+    assert listed["parts"] == [] and listed["part_count"] == 2
+    alone = client.get(f"/meshes/{body['id']}").json()
+    assert alone["part_count"] == len(alone["parts"]) == 2

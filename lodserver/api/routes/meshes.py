@@ -95,9 +95,9 @@ async def create_mesh(upload: UploadDep, jobs: JobsDep, settings: SettingsDep,
                        files=list(source.files), warnings=report_warnings(report.as_dict()))
 
 
-def _public(store, record) -> MeshPublic:
+def _public(store, record, *, parts: bool = True) -> MeshPublic:
     """The record as clients see it, with its place in the build queue."""
-    public = MeshPublic.from_record(record)
+    public = MeshPublic.from_record(record, parts=parts)
     if record.status is Status.QUEUED:
         public.queue_position = store.queue_position(mesh_id=record.id)
     return public
@@ -106,8 +106,9 @@ def _public(store, record) -> MeshPublic:
 @router.get("", response_model=MeshList)
 def list_meshes(store: StoreDep, limit: Annotated[int, Query(ge=1, le=1000)] = 100,
                 offset: Annotated[int, Query(ge=0, le=2**31)] = 0) -> MeshList:
-    """Meshes, newest first."""
-    return MeshList(meshes=[_public(store, r) for r in store.list(limit=limit, offset=offset)])
+    """Meshes, newest first; each mesh's parts are in ``GET /meshes/{id}``."""
+    return MeshList(meshes=[_public(store, r, parts=False)
+                            for r in store.list(limit=limit, offset=offset)])
 
 
 @router.get("/{mesh_id}", response_model=MeshPublic, responses={404: _ERRORS[404]})
