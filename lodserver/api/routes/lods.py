@@ -16,11 +16,11 @@ from typing import Annotated, Literal
 
 from fastapi import APIRouter, Query, Request, Response
 
+from ...io import SERVED_FORMATS
 from ...io.glb import coverage_from_ratios, encode_lod_chain
 from ...packets import MAX_BITS, MIN_BITS, packet_between, prepare_records, records_ready
 from ...pipeline import DEFAULT_LODS, lod_chain, parse_lods
 from ...service.levels import (
-    FORMATS,
     LevelError,
     chain_bytes,
     check_level,
@@ -54,16 +54,20 @@ _LEVEL = {"ge": 0, "le": 2**31 - 1,
 Bits = Annotated[int | None, Query(ge=MIN_BITS, le=MAX_BITS, description="Quantization grid "
                                    "bits of the json form and of packets (default: by mesh size). "
                                    "A client must use the same value for both.")]
+# The formats a level is served in: those of the output-format registry (io/save.py).
+LevelFormat = Literal[tuple(SERVED_FORMATS)]
+_GLB = SERVED_FORMATS["glb"]
 
 
 @router.get("/{mesh_id}/lod", responses={**_ERRORS, 200: {"content": {
-    media: {} for media in FORMATS.values()}, "description": "The level in the asked format."}})
+    media: {} for media in SERVED_FORMATS.values()},
+    "description": "The level in the asked format."}})
 def get_lod(mesh_id: MeshId, store: StoreDep, bodies: BodiesDep, request: Request,
             vertices: Annotated[int | None, _COUNT] = None,
             faces: Annotated[int | None, _COUNT] = None,
             ratio: Annotated[float | None, Query(gt=0, le=1)] = None,
             error: Annotated[float | None, Query(ge=0)] = None,
-            format: Literal["glb", "obj", "ply", "json"] = "json",
+            format: LevelFormat = "json",
             bits: Bits = None, v: VersionQuery = None) -> Response:
     """One level, chosen by exactly one of vertices, faces, ratio or error.
 
@@ -101,12 +105,13 @@ def level_response(pm, digest: str, policy: str, request: Request, bodies, *, me
     scope = () if part is None else ("part", part)
     etag = etag_for(digest, *scope, "lod", level, format, bits, *(["v"] if linked else []))
     if is_fresh(request, etag):
-        return with_cache_control(immutable(None, media_type=FORMATS[format], etag=etag), policy)
+        return with_cache_control(immutable(None, media_type=SERVED_FORMATS[format], etag=etag),
+                                  policy)
     href = f"/meshes/{mesh_id}/materials" + (f"?v={version_of(digest)}" if linked else "")
     return with_cache_control(bodies.respond(
         etag, lambda: encode_level(pm, level, file_type=format, bits=bits,
                                    materials_href=href, copy=False),
-        media_type=FORMATS[format],
+        media_type=SERVED_FORMATS[format],
         filename=None if format == "json" else
         f"{mesh_id}-{'' if part is None else f'part{part}-'}{level}.{format}",
         estimate=lambda: level_bytes(pm, level, format, bits)), policy)
@@ -162,7 +167,7 @@ MAX_CHAIN_FACES = 4
 
 
 @router.get("/{mesh_id}/chain", responses={**_ERRORS, 200: {"content": {
-    FORMATS["glb"]: {}}, "description": "One GLB: the levels as nodes linked by MSFT_lod."}})
+    _GLB: {}}, "description": "One GLB: the levels as nodes linked by MSFT_lod."}})
 def get_chain(mesh_id: MeshId, store: StoreDep, bodies: BodiesDep, request: Request,
               lods: Annotated[str, Query(max_length=200, description=(
                   "Face ratios of the levels, finest first, comma-separated, each in (0, 1] "
@@ -197,11 +202,11 @@ def get_chain(mesh_id: MeshId, store: StoreDep, bodies: BodiesDep, request: Requ
                          f"faces; these ratios add up to {faces / full:.2f} times")
     etag = etag_for(digest, "chain", ",".join(map(repr, ratios)), reach)
     if is_fresh(request, etag):
-        return with_cache_control(immutable(None, media_type=FORMATS["glb"], etag=etag), policy)
+        return with_cache_control(immutable(None, media_type=_GLB, etag=etag), policy)
     # clustering (reach) works on the full mesh: it takes every slot
     return with_cache_control(bodies.respond(
         etag, lambda: encode_lod_chain(*lod_chain(pm, ratios, reach=reach)[:2]),
-        media_type=FORMATS["glb"], filename=f"{mesh_id}-lods.glb",
+        media_type=_GLB, filename=f"{mesh_id}-lods.glb",
         estimate=lambda: chain_bytes(pm, levels) if reach == "none" else bodies.heavy.budget),
         policy)
 
@@ -227,9 +232,9 @@ def _scene_lod(asset: SceneAsset, digest: str, policy: str, request: Request, bo
     # named by the levels it holds: two criteria giving the same levels share a body
     etag = etag_for(digest, "scene-lod", *(levels[p] for p in sorted(levels)))
     if is_fresh(request, etag):
-        return with_cache_control(immutable(None, media_type=FORMATS["glb"], etag=etag), policy)
+        return with_cache_control(immutable(None, media_type=_GLB, etag=etag), policy)
     return with_cache_control(bodies.respond(
-        etag, lambda: scene_glb(asset, levels), media_type=FORMATS["glb"],
+        etag, lambda: scene_glb(asset, levels), media_type=_GLB,
         filename=f"{mesh_id}-scene.glb", estimate=lambda: scene_bytes(asset, [levels])),
         policy)
 
@@ -248,8 +253,8 @@ def _scene_chain(asset: SceneAsset, digest: str, policy: str, request: Request, 
                          f"faces; these ratios add up to {faces / full:.2f} times")
     etag = etag_for(digest, "scene-chain", ",".join(map(repr, ratios)))
     if is_fresh(request, etag):
-        return with_cache_control(immutable(None, media_type=FORMATS["glb"], etag=etag), policy)
+        return with_cache_control(immutable(None, media_type=_GLB, etag=etag), policy)
     return with_cache_control(bodies.respond(
         etag, lambda: scene_chain_glb(asset, ratios, coverage_from_ratios(ratios)),
-        media_type=FORMATS["glb"], filename=f"{mesh_id}-lods.glb",
+        media_type=_GLB, filename=f"{mesh_id}-lods.glb",
         estimate=lambda: scene_bytes(asset, chain)), policy)
