@@ -9,7 +9,8 @@ CDN in front of several servers) may keep such a response only briefly
 *version* (``v=``, the first :data:`VERSION_DIGITS` hex digits of its SHA-256,
 handed out by ``GET /meshes/{id}``) can only ever mean one body: it is served
 :data:`IMMUTABLE`, cacheable for a year. A version that is no longer the
-mesh's is a 404 that no cache keeps (:func:`cache_control`).
+mesh's is a 404 that no cache keeps (:func:`cache_control`). Every cacheable
+route ends in :func:`respond_cached` (a 304 or the body, with that policy).
 
 Small bodies are kept in memory (:class:`BodyCache`). Large ones (a LOD chain,
 a full-detail json level: tens to hundreds of megabytes) are written once to an
@@ -26,6 +27,7 @@ import os
 import re
 import threading
 from collections import OrderedDict
+from collections.abc import Callable
 from pathlib import Path
 from typing import Annotated
 
@@ -120,6 +122,34 @@ def with_cache_control(response: Response, value: str) -> Response:
     return response
 
 
+def respond_cached(request: Request, etag: str, policy: str,
+                   respond: Callable[[], Response]) -> Response:
+    """The sequence every cacheable route ends with, once.
+
+    Parameters
+    ----------
+    request : Request
+        The request, whose If-None-Match may already name ``etag``.
+    etag : str
+        The response's name (:func:`etag_for`).
+    policy : str
+        Its Cache-Control (:func:`load_versioned`'s, by ``v=``).
+    respond : callable
+        ``respond() -> Response``: the full response, called only when the
+        client does not have it.
+
+    Returns
+    -------
+    Response
+        A 304 when the client has the body, else ``respond()``; either with
+        Cache-Control ``policy`` (a 304 stands for the response it validates).
+    """
+    if is_fresh(request, etag):
+        return with_cache_control(Response(status_code=304, headers=immutable_headers(etag)),
+                                  policy)
+    return with_cache_control(respond(), policy)
+
+
 def is_fresh(request: Request, etag: str) -> bool:
     """Whether the client's If-None-Match already names ``etag``."""
     header = request.headers.get("if-none-match")
@@ -145,11 +175,9 @@ def immutable_headers(etag: str, filename: str | None = None) -> dict:
     return headers
 
 
-def immutable(body: bytes | memoryview | None, *, media_type: str, etag: str,
+def immutable(body: bytes | memoryview, *, media_type: str, etag: str,
               filename: str | None = None) -> Response:
-    """The response for ``body``, or a 304 when ``body`` is None."""
-    if body is None:
-        return Response(status_code=304, headers=immutable_headers(etag))
+    """The response for ``body``, named ``etag`` and cacheable for a year."""
     return BufferResponse(body, media_type=media_type, headers=immutable_headers(etag, filename))
 
 

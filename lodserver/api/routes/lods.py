@@ -33,15 +33,7 @@ from ...service.levels import (
 )
 from ...service.scenes import SceneAsset, scene_chain_glb, scene_glb, scene_levels_for
 from ..bodies import BodiesDep
-from ..caching import (
-    VersionQuery,
-    etag_for,
-    immutable,
-    is_fresh,
-    load_versioned,
-    version_of,
-    with_cache_control,
-)
+from ..caching import VersionQuery, etag_for, load_versioned, version_of
 from ..deps import MeshId, StoreDep
 from ..models import Message
 
@@ -104,17 +96,14 @@ def level_response(pm, digest: str, policy: str, request: Request, bodies, *, me
     linked = format == "json" and v is not None
     scope = () if part is None else ("part", part)
     etag = etag_for(digest, *scope, "lod", level, format, bits, *(["v"] if linked else []))
-    if is_fresh(request, etag):
-        return with_cache_control(immutable(None, media_type=SERVED_FORMATS[format], etag=etag),
-                                  policy)
     href = f"/meshes/{mesh_id}/materials" + (f"?v={version_of(digest)}" if linked else "")
-    return with_cache_control(bodies.respond(
-        etag, lambda: encode_level(pm, level, file_type=format, bits=bits,
-                                   materials_href=href, copy=False),
+    return bodies.cached(
+        request, etag, policy, lambda: encode_level(pm, level, file_type=format, bits=bits,
+                                                    materials_href=href, copy=False),
         media_type=SERVED_FORMATS[format],
         filename=None if format == "json" else
         f"{mesh_id}-{'' if part is None else f'part{part}-'}{level}.{format}",
-        estimate=lambda: level_bytes(pm, level, format, bits)), policy)
+        estimate=lambda: level_bytes(pm, level, format, bits))
 
 
 @router.get("/{mesh_id}/splits", responses={**_ERRORS, 200: {"content": {
@@ -146,17 +135,13 @@ def splits_response(pm, digest: str, policy: str, request: Request, bodies, *, s
     to = check_level(pm, to, name="to")
     bits = checked_bits(bits)
     etag = etag_for(digest, *(() if part is None else ("part", part)), "splits", start, to, bits)
-    if is_fresh(request, etag):
-        return with_cache_control(immutable(None, media_type="application/octet-stream",
-                                            etag=etag), policy)
     forward = to > start
     # a packet at the default grid is a slice once its direction's records are
     # encoded (by the build, the background preparation or an earlier packet)
     light = start == to or (bits is None and records_ready(pm, forward))
-    return with_cache_control(bodies.respond(
-        etag, lambda: packet_between(pm, start, to, bits=bits),
-        media_type="application/octet-stream",
-        estimate=lambda: 0 if light else packet_bytes(pm, start, to, bits)), policy)
+    return bodies.cached(request, etag, policy, lambda: packet_between(pm, start, to, bits=bits),
+                         media_type="application/octet-stream",
+                         estimate=lambda: 0 if light else packet_bytes(pm, start, to, bits))
 
 
 MAX_CHAIN_LEVELS = 16
@@ -201,14 +186,11 @@ def get_chain(mesh_id: MeshId, store: StoreDep, bodies: BodiesDep, request: Requ
         raise LevelError(f"a chain's levels hold at most {MAX_CHAIN_FACES} times the mesh's "
                          f"faces; these ratios add up to {faces / full:.2f} times")
     etag = etag_for(digest, "chain", ",".join(map(repr, ratios)), reach)
-    if is_fresh(request, etag):
-        return with_cache_control(immutable(None, media_type=_GLB, etag=etag), policy)
     # clustering (reach) works on the full mesh: it takes every slot
-    return with_cache_control(bodies.respond(
-        etag, lambda: encode_lod_chain(*lod_chain(pm, ratios, reach=reach)[:2]),
+    return bodies.cached(
+        request, etag, policy, lambda: encode_lod_chain(*lod_chain(pm, ratios, reach=reach)[:2]),
         media_type=_GLB, filename=f"{mesh_id}-lods.glb",
-        estimate=lambda: chain_bytes(pm, levels) if reach == "none" else bodies.heavy.budget),
-        policy)
+        estimate=lambda: chain_bytes(pm, levels) if reach == "none" else bodies.heavy.budget)
 
 
 def _scene_levels(asset: SceneAsset, **criterion) -> dict:
@@ -231,12 +213,9 @@ def _scene_lod(asset: SceneAsset, digest: str, policy: str, request: Request, bo
     levels = _scene_levels(asset, ratio=ratio, error=error)
     # named by the levels it holds: two criteria giving the same levels share a body
     etag = etag_for(digest, "scene-lod", *(levels[p] for p in sorted(levels)))
-    if is_fresh(request, etag):
-        return with_cache_control(immutable(None, media_type=_GLB, etag=etag), policy)
-    return with_cache_control(bodies.respond(
-        etag, lambda: scene_glb(asset, levels), media_type=_GLB,
-        filename=f"{mesh_id}-scene.glb", estimate=lambda: scene_bytes(asset, [levels])),
-        policy)
+    return bodies.cached(request, etag, policy, lambda: scene_glb(asset, levels), media_type=_GLB,
+                         filename=f"{mesh_id}-scene.glb",
+                         estimate=lambda: scene_bytes(asset, [levels]))
 
 
 def _scene_chain(asset: SceneAsset, digest: str, policy: str, request: Request, bodies, *,
@@ -252,9 +231,6 @@ def _scene_chain(asset: SceneAsset, digest: str, policy: str, request: Request, 
         raise LevelError(f"a chain's levels hold at most {MAX_CHAIN_FACES} times the mesh's "
                          f"faces; these ratios add up to {faces / full:.2f} times")
     etag = etag_for(digest, "scene-chain", ",".join(map(repr, ratios)))
-    if is_fresh(request, etag):
-        return with_cache_control(immutable(None, media_type=_GLB, etag=etag), policy)
-    return with_cache_control(bodies.respond(
-        etag, lambda: scene_chain_glb(asset, ratios, coverage_from_ratios(ratios)),
-        media_type=_GLB, filename=f"{mesh_id}-lods.glb",
-        estimate=lambda: scene_bytes(asset, chain)), policy)
+    return bodies.cached(
+        request, etag, policy, lambda: scene_chain_glb(asset, ratios, coverage_from_ratios(ratios)),
+        media_type=_GLB, filename=f"{mesh_id}-lods.glb", estimate=lambda: scene_bytes(asset, chain))
