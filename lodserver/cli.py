@@ -18,6 +18,7 @@ import time
 from pathlib import Path
 
 from . import __version__
+from .io import SUPPORTED_OUTPUT
 from .mesh import MeshError
 from .options import METHODS, BuildOptions, Flag, describe_error, field_default_text
 
@@ -423,7 +424,8 @@ def _cmd_worker(args) -> int:
 # --- the parser ----------------------------------------------------------------------
 
 MESH_HELP = "OBJ, PLY, STL, OFF, glTF or GLB file"
-OUTPUT_HELP = "PLY, OBJ, GLB, OFF or STL file to write (its folder is created)"
+OUTPUT_HELP = (f"{', '.join(name.upper() for name in SUPPORTED_OUTPUT[:-1])} or "
+               f"{SUPPORTED_OUTPUT[-1].upper()} file to write (its folder is created)")
 UNTRUSTED_HELP = ("the file comes from someone else: every file it names (glTF buffers and "
                   "images, mtllib, texture maps) must lie inside its folder, with no absolute "
                   "path, '..', symbolic link or URL, and the server's size limits apply")

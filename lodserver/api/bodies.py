@@ -44,7 +44,7 @@ from typing import Annotated, Callable
 from fastapi import Depends, FastAPI, HTTPException, Request, Response
 
 from .caching import (BodyCache, BodyFileResponse, BodyFiles, BufferResponse, body_size,
-                      immutable_headers)
+                      immutable_headers, respond_cached)
 from .headers import add_security_headers
 
 log = logging.getLogger(__name__)
@@ -209,6 +209,14 @@ class Bodies:
                     return self._keep(key, make, media_type, headers)
             finally:
                 self._leave(key, flight)
+
+    def cached(self, request: Request, etag: str, policy: str,
+               make: Callable[[], bytes | memoryview], *, media_type: str,
+               estimate: Callable[[], int], filename: str | None = None) -> Response:
+        """A cacheable route's response: a 304 when the client has ``etag``, else
+        :meth:`respond`; with Cache-Control ``policy`` (``caching.respond_cached``)."""
+        return respond_cached(request, etag, policy, lambda: self.respond(
+            etag, make, media_type=media_type, estimate=estimate, filename=filename))
 
     def _cached(self, key: str, media_type: str, headers: dict) -> Response | None:
         body = self.memory.get(key)

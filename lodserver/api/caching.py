@@ -9,7 +9,8 @@ CDN in front of several servers) may keep such a response only briefly
 *version* (``v=``, the first :data:`VERSION_DIGITS` hex digits of its SHA-256,
 handed out by ``GET /meshes/{id}``) can only ever mean one body: it is served
 :data:`IMMUTABLE`, cacheable for a year. A version that is no longer the
-mesh's is a 404 that no cache keeps (:func:`cache_control`).
+mesh's is a 404 that no cache keeps (:func:`cache_control`). Every cacheable
+route ends in :func:`respond_cached` (a 304 or the body, with that policy).
 
 Small bodies are kept in memory (:class:`BodyCache`). Large ones (a LOD chain,
 a full-detail json level: tens to hundreds of megabytes) are written once to an
@@ -26,14 +27,15 @@ import os
 import re
 import threading
 from collections import OrderedDict
+from collections.abc import Callable
 from pathlib import Path
 from typing import Annotated
 
 from fastapi import HTTPException, Query, Request, Response
 from starlette.responses import FileResponse
 
-from ..io.files import write_atomic
 from ..packets import PACKET_VERSION
+from ..service.lru_folder import LruFolder
 
 log = logging.getLogger(__name__)
 
@@ -120,6 +122,34 @@ def with_cache_control(response: Response, value: str) -> Response:
     return response
 
 
+def respond_cached(request: Request, etag: str, policy: str,
+                   respond: Callable[[], Response]) -> Response:
+    """The sequence every cacheable route ends with, once.
+
+    Parameters
+    ----------
+    request : Request
+        The request, whose If-None-Match may already name ``etag``.
+    etag : str
+        The response's name (:func:`etag_for`).
+    policy : str
+        Its Cache-Control (:func:`load_versioned`'s, by ``v=``).
+    respond : callable
+        ``respond() -> Response``: the full response, called only when the
+        client does not have it.
+
+    Returns
+    -------
+    Response
+        A 304 when the client has the body, else ``respond()``; either with
+        Cache-Control ``policy`` (a 304 stands for the response it validates).
+    """
+    if is_fresh(request, etag):
+        return with_cache_control(Response(status_code=304, headers=immutable_headers(etag)),
+                                  policy)
+    return with_cache_control(respond(), policy)
+
+
 def is_fresh(request: Request, etag: str) -> bool:
     """Whether the client's If-None-Match already names ``etag``."""
     header = request.headers.get("if-none-match")
@@ -145,11 +175,9 @@ def immutable_headers(etag: str, filename: str | None = None) -> dict:
     return headers
 
 
-def immutable(body: bytes | memoryview | None, *, media_type: str, etag: str,
+def immutable(body: bytes | memoryview, *, media_type: str, etag: str,
               filename: str | None = None) -> Response:
-    """The response for ``body``, or a 304 when ``body`` is None."""
-    if body is None:
-        return Response(status_code=304, headers=immutable_headers(etag))
+    """The response for ``body``, named ``etag`` and cacheable for a year."""
     return BufferResponse(body, media_type=media_type, headers=immutable_headers(etag, filename))
 
 
@@ -212,34 +240,19 @@ class BodyFiles:
     name, flushed to disk, renamed), so a reader never sees a partial body, even
     after a crash.
     A file being sent is *leased*: eviction skips it, so it is never removed
-    between a request finding it and its response opening it.
+    between a request finding it and its response opening it. The folder is a
+    :class:`~lodserver.service.lru_folder.LruFolder`, as the artefact cache's is.
     """
 
     def __init__(self, folder: Path, capacity: int):
         self.folder = Path(folder)
         self.capacity = capacity
-        self._lock = threading.Lock()
-        self._sizes: OrderedDict[str, int] = OrderedDict()    # name -> bytes, LRU first
-        self._leases: dict[str, int] = {}
-        self._reserved = 0           # bytes of files being written
-        self.folder.mkdir(parents=True, exist_ok=True)
-        found = []
-        for entry in os.scandir(self.folder):
-            if entry.name.startswith("."):
-                _remove(entry.path)
-            elif _NAME.fullmatch(entry.name) and entry.is_file(follow_symlinks=False):
-                stat = entry.stat(follow_symlinks=False)
-                found.append((stat.st_mtime_ns, entry.name, stat.st_size))
-        for _, name, size in sorted(found):       # oldest first: the first to go
-            self._sizes[name] = size
-        with self._lock:
-            self._make_room(0)
+        self._files = LruFolder(self.folder, capacity, names=_NAME, what="body file")
 
     @property
     def size(self) -> int:
         """Bytes held now (files and writes under way)."""
-        with self._lock:
-            return sum(self._sizes.values()) + self._reserved
+        return self._files.size
 
     @staticmethod
     def name_of(key: str) -> str:
@@ -250,68 +263,19 @@ class BodyFiles:
 
     def lease(self, key: str) -> tuple[Path, int] | None:
         """(path, bytes) of ``key``'s file, leased until :meth:`release`; None if absent."""
-        name = self.name_of(key)
-        with self._lock:
-            size = self._sizes.get(name)
-            if size is None:
-                return None
-            self._sizes.move_to_end(name)
-            self._leases[name] = self._leases.get(name, 0) + 1
-        return self.folder / name, size
+        return self._files.lease(self.name_of(key))
 
     def release(self, key: str) -> None:
-        name = self.name_of(key)
-        with self._lock:
-            left = self._leases.pop(name, 0) - 1
-            if left > 0:
-                self._leases[name] = left
+        self._files.release(self.name_of(key))
 
     def store(self, key: str, body: bytes | memoryview) -> bool:
         """Write ``body`` as ``key``'s file; False (nothing written) when it cannot
         be made room for or the write fails (the disk is full, say)."""
-        name, size = self.name_of(key), body_size(body)
-        with self._lock:
-            if name in self._sizes:
-                return True
-            if not self._make_room(size):
-                return False
-            self._reserved += size
-        written = False
         try:
-            write_atomic(self.folder / name, body)     # never a partial body
-            written = True
+            return self._files.write(self.name_of(key), body)
         except OSError as exc:
             log.warning("a response body was not written to the body files: %s", exc)
-        finally:
-            with self._lock:
-                self._reserved -= size
-                if written:
-                    self._sizes.setdefault(name, size)
-        return written
-
-    def _make_room(self, size: int) -> bool:
-        """Remove unleased files, least recently used first, until ``size`` more
-        bytes fit (with the lock held); False if they cannot."""
-        held = sum(self._sizes.values()) + self._reserved
-        if held + size <= self.capacity:
-            return True
-        for name in list(self._sizes):
-            if name in self._leases:
-                continue
-            held -= self._sizes.pop(name)
-            _remove(self.folder / name)
-            if held + size <= self.capacity:
-                return True
-        return False
-
-
-def _remove(path) -> None:
-    try:
-        os.unlink(path)
-    except FileNotFoundError:
-        pass
-    except OSError as exc:
-        log.warning("could not remove a body file: %s", exc)
+            return False
 
 
 class BodyFileResponse(FileResponse):

@@ -29,8 +29,8 @@ Where the arrays come from, one module each:
 - :mod:`.load`: the dispatch; everything else through
   ``trimesh.load_scene(..., process=False)``, after its counts are checked.
 - :mod:`.clean`: :func:`clean_mesh` and :class:`LoadReport`.
-- :mod:`.save` and :mod:`.glb`: writing (:func:`save_mesh`, :func:`encode_mesh`,
-  GLB and MSFT_lod chains); :mod:`.files`: :func:`write_atomic`.
+- :mod:`.save` and :mod:`.glb`: writing (:data:`OUTPUT_FORMATS`, the one list of
+  output formats; :func:`save_mesh`, :func:`encode_mesh`, GLB and MSFT_lod chains); :mod:`.files`: :func:`write_atomic`.
 - :mod:`.references`, :mod:`.limits`, :mod:`.images`: what a file may refer to,
   how much it may declare, what its images are.
 
@@ -51,7 +51,9 @@ from .clean import LoadReport, clean_mesh
 from .files import write_atomic
 from .limits import LimitError, LoadLimits
 from .load import SUPPORTED_INPUT, load_mesh
-from .save import SUPPORTED_OUTPUT, encode_mesh, save_mesh
+from .save import (OUTPUT_FORMATS, SERVED_FORMATS, SUPPORTED_OUTPUT, OutputFormat,
+                   encode_mesh, save_mesh)
 
-__all__ = ["LimitError", "LoadLimits", "LoadReport", "SUPPORTED_INPUT", "SUPPORTED_OUTPUT",
-           "clean_mesh", "encode_mesh", "load_mesh", "save_mesh", "write_atomic"]
+__all__ = ["LimitError", "LoadLimits", "LoadReport", "OUTPUT_FORMATS", "OutputFormat",
+           "SERVED_FORMATS", "SUPPORTED_INPUT", "SUPPORTED_OUTPUT", "clean_mesh", "encode_mesh",
+           "load_mesh", "save_mesh", "write_atomic"]

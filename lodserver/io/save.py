@@ -1,4 +1,9 @@
-"""Writing a mesh: the bytes of each output format, and files written atomically.
+"""Writing a mesh: the output formats, the bytes of each, and files written atomically.
+
+:data:`OUTPUT_FORMATS` lists every output format once (name, file suffix, media
+type, what it keeps, its writer); the CLI's output files, the server's level
+formats and :func:`save_mesh` all read it, so a format is added here and
+nowhere else.
 
 Precision when saving: PLY, GLB and STL store float32 coordinates (trimesh's
 PLY exporter always writes ``float``; glTF and binary STL are float32 by
@@ -18,6 +23,8 @@ format says what it keeps, and GLB is the one that keeps everything.
 
 from __future__ import annotations
 
+from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -27,9 +34,6 @@ from ..mesh import Mesh, MeshError
 from .files import write_atomic
 from .glb import encode_glb
 from .load import file_kind
-
-
-SUPPORTED_OUTPUT = ("ply", "obj", "glb", "off", "stl")
 
 
 # Keyword arguments for trimesh's exporters: positions and triangles only, so
@@ -86,16 +90,7 @@ def encode_mesh(mesh: Mesh, file_type: str) -> bytes:
     """
     if file_type not in SUPPORTED_OUTPUT:
         raise MeshError(f"cannot write {file_type!r}: supported are {', '.join(SUPPORTED_OUTPUT)}")
-    if file_type == "glb":
-        return encode_glb(mesh)
-    attributes = mesh.attributes
-    if file_type == "obj" and attributes is not None and (
-            attributes.columns("TEXCOORD_0") or attributes.columns("NORMAL")):
-        return _obj_bytes(mesh)
-    data = trimesh.Trimesh(mesh.positions, mesh.faces, process=False).export(
-        file_type=file_type, **_EXPORT_OPTIONS[file_type]
-    )
-    return data.encode("utf-8") if isinstance(data, str) else data
+    return OUTPUT_FORMATS[file_type].writer(mesh)
 
 
 def _obj_bytes(mesh: Mesh) -> bytes:
@@ -131,3 +126,79 @@ def _format_rows(line: str, table: np.ndarray) -> str:
     interpreter's overhead on each of a million-face mesh's rows.
     """
     return (line * len(table)) % tuple(table.ravel().tolist())
+
+
+def _trimesh_writer(file_type: str) -> Callable[[Mesh], bytes]:
+    """A writer of positions and triangles through trimesh's exporter of ``file_type``."""
+    def write(mesh: Mesh) -> bytes:
+        data = trimesh.Trimesh(mesh.positions, mesh.faces, process=False).export(
+            file_type=file_type, **_EXPORT_OPTIONS[file_type])
+        return data.encode("utf-8") if isinstance(data, str) else data
+    return write
+
+
+def _obj_writer(mesh: Mesh) -> bytes:
+    """OBJ with ``vt``/``vn`` lines when the mesh has TEXCOORD_0 or NORMAL, else
+    positions and triangles through trimesh."""
+    attributes = mesh.attributes
+    if attributes is not None and (attributes.columns("TEXCOORD_0")
+                                   or attributes.columns("NORMAL")):
+        return _obj_bytes(mesh)
+    return _trimesh_writer("obj")(mesh)
+
+
+@dataclass(frozen=True)
+class OutputFormat:
+    """One output format: what it is called, what it keeps, what writes it.
+
+    Attributes
+    ----------
+    name : str
+        The format's name, as ``file_type``, the CLI's suffix and the server's
+        ``format=`` say it.
+    suffix : str
+        The file suffix, with its dot.
+    media_type : str
+        The ``Content-Type`` the server answers it with.
+    materials : bool
+        Whether it carries the mesh's materials (and images, or a link to them).
+    attributes : str
+        Which wedge attributes it carries: ``"all"``, ``"TEXCOORD_0, NORMAL"`` or
+        ``"none"``.
+    writer : callable or None
+        ``writer(mesh) -> bytes``; None for ``json``, the quantized form of a
+        level, which ``service/levels.py`` writes (it needs the packets' grids).
+    served : bool
+        Whether the server answers levels in it (``GET /meshes/{id}/lod?format=``).
+    """
+
+    name: str
+    suffix: str
+    media_type: str
+    materials: bool
+    attributes: str
+    writer: Callable[[Mesh], bytes] | None
+    served: bool
+
+
+# Every output format once. The order is the order the server's formats are
+# listed in (its 422 messages and its OpenAPI document name them in this order).
+OUTPUT_FORMATS = {f.name: f for f in (
+    OutputFormat("glb", ".glb", "model/gltf-binary", materials=True, attributes="all",
+                 writer=encode_glb, served=True),
+    OutputFormat("obj", ".obj", "model/obj", materials=False, attributes="TEXCOORD_0, NORMAL",
+                 writer=_obj_writer, served=True),
+    OutputFormat("ply", ".ply", "application/octet-stream", materials=False, attributes="none",
+                 writer=_trimesh_writer("ply"), served=True),
+    OutputFormat("json", ".json", "application/json", materials=True, attributes="all",
+                 writer=None, served=True),
+    OutputFormat("off", ".off", "application/octet-stream", materials=False, attributes="none",
+                 writer=_trimesh_writer("off"), served=False),
+    OutputFormat("stl", ".stl", "model/stl", materials=False, attributes="none",
+                 writer=_trimesh_writer("stl"), served=False),
+)}
+
+# The formats a mesh file can be written in (save_mesh, encode_mesh, the CLI).
+SUPPORTED_OUTPUT = tuple(name for name, f in OUTPUT_FORMATS.items() if f.writer is not None)
+# The formats the server answers a level in, with their media types.
+SERVED_FORMATS = {name: f.media_type for name, f in OUTPUT_FORMATS.items() if f.served}

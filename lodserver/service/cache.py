@@ -17,24 +17,22 @@ kept by that process's accounting.
 A file being read is never cut short by eviction: on POSIX an unlinked file
 stays readable through descriptors already open, and :meth:`ArtefactCache.lease`
 holds a file in place (no eviction, no unlink) while a caller that needs its
-path, rather than an open file, uses it.
+path, rather than an open file, uses it. The folder itself (bound, leases,
+eviction, whole files only) is ``service/lru_folder.py``'s, shared with the
+server's body files.
 """
 
 from __future__ import annotations
 
 import hashlib
-import logging
-import os
 import re
 import threading
-import uuid
-from collections import OrderedDict
 from collections.abc import Callable, Iterator
 from concurrent.futures import Future
 from contextlib import contextmanager
 from pathlib import Path
 
-log = logging.getLogger(__name__)
+from .lru_folder import LruFolder
 
 # The default bound when LODSERVER_CACHE_BYTES is not set: room for a few of the
 # largest artefacts (a million-face mesh's .pm is about 140 MB).
@@ -71,34 +69,19 @@ class ArtefactCache:
             raise ValueError(f"max_bytes must be at least 0, got {max_bytes}")
         self.folder = Path(folder).absolute()
         self.max_bytes = int(max_bytes)
-        self.folder.mkdir(parents=True, exist_ok=True)
+        self._files = LruFolder(self.folder, self.max_bytes, names=_NAME,
+                                what="cached artefact file")
         self._lock = threading.Lock()
-        self._sizes: OrderedDict[str, int] = OrderedDict()     # name -> bytes, LRU first
-        self._leases: dict[str, int] = {}
         self._pending: dict[str, Future] = {}
-        self._doomed: set[str] = set()      # discarded while leased: removed on release
         self.hits = self.misses = 0
-        found = []
-        for entry in os.scandir(self.folder):
-            if entry.name.startswith("."):
-                _remove(entry.path)
-            elif _NAME.fullmatch(entry.name) and entry.is_file(follow_symlinks=False):
-                stat = entry.stat(follow_symlinks=False)
-                found.append((stat.st_mtime_ns, entry.name, stat.st_size))
-        for _, name, size in sorted(found):
-            self._sizes[name] = size
-        with self._lock:
-            self._evict(keep=None)
 
     @property
     def size(self) -> int:
         """Bytes of cached files now."""
-        with self._lock:
-            return sum(self._sizes.values())
+        return self._files.size
 
     def __contains__(self, key: str) -> bool:
-        with self._lock:
-            return file_name(key) in self._sizes
+        return file_name(key) in self._files
 
     def path(self, key: str, fetch: Callable[[Path], None]) -> Path:
         """The local file holding ``key``'s bytes, fetched on a miss.
@@ -112,8 +95,7 @@ class ArtefactCache:
         name = file_name(key)
         while True:
             with self._lock:
-                if name in self._sizes:
-                    self._sizes.move_to_end(name)
+                if self._files.touch(name):
                     self.hits += 1
                     return self.folder / name
                 future = self._pending.get(name)
@@ -127,7 +109,7 @@ class ArtefactCache:
                 future.result()
                 continue
             try:
-                size = self._fetch(name, fetch)
+                self._files.fetch(name, fetch)
             except BaseException as exc:
                 with self._lock:
                     del self._pending[name]
@@ -136,10 +118,7 @@ class ArtefactCache:
                 future.exception()
                 raise
             with self._lock:
-                self._sizes[name] = size
-                self._doomed.discard(name)     # the file under the name is the new one
                 del self._pending[name]
-                self._evict(keep=name)
             future.set_result(None)
             return self.folder / name
 
@@ -149,22 +128,12 @@ class ArtefactCache:
         name = file_name(key)
         while True:
             path = self.path(key, fetch)
-            with self._lock:
-                if name in self._sizes:      # not evicted between path() and here
-                    self._leases[name] = self._leases.get(name, 0) + 1
-                    break
+            if self._files.lease(name) is not None:     # not evicted since path()
+                break
         try:
             yield path
         finally:
-            with self._lock:
-                left = self._leases.pop(name) - 1
-                if left:
-                    self._leases[name] = left
-                elif name in self._doomed:
-                    self._doomed.discard(name)
-                    _remove(self.folder / name)
-                else:
-                    self._evict(keep=None)
+            self._files.release(name)
 
     def open(self, key: str, fetch: Callable[[Path], None]):
         """``key``'s cached file opened for binary reading (readable to its end
@@ -176,50 +145,4 @@ class ArtefactCache:
         """Forget ``key``'s file (a copy found damaged, say): the next use fetches it
         again. Readers that have it open keep reading it; a leased file is removed
         when its last lease ends."""
-        name = file_name(key)
-        with self._lock:
-            if self._sizes.pop(name, None) is None:
-                return
-            if name in self._leases:
-                self._doomed.add(name)
-            else:
-                _remove(self.folder / name)
-
-    def _fetch(self, name: str, fetch: Callable[[Path], None]) -> int:
-        """Fetch into a temporary file, flush it to disk, rename it; its size."""
-        temporary = self.folder / f".{name}.{uuid.uuid4().hex}.tmp"
-        try:
-            fetch(temporary)
-            # fsynced: a crash must not leave a torn file under a final name, which
-            # a later load would take for a corrupt artefact in the shared store
-            with open(temporary, "rb+") as file:
-                os.fsync(file.fileno())
-            size = temporary.stat().st_size
-            os.replace(temporary, self.folder / name)
-        except BaseException:
-            _remove(temporary)
-            raise
-        return size
-
-    def _evict(self, *, keep: str | None) -> None:
-        """Remove least recently used files until the cache fits ``max_bytes``,
-        sparing leased files and ``keep`` (with the lock held)."""
-        held = sum(self._sizes.values())
-        if held <= self.max_bytes:
-            return
-        for name in list(self._sizes):
-            if name == keep or name in self._leases:
-                continue
-            held -= self._sizes.pop(name)
-            _remove(self.folder / name)
-            if held <= self.max_bytes:
-                return
-
-
-def _remove(path) -> None:
-    try:
-        os.unlink(path)
-    except FileNotFoundError:
-        pass
-    except OSError as exc:
-        log.warning("could not remove a cached artefact file: %s", exc)
+        self._files.discard(file_name(key))

@@ -29,14 +29,10 @@ import numpy as np
 import orjson
 
 from ..io.glb import level_glb
-from ..io import encode_mesh
+from ..io import SERVED_FORMATS, encode_mesh
 from ..mesh import MeshError
 from ..packets import MAX_BITS, check_bits, default_bits, grid_of, quantized_level
 from ..progressive.mesh import ProgressiveMesh
-
-FORMATS = {"glb": "model/gltf-binary", "obj": "model/obj", "ply": "application/octet-stream",
-           "json": "application/json"}
-
 
 class LevelError(MeshError):
     """A level request is malformed or outside the mesh's levels."""
@@ -72,7 +68,7 @@ def checked_bits(bits: int | None) -> int | None:
 def encode_level(pm: ProgressiveMesh, level: int, *, file_type: str,
                  bits: int | None = None, materials_href: str | None = None,
                  copy: bool = True) -> bytes | memoryview:
-    """The bytes of ``level`` in ``file_type`` (one of :data:`FORMATS`).
+    """The bytes of ``level`` in ``file_type`` (one of :data:`lodserver.io.SERVED_FORMATS`).
 
     ``copy=False`` allows a read-only memoryview in place of bytes where that
     saves a copy (the GLB of a geometry-only level, written in place).
@@ -82,8 +78,9 @@ def encode_level(pm: ProgressiveMesh, level: int, *, file_type: str,
     where the ``json`` form says the mesh's materials are (when it has some).
     """
     level = check_level(pm, level)
-    if file_type not in FORMATS:
-        raise LevelError(f"format must be one of {', '.join(FORMATS)}, got {file_type!r}")
+    if file_type not in SERVED_FORMATS:
+        raise LevelError(f"format must be one of {', '.join(SERVED_FORMATS)}, "
+                         f"got {file_type!r}")
     if file_type == "json":
         grid = grid_of(pm, bits=checked_bits(bits))
         state = quantized_level(pm, level, grid)
@@ -187,7 +184,7 @@ def level_bytes(pm: ProgressiveMesh, level: int, file_type: str,
     level : int
         A level of ``pm`` (a vertex count).
     file_type : str
-        One of :data:`FORMATS`.
+        One of :data:`lodserver.io.SERVED_FORMATS`.
     bits : int, optional
         The json form's position grid bits (default: the mesh's).
 

@@ -20,6 +20,7 @@ from lodserver import packets
 from lodserver.packets import apply_packet, state_from_json
 
 from ..meshes import DATA, textured_spot_glb
+from . import settled as _wait_ready
 
 SPOT = (DATA / "spot.obj").read_bytes()
 TOKEN = "s3cret-token"
@@ -33,16 +34,6 @@ def _client(tmp_path, **overrides):
 def _upload(client, content=SPOT, filename="spot.obj", headers=None, **fields):
     return client.post("/meshes", files={"file": (filename, content)}, data=fields,
                        headers=headers or {})
-
-
-def _wait_ready(client, mesh_id, timeout=120):
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        body = client.get(f"/meshes/{mesh_id}").json()
-        if body["status"] in ("ready", "failed"):
-            return body
-        time.sleep(0.1)
-    raise AssertionError(f"mesh {mesh_id} not built in {timeout} s")
 
 
 @pytest.fixture(scope="module")

@@ -35,6 +35,7 @@ from ..io.test_hostile_scenes import (
 )
 from ..server import server_process
 from ..test_scene_export import accessor_values
+from . import settled
 
 gltf_validator = test_gltf.gltf_validator    # the session fixture, shared
 
@@ -46,14 +47,6 @@ def _client(tmp_path, **overrides):
 
 def _upload(client, glb: Glb, filename="hostile.glb"):
     return client.post("/meshes", files={"file": (filename, glb.glb())})
-
-
-def _wait(client, mesh_id, timeout=180):
-    deadline = time.monotonic() + timeout
-    while (body := client.get(f"/meshes/{mesh_id}").json())["status"] not in ("ready", "failed"):
-        assert time.monotonic() < deadline, f"mesh {mesh_id} not settled in {timeout} s"
-        time.sleep(0.05)
-    return body
 
 
 def _stored(data_dir) -> list:
@@ -207,7 +200,7 @@ def test_aliased_sampler_outputs_are_stored_and_written_once(tmp_path, gltf_vali
     with _client(tmp_path) as client:
         created = client.post("/meshes", files={"file": ("clips.glb", upload)})
         assert created.status_code == 202, created.text
-        body = _wait(client, created.json()["id"])
+        body = settled(client, created.json()["id"], timeout=180)
         assert body["status"] == "ready", body.get("failure")
         artefacts = [p for p in (tmp_path / "data" / "artefacts").rglob("*") if p.is_file()]
         assert artefacts and sum(p.stat().st_size for p in artefacts) <= 20 * len(upload)
@@ -252,7 +245,7 @@ def test_odd_but_valid_scenes_are_built(tmp_path, glb):
     with _client(tmp_path) as client:
         created = _upload(client, glb)
         assert created.status_code == 202, created.text
-        body = _wait(client, created.json()["id"])
+        body = settled(client, created.json()["id"], timeout=180)
         assert body["status"] == "ready", body.get("failure")
         assert len(repr(body)) < 100_000          # the 10 kB name is not echoed whole
         level = client.get(f"/meshes/{body['id']}/lod", params={"format": "glb",
@@ -299,7 +292,7 @@ def test_a_part_of_zero_area_faces_is_built_as_it_is(tmp_path):
     with _client(tmp_path) as client:
         created = _upload(client, _with_part(_CHAIN, line))
         assert created.status_code == 202, created.text
-        body = _wait(client, created.json()["id"])
+        body = settled(client, created.json()["id"], timeout=180)
         assert body["status"] == "ready", body.get("failure")
         assert [(p["name"], p["faces"]) for p in body["parts"]] == [("grid", 32), ("flat", 10)]
         level = client.get(f"/meshes/{body['id']}/lod", params={"format": "glb", "ratio": 0.5})

@@ -4,7 +4,6 @@ whole scene at a level, the MSFT_lod scene, and a single mesh as a scene of one 
 import io
 import json
 import struct
-import time
 import zipfile
 from pathlib import Path
 
@@ -24,6 +23,7 @@ from lodserver.service.levels import encode_level
 
 from ..meshes import DATA
 from ..service.test_scene_store import scene_glb_bytes
+from . import settled
 
 SCENES = Path(__file__).resolve().parents[3] / "shared" / "meshes" / "scenes"
 SPOT = (DATA / "spot.obj").read_bytes()
@@ -38,16 +38,6 @@ def _upload(client, content, filename):
     return client.post("/meshes", files={"file": (filename, content)})
 
 
-def _wait(client, mesh_id, timeout=180):
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        body = client.get(f"/meshes/{mesh_id}").json()
-        if body["status"] in ("ready", "failed"):
-            return body
-        time.sleep(0.1)
-    raise AssertionError(f"mesh {mesh_id} not built in {timeout} s")
-
-
 def _get(client, url, params):
     """GET ``url`` (which may hold ``?v=``) with more query ``params``: httpx would
     replace the URL's query with ``params``, not add to it."""
@@ -59,7 +49,7 @@ def _get(client, url, params):
 def _built(client, content, filename):
     created = _upload(client, content, filename)
     assert created.status_code == 202, created.text
-    body = _wait(client, created.json()["id"])
+    body = settled(client, created.json()["id"], timeout=180)
     assert body["status"] == "ready", body["failure"]
     return body
 
@@ -171,7 +161,7 @@ def test_a_scene_uploaded_as_files_or_a_zip_is_a_scene(kind, tmp_path):
     with _client(tmp_path) as client:
         created = client.post("/meshes", files=files)
         assert created.status_code == 202, created.text
-        body = _wait(client, created.json()["id"])
+        body = settled(client, created.json()["id"], timeout=180)
     assert body["status"] == "ready" and body["scene"] is True
     assert [p["nodes"] for p in body["parts"]] == [[1, 2], [3]]
 
@@ -241,7 +231,7 @@ def test_a_scene_whose_part_fails_stores_nothing(tmp_path, monkeypatch):
     monkeypatch.setattr(jobs_module, "build", second_part_fails)
     with _client(tmp_path) as client:
         created = _upload(client, scene_glb_bytes(), "two.glb")
-        body = _wait(client, created.json()["id"])
+        body = settled(client, created.json()["id"], timeout=180)
     assert body["status"] == "failed" and body["failure"].startswith("part 1 (pill)")
     data = tmp_path / "data"
     assert not list((data / "artefacts").iterdir()) and not list((data / "sources").iterdir())
@@ -253,7 +243,8 @@ def test_a_scene_whose_artefact_cannot_be_written_stores_nothing(tmp_path, monke
 
     monkeypatch.setattr(store_module, "save_asset", full)
     with _client(tmp_path) as client:
-        body = _wait(client, _upload(client, scene_glb_bytes(), "two.glb").json()["id"])
+        body = settled(client, _upload(client, scene_glb_bytes(), "two.glb").json()["id"],
+                       timeout=180)
     assert body["status"] == "failed" and "disk space" in body["failure"]
     data = tmp_path / "data"
     assert not list((data / "artefacts").iterdir()) and not list((data / "sources").iterdir())

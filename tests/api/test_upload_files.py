@@ -20,6 +20,7 @@ from lodserver.mesh import MeshError
 from lodserver.service.store import Store
 
 from ..meshes import DATA
+from . import settled
 
 SPOT_FILES = ("spot.obj", "spot.mtl", "spot_texture.png")
 TEXTURE = (DATA / "spot_texture.png").read_bytes()
@@ -37,14 +38,6 @@ def _post(client, files, **fields):
 
 def _spot(names=SPOT_FILES):
     return [(name, (DATA / name).read_bytes()) for name in names]
-
-
-def _wait(client, mesh_id, timeout=120):
-    deadline = time.monotonic() + timeout
-    while (body := client.get(f"/meshes/{mesh_id}").json())["status"] not in ("ready", "failed"):
-        assert time.monotonic() < deadline, f"mesh {mesh_id} not settled in {timeout} s"
-        time.sleep(0.05)
-    return body
 
 
 def _zip(entries, compression=zipfile.ZIP_DEFLATED) -> bytes:
@@ -102,7 +95,7 @@ def test_obj_with_its_mtl_and_texture_in_one_request(tmp_path):
         body = created.json()
         assert body["main"] == "spot.obj" and body["files"] == list(SPOT_FILES)
         assert body["warnings"] == []
-        ready = _wait(client, body["id"])
+        ready = settled(client, body["id"])
         assert ready["status"] == "ready", ready["failure"]
         assert ready["name"] == "spot.obj" and ready["warnings"] == []
         materials = client.get(f"/meshes/{body['id']}/materials").json()
@@ -114,7 +107,7 @@ def test_obj_with_its_mtl_and_texture_in_one_request(tmp_path):
         assert alone.status_code == 202, alone.text
         assert any("'spot.mtl'" in warning and "not uploaded" in warning
                    for warning in alone.json()["warnings"])
-        ready = _wait(client, alone.json()["id"])
+        ready = settled(client, alone.json()["id"])
         assert any("'spot.mtl'" in warning for warning in ready["warnings"])
         assert client.get(f"/meshes/{alone.json()['id']}/images/0").status_code == 404
         assert _leftovers(tmp_path / "data") == []
@@ -125,7 +118,7 @@ def test_generated_gltf_with_its_bin_and_image(tmp_path):
     with _client(tmp_path) as client:
         created = _post(client, [("quad.gltf", document), ("tri.bin", blob), ("tex.png", TEXTURE)])
         assert created.status_code == 202, created.text
-        ready = _wait(client, created.json()["id"])
+        ready = settled(client, created.json()["id"])
         assert ready["status"] == "ready", ready["failure"]
         assert ready["faces"] == 2 and ready["file_type"] == "zip"
         assert client.get(f"/meshes/{created.json()['id']}/images/0").content == TEXTURE
@@ -145,7 +138,7 @@ def test_avocado_gltf_bin_and_images(tmp_path, shared_meshes):
         created = _post(client, files)
         assert created.status_code == 202, created.text
         assert created.json()["main"] == "Avocado.gltf"
-        ready = _wait(client, created.json()["id"])
+        ready = settled(client, created.json()["id"])
         assert ready["status"] == "ready", ready["failure"]
         materials = client.get(f"/meshes/{created.json()['id']}/materials").json()
         assert len(materials["images"]) == 3
@@ -165,7 +158,7 @@ def test_a_zip_with_sub_folders(tmp_path):
         assert body["main"] == "quad.gltf"
         assert sorted(body["files"]) == ["asset/README.txt", "asset/buffers/tri.bin",
                                          "asset/images/tex.png", "asset/scene/quad.gltf"]
-        ready = _wait(client, body["id"])
+        ready = settled(client, body["id"])
         assert ready["status"] == "ready", ready["failure"]
         assert client.get(f"/meshes/{body['id']}/images/0").content == TEXTURE
         assert _leftovers(tmp_path / "data") == []
@@ -184,7 +177,7 @@ def test_a_stored_set_is_built_again_after_a_restart(tmp_path):
         record = client.app.state.store.create(name="spot.obj", source=archive,
                                                file_type="zip", options={})
     with _client(tmp_path) as client:           # the restart resumes the build
-        ready = _wait(client, record.id)
+        ready = settled(client, record.id)
         assert ready["status"] == "ready", ready["failure"]
         assert client.get(f"/meshes/{record.id}/images/0").content == TEXTURE
         assert _leftovers(tmp_path / "data") == []
@@ -206,7 +199,7 @@ def test_several_mesh_files_need_the_main_field(tmp_path):
         assert created.status_code == 202, created.text
         assert created.json()["main"] == "copy.obj"
         # copy.obj names spot.mtl, which is in the set: the texture is found
-        assert _wait(client, created.json()["id"])["status"] == "ready"
+        assert settled(client, created.json()["id"])["status"] == "ready"
         assert client.get(f"/meshes/{created.json()['id']}/images/0").content == TEXTURE
         none = _post(client, [("spot.mtl", (DATA / "spot.mtl").read_bytes()),
                               ("spot_texture.png", TEXTURE)])
@@ -232,7 +225,7 @@ def test_part_names_are_reduced_to_their_base_name(tmp_path):
                                  ("C:\\textures\\tex.png", TEXTURE)])
         assert created.status_code == 202, created.text
         assert created.json()["files"] == ["quad.gltf", "tri.bin", "tex.png"]
-        assert _wait(client, created.json()["id"])["status"] == "ready"
+        assert settled(client, created.json()["id"])["status"] == "ready"
         for files, expected in (
                 ([("quad.gltf", document), ("tri.bin", blob), ("dir/tri.bin", blob)],
                  "two files named 'tri.bin'"),

@@ -24,6 +24,7 @@ from lodserver.io.limits import LimitError
 
 from ..conftest import record_calls
 from ..meshes import DATA
+from . import settled
 
 SPOT = (DATA / "spot.obj").read_bytes()
 
@@ -35,14 +36,6 @@ def _client(tmp_path, **overrides):
 
 def _upload(client, content=SPOT, filename="spot.obj", **fields):
     return client.post("/meshes", files={"file": (filename, content)}, data=fields)
-
-
-def _wait(client, mesh_id, timeout=120):
-    deadline = time.monotonic() + timeout
-    while (body := client.get(f"/meshes/{mesh_id}").json())["status"] not in ("ready", "failed"):
-        assert time.monotonic() < deadline, f"mesh {mesh_id} not settled in {timeout} s"
-        time.sleep(0.05)
-    return body
 
 
 def _leftovers(data_dir):
@@ -87,7 +80,7 @@ def test_upload_streams_into_data_dir_and_leaves_nothing(tmp_path, monkeypatch, 
         created = _upload(client, body)
         assert created.status_code == 202, created.text
         assert seen == [(data / "tmp", len(body))]        # streamed whole into data/tmp
-        assert _wait(client, created.json()["id"])["status"] == "ready"
+        assert settled(client, created.json()["id"])["status"] == "ready"
         assert _leftovers(data) == []
         # a refused file, an unsupported type and a form error leave nothing either
         assert _upload(client, b"not a mesh\n", "notes.obj").status_code == 422
@@ -193,7 +186,7 @@ def test_a_full_parse_queue_is_503_with_retry_after(tmp_path):
         busy.join()
         created = _upload(client)       # the worker is free again
         assert created.status_code == 202, created.text
-        assert _wait(client, created.json()["id"])["status"] == "ready"
+        assert settled(client, created.json()["id"])["status"] == "ready"
 
 
 def test_uploads_wait_in_the_queue_rather_than_fail(tmp_path):
@@ -289,7 +282,7 @@ def _enospc(*args, **kwargs):
 def test_disk_full_while_receiving_is_507_and_leaves_nothing(tmp_path, monkeypatch):
     with _client(tmp_path) as client:
         kept = _upload(client)
-        assert _wait(client, kept.json()["id"])["status"] == "ready"
+        assert settled(client, kept.json()["id"])["status"] == "ready"
         before = client.get("/meshes").json()
         monkeypatch.setattr(upload_module._FormWriter, "_part_data", _enospc)
         response = _upload(client, _padded_spot(2 * 2**20))
@@ -339,7 +332,7 @@ def test_disk_full_while_building_says_so(tmp_path, monkeypatch):
     monkeypatch.setattr(store_module, "save_progressive", _enospc)
     with _client(tmp_path) as client:
         mesh_id = _upload(client).json()["id"]
-        body = _wait(client, mesh_id)
+        body = settled(client, mesh_id)
         assert body["status"] == "failed"
         assert body["failure"].startswith("the server ran out of disk space while building")
         assert list((tmp_path / "data" / "artefacts").iterdir()) == []
@@ -349,7 +342,7 @@ def test_disk_full_while_building_says_so(tmp_path, monkeypatch):
 def test_a_corrupt_artefact_is_quarantined_once_and_answered_409(tmp_path, monkeypatch):
     with _client(tmp_path) as client:
         mesh_id = _upload(client).json()["id"]
-        assert _wait(client, mesh_id)["status"] == "ready"
+        assert settled(client, mesh_id)["status"] == "ready"
     artefact, = (tmp_path / "data" / "artefacts").glob(f"{mesh_id}.*.pm")
     data = bytearray(artefact.read_bytes())
     data[len(data) // 2] ^= 0xFF
@@ -438,10 +431,10 @@ def test_a_resumed_build_parses_its_source_alone(tmp_path):
         gltf.write_text(json.dumps(document))
         resumed = store.create(name="scene.gltf", source=gltf, file_type="gltf", options={})
     with _client(tmp_path) as client:           # the restart resumes both
-        body = _wait(client, resumed.id)
+        body = settled(client, resumed.id)
         assert body["status"] == "failed" and "scene.gltf" in body["failure"]
         _no_server_path(body["failure"], tmp_path)
-        assert _wait(client, neighbour.id)["status"] == "ready"
+        assert settled(client, neighbour.id)["status"] == "ready"
         assert _leftovers(tmp_path / "data") == []
 
 
@@ -450,7 +443,7 @@ def test_opening_the_store_removes_what_a_crash_left(tmp_path):
     everything a row names stays."""
     with _client(tmp_path) as client:
         kept = _upload(client).json()["id"]
-        assert _wait(client, kept)["status"] == "ready"
+        assert settled(client, kept)["status"] == "ready"
     data = tmp_path / "data"
     stale = [data / "tmp" / "upload-x1" / "big.obj", data / "tmp" / "build-y2" / "a.gltf",
              data / "sources" / f".{'B' * 22}.obj.tmp",

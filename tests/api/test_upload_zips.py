@@ -5,7 +5,6 @@ Retry-After past the budget) on a SQLite and a PostgreSQL catalogue."""
 
 import io
 import random
-import time
 import zipfile
 from pathlib import Path
 
@@ -16,6 +15,7 @@ from lodserver.api.main import create_app
 from lodserver.api.settings import Settings
 from ..meshes import DATA
 from ..services.postgres import postgres_server, postgres_url  # noqa: F401 (fixtures)
+from . import settled
 
 SPOT_FILES = ("spot.obj", "spot.mtl", "spot_texture.png")
 SPOT = (DATA / "spot.obj").read_bytes()
@@ -39,14 +39,6 @@ def _padding(count: int, seed: int = 1) -> list[tuple[str, bytes]]:
     """``count`` entries of 1 MiB that deflate about 80 times: within every ratio rule."""
     rng = random.Random(seed)
     return [(f"pad/{i}.bin", rng.randbytes(12000) + bytes(MIB - 12000)) for i in range(count)]
-
-
-def _wait(client, mesh_id, timeout=120):
-    deadline = time.monotonic() + timeout
-    while (body := client.get(f"/meshes/{mesh_id}").json())["status"] not in ("ready", "failed"):
-        assert time.monotonic() < deadline, f"mesh {mesh_id} not settled in {timeout} s"
-        time.sleep(0.05)
-    return body
 
 
 def _written() -> int:
@@ -88,7 +80,7 @@ def test_a_zip_is_kept_compressed_and_only_what_the_mesh_names_is_unpacked(tmp_p
         with zipfile.ZipFile(sources[0]) as kept:
             assert kept.comment == b"lodserver-main:spot.obj"
             assert all(info.compress_type == zipfile.ZIP_DEFLATED for info in kept.infolist())
-        assert _wait(client, mesh_id)["status"] == "ready"
+        assert settled(client, mesh_id)["status"] == "ready"
         assert client.get(f"/meshes/{mesh_id}/materials").status_code == 200
         assert list((tmp_path / "data" / "tmp").iterdir()) == []
 
@@ -118,7 +110,7 @@ def test_a_stored_zip_is_built_again_after_a_restart_by_its_main_field(tmp_path)
         assert created.status_code == 202, created.text
         mesh_id = created.json()["id"]
     with _client(tmp_path) as client:
-        built = _wait(client, mesh_id)
+        built = settled(client, mesh_id)
         assert built["status"] == "ready", built
         assert built["faces"] == SPOT.count(b"\nf ")
 

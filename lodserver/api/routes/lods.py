@@ -16,11 +16,11 @@ from typing import Annotated, Literal
 
 from fastapi import APIRouter, Query, Request, Response
 
+from ...io import SERVED_FORMATS
 from ...io.glb import coverage_from_ratios, encode_lod_chain
 from ...packets import MAX_BITS, MIN_BITS, packet_between, prepare_records, records_ready
 from ...pipeline import DEFAULT_LODS, lod_chain, parse_lods
 from ...service.levels import (
-    FORMATS,
     LevelError,
     chain_bytes,
     check_level,
@@ -33,15 +33,7 @@ from ...service.levels import (
 )
 from ...service.scenes import SceneAsset, scene_chain_glb, scene_glb, scene_levels_for
 from ..bodies import BodiesDep
-from ..caching import (
-    VersionQuery,
-    etag_for,
-    immutable,
-    is_fresh,
-    load_versioned,
-    version_of,
-    with_cache_control,
-)
+from ..caching import VersionQuery, etag_for, load_versioned, version_of
 from ..deps import MeshId, StoreDep
 from ..models import Message
 
@@ -54,16 +46,20 @@ _LEVEL = {"ge": 0, "le": 2**31 - 1,
 Bits = Annotated[int | None, Query(ge=MIN_BITS, le=MAX_BITS, description="Quantization grid "
                                    "bits of the json form and of packets (default: by mesh size). "
                                    "A client must use the same value for both.")]
+# The formats a level is served in: those of the output-format registry (io/save.py).
+LevelFormat = Literal[tuple(SERVED_FORMATS)]
+_GLB = SERVED_FORMATS["glb"]
 
 
 @router.get("/{mesh_id}/lod", responses={**_ERRORS, 200: {"content": {
-    media: {} for media in FORMATS.values()}, "description": "The level in the asked format."}})
+    media: {} for media in SERVED_FORMATS.values()},
+    "description": "The level in the asked format."}})
 def get_lod(mesh_id: MeshId, store: StoreDep, bodies: BodiesDep, request: Request,
             vertices: Annotated[int | None, _COUNT] = None,
             faces: Annotated[int | None, _COUNT] = None,
             ratio: Annotated[float | None, Query(gt=0, le=1)] = None,
             error: Annotated[float | None, Query(ge=0)] = None,
-            format: Literal["glb", "obj", "ply", "json"] = "json",
+            format: LevelFormat = "json",
             bits: Bits = None, v: VersionQuery = None) -> Response:
     """One level, chosen by exactly one of vertices, faces, ratio or error.
 
@@ -100,16 +96,14 @@ def level_response(pm, digest: str, policy: str, request: Request, bodies, *, me
     linked = format == "json" and v is not None
     scope = () if part is None else ("part", part)
     etag = etag_for(digest, *scope, "lod", level, format, bits, *(["v"] if linked else []))
-    if is_fresh(request, etag):
-        return with_cache_control(immutable(None, media_type=FORMATS[format], etag=etag), policy)
     href = f"/meshes/{mesh_id}/materials" + (f"?v={version_of(digest)}" if linked else "")
-    return with_cache_control(bodies.respond(
-        etag, lambda: encode_level(pm, level, file_type=format, bits=bits,
-                                   materials_href=href, copy=False),
-        media_type=FORMATS[format],
+    return bodies.cached(
+        request, etag, policy, lambda: encode_level(pm, level, file_type=format, bits=bits,
+                                                    materials_href=href, copy=False),
+        media_type=SERVED_FORMATS[format],
         filename=None if format == "json" else
         f"{mesh_id}-{'' if part is None else f'part{part}-'}{level}.{format}",
-        estimate=lambda: level_bytes(pm, level, format, bits)), policy)
+        estimate=lambda: level_bytes(pm, level, format, bits))
 
 
 @router.get("/{mesh_id}/splits", responses={**_ERRORS, 200: {"content": {
@@ -141,17 +135,13 @@ def splits_response(pm, digest: str, policy: str, request: Request, bodies, *, s
     to = check_level(pm, to, name="to")
     bits = checked_bits(bits)
     etag = etag_for(digest, *(() if part is None else ("part", part)), "splits", start, to, bits)
-    if is_fresh(request, etag):
-        return with_cache_control(immutable(None, media_type="application/octet-stream",
-                                            etag=etag), policy)
     forward = to > start
     # a packet at the default grid is a slice once its direction's records are
     # encoded (by the build, the background preparation or an earlier packet)
     light = start == to or (bits is None and records_ready(pm, forward))
-    return with_cache_control(bodies.respond(
-        etag, lambda: packet_between(pm, start, to, bits=bits),
-        media_type="application/octet-stream",
-        estimate=lambda: 0 if light else packet_bytes(pm, start, to, bits)), policy)
+    return bodies.cached(request, etag, policy, lambda: packet_between(pm, start, to, bits=bits),
+                         media_type="application/octet-stream",
+                         estimate=lambda: 0 if light else packet_bytes(pm, start, to, bits))
 
 
 MAX_CHAIN_LEVELS = 16
@@ -162,7 +152,7 @@ MAX_CHAIN_FACES = 4
 
 
 @router.get("/{mesh_id}/chain", responses={**_ERRORS, 200: {"content": {
-    FORMATS["glb"]: {}}, "description": "One GLB: the levels as nodes linked by MSFT_lod."}})
+    _GLB: {}}, "description": "One GLB: the levels as nodes linked by MSFT_lod."}})
 def get_chain(mesh_id: MeshId, store: StoreDep, bodies: BodiesDep, request: Request,
               lods: Annotated[str, Query(max_length=200, description=(
                   "Face ratios of the levels, finest first, comma-separated, each in (0, 1] "
@@ -196,14 +186,11 @@ def get_chain(mesh_id: MeshId, store: StoreDep, bodies: BodiesDep, request: Requ
         raise LevelError(f"a chain's levels hold at most {MAX_CHAIN_FACES} times the mesh's "
                          f"faces; these ratios add up to {faces / full:.2f} times")
     etag = etag_for(digest, "chain", ",".join(map(repr, ratios)), reach)
-    if is_fresh(request, etag):
-        return with_cache_control(immutable(None, media_type=FORMATS["glb"], etag=etag), policy)
     # clustering (reach) works on the full mesh: it takes every slot
-    return with_cache_control(bodies.respond(
-        etag, lambda: encode_lod_chain(*lod_chain(pm, ratios, reach=reach)[:2]),
-        media_type=FORMATS["glb"], filename=f"{mesh_id}-lods.glb",
-        estimate=lambda: chain_bytes(pm, levels) if reach == "none" else bodies.heavy.budget),
-        policy)
+    return bodies.cached(
+        request, etag, policy, lambda: encode_lod_chain(*lod_chain(pm, ratios, reach=reach)[:2]),
+        media_type=_GLB, filename=f"{mesh_id}-lods.glb",
+        estimate=lambda: chain_bytes(pm, levels) if reach == "none" else bodies.heavy.budget)
 
 
 def _scene_levels(asset: SceneAsset, **criterion) -> dict:
@@ -226,12 +213,9 @@ def _scene_lod(asset: SceneAsset, digest: str, policy: str, request: Request, bo
     levels = _scene_levels(asset, ratio=ratio, error=error)
     # named by the levels it holds: two criteria giving the same levels share a body
     etag = etag_for(digest, "scene-lod", *(levels[p] for p in sorted(levels)))
-    if is_fresh(request, etag):
-        return with_cache_control(immutable(None, media_type=FORMATS["glb"], etag=etag), policy)
-    return with_cache_control(bodies.respond(
-        etag, lambda: scene_glb(asset, levels), media_type=FORMATS["glb"],
-        filename=f"{mesh_id}-scene.glb", estimate=lambda: scene_bytes(asset, [levels])),
-        policy)
+    return bodies.cached(request, etag, policy, lambda: scene_glb(asset, levels), media_type=_GLB,
+                         filename=f"{mesh_id}-scene.glb",
+                         estimate=lambda: scene_bytes(asset, [levels]))
 
 
 def _scene_chain(asset: SceneAsset, digest: str, policy: str, request: Request, bodies, *,
@@ -247,9 +231,6 @@ def _scene_chain(asset: SceneAsset, digest: str, policy: str, request: Request, 
         raise LevelError(f"a chain's levels hold at most {MAX_CHAIN_FACES} times the mesh's "
                          f"faces; these ratios add up to {faces / full:.2f} times")
     etag = etag_for(digest, "scene-chain", ",".join(map(repr, ratios)))
-    if is_fresh(request, etag):
-        return with_cache_control(immutable(None, media_type=FORMATS["glb"], etag=etag), policy)
-    return with_cache_control(bodies.respond(
-        etag, lambda: scene_chain_glb(asset, ratios, coverage_from_ratios(ratios)),
-        media_type=FORMATS["glb"], filename=f"{mesh_id}-lods.glb",
-        estimate=lambda: scene_bytes(asset, chain)), policy)
+    return bodies.cached(
+        request, etag, policy, lambda: scene_chain_glb(asset, ratios, coverage_from_ratios(ratios)),
+        media_type=_GLB, filename=f"{mesh_id}-lods.glb", estimate=lambda: scene_bytes(asset, chain))

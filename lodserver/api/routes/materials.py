@@ -8,8 +8,7 @@ import orjson
 from fastapi import APIRouter, Path, Request, Response
 
 from ...service.materials import AbsentError, image_of, materials_document
-from ..caching import (VersionQuery, etag_for, immutable, is_fresh, load_versioned,
-                       with_cache_control)
+from ..caching import VersionQuery, etag_for, immutable, load_versioned, respond_cached
 from ..deps import MeshId, StoreDep
 from ..models import Message
 
@@ -32,12 +31,10 @@ def get_materials(mesh_id: MeshId, store: StoreDep, request: Request,
     404 when the mesh has no materials."""
     pm, digest, policy = load_versioned(store, mesh_id, v)
     etag = etag_for(digest, "materials", *(["v"] if v else []))
-    if is_fresh(request, etag):
-        return with_cache_control(immutable(None, media_type="application/json", etag=etag),
-                                  policy)
     uri = (lambda i: f"images/{i}?v={v}") if v else (lambda i: f"images/{i}")
-    return with_cache_control(immutable(orjson.dumps(materials_document(pm, image_uri=uri)),
-                                        media_type="application/json", etag=etag), policy)
+    return respond_cached(request, etag, policy, lambda: immutable(
+        orjson.dumps(materials_document(pm, image_uri=uri)), media_type="application/json",
+        etag=etag))
 
 
 @router.get("/{mesh_id}/images/{index}", responses={**_ERRORS, 200: {"content": {
@@ -53,6 +50,5 @@ def get_image(mesh_id: MeshId, store: StoreDep, request: Request,
         raise AbsentError(f"image {index} of this mesh is not a PNG, JPEG, WebP or KTX2 "
                           "image, so it is not served")
     etag = etag_for(digest, "image", index)
-    if is_fresh(request, etag):
-        return with_cache_control(immutable(None, media_type=media, etag=etag), policy)
-    return with_cache_control(immutable(data, media_type=media, etag=etag), policy)
+    return respond_cached(request, etag, policy,
+                          lambda: immutable(data, media_type=media, etag=etag))

@@ -7,17 +7,17 @@ The parameters, formats and caching by version are those routes' (``lods.py``).
 
 from __future__ import annotations
 
-from typing import Annotated, Literal
+from typing import Annotated
 
 from fastapi import APIRouter, HTTPException, Path, Query, Request, Response
 
-from ...service.levels import FORMATS
+from ...io import SERVED_FORMATS
 from ...service.scenes import PartError, SceneAsset, part_of
 from ..bodies import BodiesDep
 from ..caching import VersionQuery, load_versioned
 from ..deps import MeshId, StoreDep
 from ..models import Message
-from .lods import Bits, level_response, splits_response
+from .lods import Bits, LevelFormat, level_response, splits_response
 
 router = APIRouter(prefix="/meshes", tags=["parts"])
 
@@ -41,13 +41,13 @@ def _part(store, mesh_id: str, index: int, v: str | None):
 
 
 @router.get("/{mesh_id}/parts/{index}/lod", responses={**_ERRORS, 200: {"content": {
-    media: {} for media in FORMATS.values()}, "description": "The part's level."}})
+    media: {} for media in SERVED_FORMATS.values()}, "description": "The part's level."}})
 def get_part_lod(mesh_id: MeshId, index: PartIndex, store: StoreDep, bodies: BodiesDep,
                  request: Request, vertices: Annotated[int | None, _COUNT] = None,
                  faces: Annotated[int | None, _COUNT] = None,
                  ratio: Annotated[float | None, Query(gt=0, le=1)] = None,
                  error: Annotated[float | None, Query(ge=0)] = None,
-                 format: Literal["glb", "obj", "ply", "json"] = "json",
+                 format: LevelFormat = "json",
                  bits: Bits = None, v: VersionQuery = None) -> Response:
     """One level of part ``index``, as ``GET /meshes/{id}/lod`` gives a mesh's (the
     part's glTF mesh in its own local space)."""
