@@ -13,6 +13,7 @@ UnsupportedUpload          415   not multipart, or a file type lodserver cannot 
 MeshError, LevelError      422   not a mesh / bad level parameters
 RequestValidationError     422   parameters of the wrong type or range
 ParserBusy                 503   the parse queue is full (with Retry-After)
+StoreUnavailable           503   the object store cannot be reached (Retry-After)
 OSError, SQLite errors     503   the server cannot use its storage right now
 StorageFullError           507   the disk is full (also ENOSPC, SQLITE_FULL)
 ArtefactError, PacketError 500   an encoder is broken (a bug)
@@ -42,6 +43,7 @@ from ..io.limits import LimitError
 from ..service.parsing import ParserBusy
 from ..mesh import MeshError
 from ..packets import PacketError
+from ..service.errors import StoreUnavailable
 from ..service.store import NotReadyError, StorageFullError, UnknownMeshError, is_disk_full
 from .upload import UnsupportedUpload
 
@@ -87,6 +89,12 @@ async def _busy(request: Request, exc: ParserBusy) -> JSONResponse:
     return _message(503, str(exc), {"Retry-After": str(exc.retry_after)})
 
 
+async def _store_unavailable(request: Request, exc: StoreUnavailable) -> JSONResponse:
+    # its message names the key and the kind of failure, never the endpoint
+    log.warning("object store unavailable on %s: %s", request.url.path, exc)
+    return _message(503, str(exc), {"Retry-After": str(exc.retry_after)}, request=request)
+
+
 async def _storage(request: Request, exc: Exception) -> JSONResponse:
     """An OSError or SQLite error that reached a handler: the server's state, not the client's."""
     if is_disk_full(exc):
@@ -130,6 +138,7 @@ def add_error_handlers(app: FastAPI) -> None:
     for kind in _STATUS:
         app.add_exception_handler(kind, _domain_error)
     app.add_exception_handler(ParserBusy, _busy)
+    app.add_exception_handler(StoreUnavailable, _store_unavailable)
     for kind in (OSError, sqlite3.Error):
         app.add_exception_handler(kind, _storage)
     app.add_exception_handler(RequestValidationError, _validation_error)

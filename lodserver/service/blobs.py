@@ -20,20 +20,30 @@ fsspec chooses by size) makes the object visible only once it is complete. So
 no reader, on this machine or another, ever sees half an object.
 
 Errors are :class:`~lodserver.service.errors.StoreError` subclasses whose
-message is one sentence naming the key, never a server path:
+message is one sentence naming the key, never a server path or endpoint:
 :class:`BlobNotFoundError` for a missing object, :class:`StorageFullError`
-when the local disk is full, :class:`StoreError` for an unreachable or
-refusing object store.
+when the local disk is full, :class:`StoreUnavailable` for an object store
+that cannot be reached (refused, reset, timed out), :class:`StoreError` for
+one that refuses.
+
+Every object-store call is bounded: botocore's connection and read timeouts
+(:data:`CONNECT_SECONDS`, :data:`READ_SECONDS`) and few retries, botocore's
+and s3fs's own, so a store that stops answering is a
+:class:`StoreUnavailable` within about a minute at worst rather than a
+request that hangs past its client's patience.
 """
 
 from __future__ import annotations
 
 import errno
 import hashlib
+import logging
 import os
 import re
 import shutil
 import stat
+import threading
+import time
 import uuid
 from abc import ABC, abstractmethod
 from collections.abc import Iterator
@@ -42,7 +52,9 @@ from typing import BinaryIO
 from urllib.parse import urlsplit
 
 from ..io.files import write_atomic
-from .errors import StorageFullError, StoreError, is_disk_full
+from .errors import StorageFullError, StoreError, StoreUnavailable, is_disk_full
+
+log = logging.getLogger(__name__)
 
 MAX_KEY = 512
 _SEGMENT = re.compile(r"[A-Za-z0-9_-][A-Za-z0-9._-]*")
@@ -50,6 +62,19 @@ _SEGMENT = re.compile(r"[A-Za-z0-9_-][A-Za-z0-9._-]*")
 CHUNK = 1 << 20
 # s3fs's own default part size: 50 MiB parts, for files of 100 MiB and more.
 PART_BYTES = 50 * 2**20
+# Object-store timeouts (seconds). botocore's defaults are 60 s each with up to
+# five attempts, and s3fs retries five times more over them: a store that
+# stalls would hold a request for many minutes. A connection on a working
+# network opens far within CONNECT_SECONDS; READ_SECONDS is the wait for any
+# byte of an answer (not for a whole body), long enough for a loaded store
+# to assemble a large multipart upload.
+CONNECT_SECONDS = 5.0
+READ_SECONDS = 15.0
+# Attempts per call: botocore's (its "standard" mode backs off between them),
+# which ride out one dropped connection, and s3fs's loop over those (1: none of
+# its own, which would multiply the wait on a store that stalls).
+BOTO_ATTEMPTS = 2
+S3FS_RETRIES = 1
 
 
 class BlobKeyError(StoreError, ValueError):
@@ -137,6 +162,31 @@ class Blobs(ABC):
     def get_bytes(self, key: str) -> bytes:
         with self.open(key) as file:
             return file.read()
+
+
+def delete_patiently(blobs: Blobs, key: str, *, patience: float) -> bool:
+    """Delete ``key``, trying again while the store is unreachable for up to
+    ``patience`` seconds (an object a row no longer names, which no later step
+    would remove); False, logged, if it is still there."""
+    deadline, pause = time.monotonic() + patience, 0.5
+    while True:
+        try:
+            blobs.delete(key)
+            return True
+        except StoreUnavailable as exc:
+            if time.monotonic() + pause > deadline:
+                log.warning("the object %s could not be deleted: %s", key, exc)
+                return False
+            time.sleep(pause)
+            pause = min(2 * pause, 5.0)
+
+
+def delete_later(blobs: Blobs, key: str, *, patience: float = 300.0) -> None:
+    """:func:`delete_patiently` in a thread of its own: an object whose PUT failed
+    (the store cut off mid-answer) may exist all the same, and no row will ever
+    name it; the request that stored it does not wait for the store to return."""
+    threading.Thread(target=delete_patiently, args=(blobs, key), name="delete-later",
+                     kwargs={"patience": patience}, daemon=True).start()
 
 
 def open_blobs(url_or_path) -> Blobs:
@@ -284,7 +334,11 @@ def s3_options() -> dict:
     explicitly (``AWS_ENDPOINT_URL_S3`` or ``AWS_ENDPOINT_URL``) so that fsspec's
     cache of file-system instances keeps one per endpoint; listings are not cached,
     because other servers write to the same bucket."""
-    options = {"use_listings_cache": False}
+    options = {"use_listings_cache": False,
+               "config_kwargs": {"connect_timeout": CONNECT_SECONDS,
+                                 "read_timeout": READ_SECONDS,
+                                 "retries": {"total_max_attempts": BOTO_ATTEMPTS,
+                                             "mode": "standard"}}}
     endpoint = os.environ.get("AWS_ENDPOINT_URL_S3") or os.environ.get("AWS_ENDPOINT_URL")
     if endpoint:
         options["endpoint_url"] = endpoint
@@ -324,6 +378,8 @@ class FsspecBlobs(Blobs):
                              f"({exc}); for s3:// install lodserver[distributed]") from None
         self.root = rest.strip("/")
         self._s3 = protocol in ("s3", "s3a")
+        if self._s3:
+            self.fs.retries = S3FS_RETRIES     # s3fs's own loop, over botocore's
         self._probe_options = {**defaults, **fs_options}
         self._probe_fs = None
         self._put_options = {"chunksize": max(int(part_bytes), 5 * 2**20)} if self._s3 else {}
@@ -356,13 +412,14 @@ class FsspecBlobs(Blobs):
             if is_disk_full(exc):
                 raise StorageFullError(f"the server ran out of disk space while {doing} "
                                        f"{key!r}; try again once space is freed") from exc
+            if isinstance(exc, (ConnectionError, TimeoutError)) or _from_transport(exc):
+                raise _unavailable(doing, key, exc) from exc
             raise StoreError(f"the object store failed while {doing} {key!r}: "
                              f"{_reason(exc)}") from exc
         except Exception as exc:
-            # botocore's connection errors are not OSErrors
-            if type(exc).__module__.split(".")[0] in ("botocore", "aiobotocore", "aiohttp"):
-                raise StoreError(f"the object store could not be reached while {doing} "
-                                 f"{key!r}: {type(exc).__name__}") from exc
+            # botocore's connection and timeout errors are not OSErrors
+            if _from_transport(exc):
+                raise _unavailable(doing, key, exc) from exc
             raise
 
     def put_file(self, key: str, path, *, move: bool = False) -> None:
@@ -444,6 +501,19 @@ class FsspecBlobs(Blobs):
             path = path.split("://", 1)[-1].strip("/")
             if path.startswith(self.root + "/"):
                 yield path[start:]
+
+
+def _from_transport(exc: BaseException) -> bool:
+    """Whether ``exc`` comes from the HTTP layer under s3fs (a connection refused,
+    reset or timed out, an endpoint that does not answer) rather than from S3."""
+    return type(exc).__module__.split(".")[0] in ("botocore", "aiobotocore", "aiohttp",
+                                                  "urllib3")
+
+
+def _unavailable(doing: str, key: str, exc: BaseException) -> StoreUnavailable:
+    # the exception's text names the endpoint: only its type is kept
+    return StoreUnavailable(f"the object store could not be reached while {doing} {key!r} "
+                            f"({type(exc).__name__}); try again shortly")
 
 
 def _reason(exc: OSError) -> str:

@@ -420,6 +420,37 @@ def _switch_to_wal(db: sqlite3.Connection, busy_seconds: float) -> None:
         pause = min(2 * pause, 0.05)
 
 
+# The longest a PostgreSQL call waits for its answer (seconds), in this process:
+# a server that accepts connections but never answers (a stalled proxy, a
+# partition that drops packets one way) would otherwise hold a thread, a
+# build runner's queue poll say, for ever, and with it the shutdown. Every
+# statement here is a single-row read or write, answered in milliseconds
+# by a working server, so a wait this long means the server is unreachable.
+ANSWER_SECONDS = 20.0
+# libpq's TCP settings for every connection: keepalives notice a peer that
+# vanished while the connection idled in the pool, TCP_USER_TIMEOUT a write
+# that goes unacknowledged (milliseconds).
+_TCP_OPTIONS = {"keepalives": 1, "keepalives_idle": 10, "keepalives_interval": 5,
+                "keepalives_count": 3, "tcp_user_timeout": int(ANSWER_SECONDS * 1000)}
+
+
+def _bounded_connection_class(psycopg):
+    """A psycopg Connection whose every wait for the server ends after
+    :data:`ANSWER_SECONDS` (psycopg's own waits have no deadline; its timeout
+    error is an OperationalError, which the catalogue reports as unavailable)."""
+
+    class BoundedConnection(psycopg.Connection):
+        def wait(self, gen, interval=0.1, timeout=None):
+            try:
+                return super().wait(gen, interval=interval, timeout=timeout or ANSWER_SECONDS)
+            except psycopg.OperationalError:
+                # the protocol is mid-exchange: the connection cannot be reused
+                self.pgconn.finish()
+                raise
+
+    return BoundedConnection
+
+
 class PostgresCatalog(Catalog):
     """A catalogue on a PostgreSQL server (psycopg 3), shared by any number of processes.
 
@@ -438,6 +469,7 @@ class PostgresCatalog(Catalog):
             raise CatalogUnavailable("a PostgreSQL catalogue needs the psycopg package: "
                                      "pip install 'lodserver[distributed]'") from None
         self._psycopg = psycopg
+        self._connection_class = _bounded_connection_class(psycopg)
         super().__init__()
         self.url = url
         self._connect_seconds = connect_seconds
@@ -453,8 +485,9 @@ class PostgresCatalog(Catalog):
     def _connect(self, seconds: float | None = None, **options):
         seconds = self._connect_seconds if seconds is None else seconds
         try:
-            return self._psycopg.connect(self.url, autocommit=True,
-                                         connect_timeout=max(1, math.ceil(seconds)), **options)
+            return self._connection_class.connect(
+                self.url, autocommit=True, connect_timeout=max(1, math.ceil(seconds)),
+                **{**_TCP_OPTIONS, **options})
         except self._psycopg.OperationalError as exc:
             raise CatalogUnavailable(f"cannot reach the catalogue at {redact_url(self.url)}: "
                                      f"{_first_line(exc)}") from None

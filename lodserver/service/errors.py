@@ -10,7 +10,7 @@ from __future__ import annotations
 import errno
 import sqlite3
 
-__all__ = ["StoreError", "StorageFullError", "is_disk_full"]
+__all__ = ["StoreError", "StoreUnavailable", "StorageFullError", "is_disk_full", "raise_if_full"]
 
 # PostgreSQL's SQLSTATE for "disk full" (class 53, insufficient resources).
 _PG_DISK_FULL = "53100"
@@ -18,6 +18,15 @@ _PG_DISK_FULL = "53100"
 
 class StoreError(Exception):
     """A store operation cannot be done; the message says why."""
+
+
+class StoreUnavailable(StoreError, ConnectionError):
+    """The object store cannot be reached now (refused, reset, timed out): the
+    server's dependency, not the request's. A ``ConnectionError``, like the
+    catalogue's ``CatalogUnavailable``, so that callers treating an outage as
+    "try again later" see both; the message names no endpoint."""
+
+    retry_after = 10
 
 
 class StorageFullError(StoreError):
@@ -32,3 +41,14 @@ def is_disk_full(exc: BaseException) -> bool:
         return (getattr(exc, "sqlite_errorcode", None) == 13      # SQLITE_FULL
                 or "disk is full" in str(exc))
     return getattr(exc, "sqlstate", None) == _PG_DISK_FULL
+
+
+def raise_if_full(exc: BaseException, doing: str) -> None:
+    """Raise a :class:`StorageFullError` (one sentence, no path) from ``exc`` if it
+    says the disk is full; otherwise return, for the caller to re-raise ``exc``."""
+    if isinstance(exc, StorageFullError):
+        raise exc
+    if is_disk_full(exc):
+        raise StorageFullError(f"the server ran out of disk space while {doing}; "
+                               "try again once space is freed") from exc
+

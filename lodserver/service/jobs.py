@@ -41,6 +41,7 @@ from ..io.limits import DEFAULT_MAX_TRIANGLES, LoadLimits
 from ..io.scene import Scene
 from ..mesh import Mesh, MeshError
 from .catalog import CatalogUnavailable
+from .errors import StoreUnavailable
 from .parsing import ParsePool, ParserClosed, check_mesh_file
 from .scenes import SceneReport, build_scene
 from .store import (Claim, LeaseLostError, MeshRecord, Store, StorageFullError, StoreError,
@@ -58,6 +59,9 @@ PROGRESS_INTERVAL = 0.5
 LEASE_SECONDS = 15.0
 # Seconds between looks at the queue by an idle runner that builds for everyone.
 POLL_SECONDS = 1.0
+# Seconds an idle runner waits before its next claim after a build stopped on an
+# unreachable catalogue or store, rather than claim, fail and requeue in a loop.
+OUTAGE_PAUSE = 2.0
 _DISK_FULL = ("the server ran out of disk space while building; upload the mesh again once "
               "space is freed")
 
@@ -361,10 +365,15 @@ class JobRunner:
             settled = True  # deleted meanwhile, or another process builds it now
         except ParserClosed:
             pass            # shutting down: requeued below
-        except CatalogUnavailable as exc:
+        except (CatalogUnavailable, StoreUnavailable) as exc:
             # not the mesh's fault: it is given back below if the catalogue answers
-            # again, else its lease runs out and any process builds it again
+            # again, else its lease runs out and any process builds it again. An
+            # artefact stored whose answer was lost is stored again under the same
+            # key (builds are deterministic). The idle workers pause first: a
+            # claim now would meet the same outage.
             log.warning("the build of mesh %s stopped: %s", mesh_id, exc)
+            with self._lock:
+                self._idle_until = time.monotonic() + max(self.poll_seconds, OUTAGE_PAUSE)
         except Exception as exc:
             settled = True
             if isinstance(exc, StorageFullError) or is_disk_full(exc):
@@ -407,7 +416,7 @@ class JobRunner:
         try:
             mesh, report = parsed or self._parse_stored(record)
         except (MeshError, StoreError) as exc:
-            if isinstance(exc, (UnknownMeshError, LeaseLostError)):
+            if isinstance(exc, (UnknownMeshError, LeaseLostError, StoreUnavailable)):
                 raise
             store.mark_failed(mesh_id=mesh_id, reason=str(exc), attempt=attempt)
             return True

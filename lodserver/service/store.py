@@ -64,11 +64,13 @@ from ..io.files import write_atomic
 from ..io.limits import DEFAULT_MAX_TRIANGLES
 from ..progressive import ArtefactError, load_progressive, save_progressive
 from ..progressive.mesh import ProgressiveMesh
-from .blobs import Blobs, BlobNotFoundError, LocalBlobs, open_blobs, sha256_file
+from .blobs import (Blobs, BlobNotFoundError, LocalBlobs, delete_later, delete_patiently,
+                    open_blobs, sha256_file)
 from .cache import DEFAULT_CACHE_BYTES, ArtefactCache
 from .catalog import (MAX_LOST, Catalog, CatalogUnavailable, Claim, MeshRecord, Status,
                       new_owner, open_catalog)
-from .errors import StorageFullError, StoreError, is_disk_full
+from .errors import StorageFullError, StoreError, StoreUnavailable, is_disk_full
+from .errors import raise_if_full as _raise_if_full
 from .loaded import LOADED_BYTES_PER_TRIANGLE, LoadedArtefacts
 from .scenes import SceneAsset, artefact_summary, load_artefact, save_asset
 
@@ -398,6 +400,8 @@ class LocalStore(Store):
             try:
                 self.blobs.put_file(key, source)        # a copy: `source` stays until the row
             except BaseException as exc:
+                if isinstance(exc, StoreUnavailable):   # it may be stored, answer lost
+                    delete_later(self.blobs, key)
                 _raise_if_full(exc, "storing the upload")
                 raise
         try:
@@ -541,7 +545,8 @@ class LocalStore(Store):
             self.blobs.delete(key)
             _raise_if_full(exc, "recording the artefact")
             raise
-        self.blobs.delete(source_key(record))
+        # the row no longer names the source: nothing else would remove it
+        delete_patiently(self.blobs, source_key(record), patience=max(patience, 1.0))
         return ready
 
     def _mark_ready(self, mesh_id: str, attempt: int | None, patience: float,
@@ -695,14 +700,4 @@ def _node_name(root: Path) -> str:
     name = secrets.token_urlsafe(9)
     write_atomic(path, name.encode())
     return name
-
-
-def _raise_if_full(exc: BaseException, doing: str) -> None:
-    """Raise a :class:`StorageFullError` (one sentence, no path) from ``exc`` if it
-    says the disk is full; otherwise return, for the caller to re-raise ``exc``."""
-    if isinstance(exc, StorageFullError):
-        raise exc
-    if is_disk_full(exc):
-        raise StorageFullError(f"the server ran out of disk space while {doing}; "
-                               "try again once space is freed") from exc
 
