@@ -45,30 +45,13 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "bench"))
 from load import LARGE, LoopbackClient, upload, upload_file  # noqa: E402
-from machine import machine_info  # noqa: E402
+from machine import machine_info, process_memory_kib, reset_memory_peak  # noqa: E402
 from tests.server import server_process  # noqa: E402
 
 OUT = ROOT / "bench" / "out"
 GB = 1e9
 PACKAGES = ("lodserver", "numpy", "numba", "fastapi", "uvicorn")
 
-
-def _status_kib(pid: int) -> dict:
-    """VmRSS and VmHWM of ``pid``, in KiB."""
-    out = {}
-    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
-        key, _, value = line.partition(":")
-        if key in ("VmRSS", "VmHWM"):
-            out[key] = int(value.split()[0])
-    return out
-
-
-def _reset_peak(pid: int) -> bool:
-    try:
-        Path(f"/proc/{pid}/clear_refs").write_text("5")
-        return True
-    except OSError:
-        return False
 
 
 class Monitor(threading.Thread):
@@ -91,7 +74,7 @@ class Monitor(threading.Thread):
                         self.failures[response.status_code] += 1
                 except httpx.HTTPError as exc:
                     self.failures[type(exc).__name__] += 1
-                self.rss.append(_status_kib(self.pid)["VmRSS"])
+                self.rss.append(process_memory_kib(self.pid)["VmRSS"])
                 self.stop.wait(max(0.0, self.period - (time.perf_counter() - began)))
 
 
@@ -135,8 +118,8 @@ def level_requests(mesh_id: str, record: dict, count: int, rng) -> list[tuple[st
 
 def measure(base: str, pid: int, name: str, requests, timeout: float) -> dict:
     time.sleep(1.0)         # let the previous burst's threads finish and memory settle
-    before = _status_kib(pid)["VmRSS"]
-    peak_reset = _reset_peak(pid)
+    before = process_memory_kib(pid)["VmRSS"]
+    peak_reset = reset_memory_peak(pid)
     monitor = Monitor(base, pid)
     monitor.start()
     time.sleep(0.2)
@@ -146,7 +129,7 @@ def measure(base: str, pid: int, name: str, requests, timeout: float) -> dict:
     time.sleep(0.5)
     monitor.stop.set()
     monitor.join()
-    status = _status_kib(pid)
+    status = process_memory_kib(pid)
     peak = max(max(monitor.rss, default=before), status["VmHWM"] if peak_reset else 0)
     ms = np.array(monitor.latencies) * 1000
     result.update(

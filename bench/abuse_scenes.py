@@ -47,6 +47,8 @@ import httpx
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "bench"))
+from machine import process_memory_kib, reset_memory_peak  # noqa: E402
 from tests.hostile_files import (aliased_animation_glb, aliased_morph_glb,  # noqa: E402
                                  instanced_glb)
 from tests.server import server_process  # noqa: E402
@@ -57,23 +59,6 @@ GROWTH_TARGET_MB = 512
 ARTEFACT_TARGET = 20
 
 
-def _status_kib(pid: int) -> dict:
-    """VmRSS and VmHWM of ``pid``, in KiB."""
-    out = {}
-    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
-        key, _, value = line.partition(":")
-        if key in ("VmRSS", "VmHWM"):
-            out[key] = int(value.split()[0])
-    return out
-
-
-def _reset_peak(pid: int) -> bool:
-    try:
-        Path(f"/proc/{pid}/clear_refs").write_text("5")
-        return True
-    except OSError:
-        return False
-
 
 class Peak:
     """The serve process's peak RSS from now on: VmHWM after a reset, else sampled."""
@@ -81,8 +66,8 @@ class Peak:
     def __init__(self, pid: int):
         self.pid = pid
         time.sleep(0.5)                         # let freed memory of the last step settle
-        self.before = _status_kib(pid)["VmRSS"]
-        self.reset = _reset_peak(pid)
+        self.before = process_memory_kib(pid)["VmRSS"]
+        self.reset = reset_memory_peak(pid)
         self.samples = [self.before]
         self.stop = threading.Event()
         self.thread = threading.Thread(target=self._sample, daemon=True)
@@ -91,7 +76,7 @@ class Peak:
     def _sample(self):
         while not self.stop.wait(0.05):
             try:
-                self.samples.append(_status_kib(self.pid)["VmRSS"])
+                self.samples.append(process_memory_kib(self.pid)["VmRSS"])
             except OSError:
                 return
 
@@ -100,7 +85,7 @@ class Peak:
         self.thread.join()
         peak = max(self.samples)
         if self.reset:
-            peak = max(peak, _status_kib(self.pid)["VmHWM"])
+            peak = max(peak, process_memory_kib(self.pid)["VmHWM"])
         return round((peak - self.before) * 1024 / MB, 1)
 
 

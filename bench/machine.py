@@ -1,6 +1,6 @@
 """What every benchmark records about its run: when, on which machine, with which
 package versions and which lodserver code (``machine_info``), and how busy the
-machine was (``cpu_busy``)."""
+machine was (``cpu_busy``); a server's memory and its peak (``process_memory_kib``)."""
 
 from __future__ import annotations
 
@@ -58,3 +58,23 @@ def cpu_busy(seconds: float = 2.0) -> float:
     time.sleep(seconds)
     total2, idle2 = sample()
     return 1.0 - (idle2 - idle) / max(total2 - total, 1)
+
+
+def process_memory_kib(pid: int) -> dict:
+    """VmRSS and VmHWM (the peak) of process ``pid``, in KiB, from ``/proc``."""
+    out = {}
+    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+        key, _, value = line.partition(":")
+        if key in ("VmRSS", "VmHWM"):
+            out[key] = int(value.split()[0])
+    return out
+
+
+def reset_memory_peak(pid: int) -> bool:
+    """Start process ``pid``'s VmHWM again from its current RSS; False where the
+    kernel does not allow it (then a peak includes what came before)."""
+    try:
+        Path(f"/proc/{pid}/clear_refs").write_text("5")
+        return True
+    except OSError:
+        return False

@@ -20,7 +20,7 @@ import struct
 
 import numpy as np
 
-_DTYPES = {5126: "<f4", 5125: "<u4"}
+_DTYPES = {5126: "<f4", 5125: "<u4", 5123: "<u2", 5121: "<u1"}
 
 
 class GlbWriter:

@@ -91,18 +91,12 @@ _SENTENCE_END = re.compile(r"[.;!?](?=\s|$)|\n\s*\n")
 # Where the comments are: (path, first line, text, code line it describes)
 # ---------------------------------------------------------------------------
 
-def python_comments(path: Path):
-    """Comment blocks (consecutive ``#`` lines, or one trailing comment) and
-    docstrings of one module: (first line, text, the code line they sit on or above)."""
-    source = path.read_text(encoding="utf-8")
-    lines = source.splitlines()
+def _blocks(found, lines):
+    """Comment lines ``(line, text, trailing)`` joined into blocks (consecutive
+    whole-line comments; a trailing comment alone): (first line, text, the code
+    line the block sits on, or the first one below it)."""
     blocks = []         # [first line, [texts], last line, trailing]
-    for token in tokenize.generate_tokens(io.StringIO(source).readline):
-        if token.type != tokenize.COMMENT:
-            continue
-        row, col = token.start
-        trailing = bool(lines[row - 1][:col].strip())
-        text = token.string.lstrip("#").strip()
+    for row, text, trailing in found:
         if blocks and not trailing and not blocks[-1][3] and blocks[-1][2] == row - 1:
             blocks[-1][1].append(text)
             blocks[-1][2] = row
@@ -114,6 +108,20 @@ def python_comments(path: Path):
         else:
             code = next((line for line in lines[last:] if line.strip()), "")
         yield first, "\n".join(texts), code
+
+
+def python_comments(path: Path):
+    """Comment blocks (consecutive ``#`` lines, or one trailing comment) and
+    docstrings of one module: (first line, text, the code line they sit on or above)."""
+    source = path.read_text(encoding="utf-8")
+    lines = source.splitlines()
+    found = []          # (line, text, trailing)
+    for token in tokenize.generate_tokens(io.StringIO(source).readline):
+        if token.type == tokenize.COMMENT:
+            row, col = token.start
+            found.append((row, token.string.lstrip("#").strip(),
+                          bool(lines[row - 1][:col].strip())))
+    yield from _blocks(found, lines)
     for node in ast.walk(ast.parse(source)):
         if isinstance(node, (ast.Module, ast.ClassDef, ast.FunctionDef, ast.AsyncFunctionDef)):
             doc = node.body[0] if node.body else None
@@ -199,19 +207,7 @@ def js_comments(path: Path):
         if not c.isspace():
             last_significant = c
         i += 1
-    blocks = []         # [first line, [texts], last line, trailing]
-    for row, text, trailing in found:
-        if blocks and not trailing and not blocks[-1][3] and blocks[-1][2] == row - 1:
-            blocks[-1][1].append(text)
-            blocks[-1][2] = row
-        else:
-            blocks.append([row, [text], row, trailing])
-    for first, texts, last, trailing in blocks:
-        if trailing:
-            code = lines[first - 1]
-        else:
-            code = next((line for line in lines[last:] if line.strip()), "")
-        yield first, "\n".join(texts), code
+    yield from _blocks(found, lines)
 
 
 def all_comments():

@@ -12,10 +12,8 @@ make it hostile. ``tests/api/test_hostile_scenes.py`` uploads the same files.
 
 from __future__ import annotations
 
-import json
 import re
 import resource
-import struct
 import time
 
 import numpy as np
@@ -26,37 +24,10 @@ from lodserver.io.scene import load_scene
 from lodserver.mesh import MeshError
 from lodserver.simplify.poses import scene_poses
 
-_DTYPES = {5126: "<f4", 5125: "<u4", 5123: "<u2", 5121: "<u1"}
+from ..hostile_files import GlbWriter
 
-
-class Glb:
-    """A glTF document and its binary chunk under construction."""
-
-    def __init__(self):
-        self.document = {"asset": {"version": "2.0"}, "bufferViews": [], "accessors": []}
-        self.binary = bytearray()
-
-    def add(self, values, kind: str, component: int = 5126, **extra) -> int:
-        """Append ``values`` as a new bufferView and accessor; the accessor's index."""
-        self.binary.extend(b"\0" * (-len(self.binary) % 4))
-        data = np.ascontiguousarray(values, dtype=_DTYPES[component]).tobytes()
-        self.document["bufferViews"].append(
-            {"buffer": 0, "byteOffset": len(self.binary), "byteLength": len(data)})
-        self.binary.extend(data)
-        count = len(values)
-        self.document["accessors"].append(
-            {"bufferView": len(self.document["bufferViews"]) - 1, "componentType": component,
-             "count": count, "type": kind, **extra})
-        return len(self.document["accessors"]) - 1
-
-    def glb(self) -> bytes:
-        binary = bytes(self.binary) + b"\0" * (-len(self.binary) % 4)
-        document = {**self.document, "buffers": [{"byteLength": len(binary)}]}
-        header = json.dumps(document).encode()
-        header += b" " * (-len(header) % 4)
-        return b"".join([struct.pack("<4sII", b"glTF", 2, 28 + len(header) + len(binary)),
-                         struct.pack("<I4s", len(header), b"JSON"), header,
-                         struct.pack("<I4s", len(binary), b"BIN\x00"), binary])
+# The in-memory GLB builder the scene abuse tests and bench share.
+Glb = GlbWriter
 
 
 def grid(size: int = 5):

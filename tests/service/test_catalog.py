@@ -161,6 +161,26 @@ def test_recover_takes_back_only_its_own_nodes_builds(catalog_url, tmp_path):
     catalog.close()
 
 
+def _open_at_once(url, tmp_path, openers: int = 6):
+    """``openers`` threads opening the catalogue ``url`` at one barrier:
+    (the catalogues opened, the exceptions raised)."""
+    start, opened, errors = threading.Barrier(openers), [], []
+
+    def open_one():
+        start.wait()
+        try:
+            opened.append(_open(url, tmp_path))
+        except Exception as exc:      # noqa: BLE001 - the caller's assertion names it
+            errors.append(exc)
+
+    threads = [threading.Thread(target=open_one) for _ in range(openers)]
+    for thread in threads:
+        thread.start()
+    for thread in threads:
+        thread.join()
+    return opened, errors
+
+
 @pytest.mark.parametrize("catalog_url", DIALECTS, indirect=True)
 def test_schema_is_created_once_by_concurrent_openers(catalog_url, tmp_path, request):
     if catalog_url.startswith("postgresql"):
@@ -174,20 +194,7 @@ def test_schema_is_created_once_by_concurrent_openers(catalog_url, tmp_path, req
         catalog_url = server.rpartition("/")[0] + "/lodserver_schema_race"
     else:
         catalog_url += ".race"
-    start, opened, errors = threading.Barrier(6), [], []
-
-    def open_one():
-        start.wait()
-        try:
-            opened.append(_open(catalog_url, tmp_path))
-        except Exception as exc:      # noqa: BLE001 - the assertion below names it
-            errors.append(exc)
-
-    threads = [threading.Thread(target=open_one) for _ in range(6)]
-    for thread in threads:
-        thread.start()
-    for thread in threads:
-        thread.join()
+    opened, errors = _open_at_once(catalog_url, tmp_path)
     assert errors == [] and len(opened) == 6
     opened[0].insert(_row(_ids(1)[0], 1.0))
     assert opened[5].get(mesh_id=_ids(1)[0]) is not None
@@ -202,20 +209,7 @@ def test_fresh_sqlite_files_opened_at_once_never_report_locked(tmp_path):
     openers racing on a new file each, so that the race is met, not hoped for."""
     for round_ in range(100):
         url = f"sqlite://{tmp_path}/round-{round_}/catalogue.sqlite3"
-        start, opened, errors = threading.Barrier(6), [], []
-
-        def open_one():
-            start.wait()
-            try:
-                opened.append(_open(url, tmp_path))
-            except Exception as exc:      # noqa: BLE001 - the assertion below names it
-                errors.append(exc)
-
-        threads = [threading.Thread(target=open_one) for _ in range(6)]
-        for thread in threads:
-            thread.start()
-        for thread in threads:
-            thread.join()
+        opened, errors = _open_at_once(url, tmp_path)
         for catalog in opened:
             catalog.close()
         assert errors == [], f"round {round_}: {errors}"
