@@ -296,8 +296,11 @@ def test_a_worker_killed_and_another_paused_past_its_lease(postgres_url, tmp_pat
             assert record.status.value == "ready", record
             assert record.attempt == 3, record.attempt
             workers[paused].send_signal(signal.SIGCONT)
+            # resumed mid-build, it learns it lost the lease at its next heartbeat
+            # or, at the latest, when its fenced commit is refused: the build's time
             _poll(lambda: logs[paused].read_text(errors="replace"),
-                  lambda text: "lost its lease" in text or "no longer held" in text, 60)
+                  lambda text: "lost its lease" in text or "no longer held" in text,
+                  BUILD_TIMEOUT)
             for name in (paused, "c"):
                 workers[name].send_signal(signal.SIGTERM)
                 assert workers[name].wait(timeout=60) == 0, logs[name].read_text()
