@@ -52,3 +52,27 @@ def raise_if_full(exc: BaseException, doing: str) -> None:
         raise StorageFullError(f"the server ran out of disk space while {doing}; "
                                "try again once space is freed") from exc
 
+
+class UnknownMeshError(StoreError, LookupError):
+    """No mesh has this id (or the id is malformed)."""
+
+    def __init__(self, mesh_id: str):
+        super().__init__(f"no mesh has the id {mesh_id!r}")
+        self.mesh_id = mesh_id
+
+
+class LeaseLostError(StoreError):
+    """A build's write was refused: its claim is no longer current (another process
+    took the build over after the lease ran out, or it was settled)."""
+
+    def __init__(self, mesh_id: str):
+        super().__init__(f"the build of mesh {mesh_id} is no longer held by this process")
+        self.mesh_id = mesh_id
+
+
+class SourceLostError(StoreError):
+    """The uploaded file of a queued build is gone from the store."""
+
+    def __init__(self):
+        super().__init__("the uploaded file was lost before its build finished; upload it "
+                         "again")

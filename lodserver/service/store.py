@@ -69,7 +69,8 @@ from .blobs import (Blobs, BlobNotFoundError, LocalBlobs, delete_later, delete_p
 from .cache import DEFAULT_CACHE_BYTES, ArtefactCache
 from .catalog import (MAX_LOST, Catalog, CatalogUnavailable, Claim, MeshRecord, Status,
                       new_owner, open_catalog)
-from .errors import StorageFullError, StoreError, StoreUnavailable, is_disk_full
+from .errors import (LeaseLostError, SourceLostError, StorageFullError, StoreError,
+                     StoreUnavailable, UnknownMeshError, is_disk_full)
 from .errors import raise_if_full as _raise_if_full
 from .loaded import LOADED_BYTES_PER_TRIANGLE, LoadedArtefacts
 from .scenes import SceneAsset, artefact_summary, load_artefact, save_asset
@@ -92,33 +93,8 @@ LOADED_BYTES = LOADED_BYTES_PER_TRIANGLE * DEFAULT_MAX_TRIANGLES
 
 # The failure of a mesh whose artefact failed its checks when it was loaded.
 CORRUPT_ARTEFACT = "its stored artefact is corrupt"
-_SOURCE_LOST = "the uploaded file was lost before its build finished; upload it again"
 _ABANDONED = (f"its build stopped {MAX_LOST} times with the process building it (killed, or "
               "out of memory), so it is not tried again; upload it again, perhaps smaller")
-
-
-class UnknownMeshError(StoreError, LookupError):
-    """No mesh has this id (or the id is malformed)."""
-
-    def __init__(self, mesh_id: str):
-        super().__init__(f"no mesh has the id {mesh_id!r}")
-        self.mesh_id = mesh_id
-
-
-class LeaseLostError(StoreError):
-    """A build's write was refused: its claim is no longer current (another process
-    took the build over after the lease ran out, or it was settled)."""
-
-    def __init__(self, mesh_id: str):
-        super().__init__(f"the build of mesh {mesh_id} is no longer held by this process")
-        self.mesh_id = mesh_id
-
-
-class SourceLostError(StoreError):
-    """The uploaded file of a queued build is gone from the store."""
-
-    def __init__(self):
-        super().__init__(_SOURCE_LOST)
 
 
 class NotReadyError(StoreError):
@@ -655,7 +631,7 @@ class LocalStore(Store):
             if self.blobs.exists(source_key(record)):
                 pending.append(record.id)
             else:
-                self.mark_failed(mesh_id=record.id, reason=_SOURCE_LOST)
+                self.mark_failed(mesh_id=record.id, reason=str(SourceLostError()))
         return pending
 
     def queue_position(self, *, mesh_id: str) -> int | None:
