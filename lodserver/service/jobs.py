@@ -361,8 +361,15 @@ class JobRunner:
         try:
             if not running.cancel.is_set():
                 settled = self._build(running)
-        except (UnknownMeshError, LeaseLostError):
-            settled = True  # deleted meanwhile, or another process builds it now
+        except UnknownMeshError:
+            settled = True  # deleted meanwhile
+        except LeaseLostError as exc:
+            # another process builds it now. Said here too, not only by the
+            # heartbeat: a compiled kernel holding the interpreter can keep the
+            # heartbeat from running until the build's fenced write is refused.
+            if not running.lost:
+                log.warning("%s; its result is dropped", exc)
+            settled = True
         except ParserClosed:
             pass            # shutting down: requeued below
         except (CatalogUnavailable, StoreUnavailable) as exc:
