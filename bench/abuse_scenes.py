@@ -45,15 +45,11 @@ from pathlib import Path
 
 import httpx
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-sys.path.insert(0, str(ROOT / "bench"))
-from machine import process_memory_kib, reset_memory_peak  # noqa: E402
-from tests.hostile_files import (aliased_animation_glb, aliased_morph_glb,  # noqa: E402
-                                 instanced_glb)
-from tests.server import server_process  # noqa: E402
+# abuse_runs puts the checkout on sys.path, for the tests.* imports after it
+from abuse_runs import ROOT, checkout_server, result_file
+from machine import process_memory_kib, reset_memory_peak
+from tests.hostile_files import aliased_animation_glb, aliased_morph_glb, instanced_glb
 
-OUT = ROOT / "bench" / "out"
 MB = 1e6
 GROWTH_TARGET_MB = 512
 ARTEFACT_TARGET = 20
@@ -189,14 +185,12 @@ def main(argv=None) -> int:
     makers = {"instances": lambda: instanced_glb(args.instances),
               "animation-aliases": lambda: aliased_animation_glb(60, 12),
               "morph-aliases": lambda: aliased_morph_glb(255)}
-    OUT.mkdir(parents=True, exist_ok=True)
-    out = OUT / f"abuse_scenes-{args.label}.json"
+    out = result_file("abuse_scenes", args.label)
     document = {"repo": str(args.repo), "results": []}
     with tempfile.TemporaryDirectory(prefix="lodserver-abuse-scenes-") as folder:
         work = Path(folder)
-        with server_process(work / "data", log=work / "server.log", warm_kernels=True,
-                            timeout=180, cwd=args.repo,
-                            env={"PYTHONPATH": str(args.repo)}) as (base, process):
+        with checkout_server(args.repo, work / "data", work / "server.log", warm_kernels=True,
+                             timeout=180) as (base, process):
             for name in args.cases.split(","):
                 document["results"].append(run_case(base, process.pid, work / "data", name,
                                                     makers[name](), args))

@@ -30,7 +30,6 @@ Writes ``bench/out/abuse_upload-<label>.json`` and prints a summary.
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import shutil
 import statistics
@@ -43,22 +42,12 @@ from pathlib import Path
 import httpx
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-from tests.server import server_process  # noqa: E402
+from abuse_runs import ROOT, checkout_server, peaks, report
 
-OUT = ROOT / "bench" / "out"
 BUNNY = ROOT.parent / "shared" / "meshes" / "stanford-bunny.obj"
 BOUNDARY = "abuse-upload-boundary"
 DEADLINE_S = 900
 IDLE_S = 5
-
-
-def start_server(repo: Path, data: Path, log: Path, env: dict):
-    """``lodserver serve`` from ``repo`` (its own package first on sys.path), as a
-    context manager yielding (base URL, process)."""
-    return server_process(data, log=log, timeout=120, cwd=repo,
-                          env={"PYTHONPATH": str(repo), **env})
 
 
 def grid_stl(path: Path, megabytes: float) -> int:
@@ -178,14 +167,6 @@ def big_upload(base: str, path: Path) -> dict:
 
 def many_uploads(base: str, pid: int, clients: int, mesh: Path) -> dict:
     content = mesh.read_bytes()
-    peak, stop = [0, 0], threading.Event()
-
-    def sample():
-        while not stop.is_set():
-            main, total = tree_rss(pid)
-            peak[0], peak[1] = max(peak[0], main), max(peak[1], total)
-            time.sleep(0.02)
-
     results, ids, lock = [], [], threading.Lock()
     start = threading.Barrier(clients)
 
@@ -206,16 +187,13 @@ def many_uploads(base: str, pid: int, clients: int, mesh: Path) -> dict:
             if response.status_code == 202:
                 ids.append(response.json()["id"])
 
-    sampler = threading.Thread(target=sample)
-    sampler.start()
-    baseline = tree_rss(pid)
-    threads = [threading.Thread(target=one) for _ in range(clients)]
-    for thread in threads:
-        thread.start()
-    for thread in threads:
-        thread.join()
-    stop.set()
-    sampler.join()
+    with peaks(lambda: tree_rss(pid), every=0.02) as peak:
+        baseline = tree_rss(pid)
+        threads = [threading.Thread(target=one) for _ in range(clients)]
+        for thread in threads:
+            thread.start()
+        for thread in threads:
+            thread.join()
     with httpx.Client(base_url=base, timeout=60) as client:
         for mesh_id in ids:
             client.delete(f"/meshes/{mesh_id}")
@@ -253,18 +231,17 @@ def main() -> int:
         if not args.skip_big:
             stl = work / "grid.stl"
             result["big_triangles"] = grid_stl(stl, args.big_mb)
-            with start_server(args.repo, work / "data-big", work / "big.log", env) as (base, _):
+            with checkout_server(args.repo, work / "data-big", work / "big.log",
+                                 env) as (base, _):
                 result["big"] = big_upload(base, stl)
             stl.unlink()
         if not args.skip_many:
-            with start_server(args.repo, work / "data-many", work / "many.log",
-                              env) as (base, process):
+            with checkout_server(args.repo, work / "data-many", work / "many.log",
+                                 env) as (base, process):
                 result["many"] = many_uploads(base, process.pid, args.concurrent, BUNNY)
     finally:
         shutil.rmtree(work, ignore_errors=True)
-    OUT.mkdir(parents=True, exist_ok=True)
-    (OUT / f"abuse_upload-{args.label}.json").write_text(json.dumps(result, indent=2))
-    print(json.dumps(result, indent=2))
+    report("abuse_upload", args.label, result)
     return 0
 
 

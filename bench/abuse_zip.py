@@ -23,24 +23,21 @@ Writes ``bench/out/abuse_zip-<label>.json`` and prints it.
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import random
 import shutil
 import sys
 import tempfile
-import threading
 import time
 import zipfile
 from pathlib import Path
 
 import httpx
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-from tests.server import server_process  # noqa: E402
+# abuse_runs puts the checkout on sys.path, for the tests.* imports after it
+from abuse_runs import ROOT, peaks, report
+from tests.server import server_process
 
-OUT = ROOT / "bench" / "out"
 SPOT = ROOT / "tests" / "data" / "spot.obj"
 MIB = 2**20
 RANDOM_BYTES = 11_000
@@ -111,27 +108,14 @@ def run(repo: Path, entries: int) -> dict:
             wait_built(client, first.json()["id"])
             before, _ = tree_bytes(data)
             written_before = written(process.pid)
-            peak, stop = [0, 0], threading.Event()
-
-            def sample():
-                while not stop.is_set():
-                    total, sources = tree_bytes(data)
-                    peak[0], peak[1] = max(peak[0], total), max(peak[1], sources)
-                    time.sleep(0.05)
-
-            sampler = threading.Thread(target=sample, daemon=True)
-            sampler.start()
-            started = time.monotonic()
-            try:
+            with peaks(lambda: tree_bytes(data), every=0.05) as peak:
+                started = time.monotonic()
                 with open(archive, "rb") as file:
                     answer = client.post("/meshes", files={"file": ("junk.zip", file)})
                 answered = time.monotonic() - started
                 status = (wait_built(client, answer.json()["id"])
                           if answer.status_code == 202 else None)
                 built = time.monotonic() - started
-            finally:
-                stop.set()
-                sampler.join()
             return {"zip_bytes": archive.stat().st_size, "entries": entries + 1,
                     "unpacked_bytes": entries * MIB + SPOT.stat().st_size,
                     "answer": answer.status_code, "build": status,
@@ -151,9 +135,7 @@ def main(argv=None) -> int:
                         "1023 under the default entry limit)")
     args = parser.parse_args(argv)
     result = {"label": args.label, "repo": str(args.repo), **run(args.repo, args.entries)}
-    OUT.mkdir(parents=True, exist_ok=True)
-    (OUT / f"abuse_zip-{args.label}.json").write_text(json.dumps(result, indent=2))
-    print(json.dumps(result, indent=2))
+    report("abuse_zip", args.label, result)
     return 0
 
 

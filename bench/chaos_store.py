@@ -30,15 +30,13 @@ from collections import Counter
 from pathlib import Path
 from urllib.parse import urlsplit
 
-import httpx
-
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from lodserver.service.catalog import open_catalog  # noqa: E402
-from tests.api.test_store_outage import (READS_FROM_STORE, SOURCE, run_outage,  # noqa: E402
-                                         wait_all_ready)
-from tests.server import server_process  # noqa: E402
+from tests.api.test_store_outage import (READS_FROM_STORE, run_outage,  # noqa: E402
+                                         upload_readable, wait_all_ready)
+from tests.server import serve  # noqa: E402
 from tests.service.test_chaos import _check_no_orphans, _env, _keys  # noqa: E402
 from tests.services.gate import Gate  # noqa: E402
 from tests.services.postgres import _start_cluster  # noqa: E402
@@ -66,15 +64,8 @@ def main() -> None:
         bucket = f"lodserver-chaos-{uuid.uuid4().hex[:12]}"
         s3.create_bucket(Bucket=bucket)
         env = _env(url, f"s3://{bucket}/prefix", gate.endpoint, **READS_FROM_STORE)
-        with server_process(folder / "a", env=env, timeout=120,
-                            log=folder / "server.log") as (base, _), \
-                httpx.Client(base_url=base, timeout=120) as client:
-            readable = []
-            for _ in range(2):
-                with open(SOURCE, "rb") as file:
-                    created = client.post("/meshes", files={"file": (SOURCE.name, file)})
-                created.raise_for_status()
-                readable.append(created.json()["id"])
+        with serve(folder / "a", env=env, timeout=120, log=folder / "server.log") as client:
+            readable = upload_readable(client)
             wait_all_ready(client, readable)
             started = time.monotonic()
             load = run_outage(client, gate, outage=args.outage, readable=readable)

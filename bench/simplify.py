@@ -374,6 +374,22 @@ def _log(*parts):
     print(*parts, file=sys.stderr, flush=True)
 
 
+def add_io_arguments(parser: argparse.ArgumentParser, name: str) -> None:
+    """``--mesh-dir`` (the shared meshes) and ``--out`` (the folder of the inputs
+    made once and of the results, :func:`results_file`), for a benchmark writing
+    ``<name>.json``."""
+    parser.add_argument("--mesh-dir", type=Path, default=ROOT.parent / "shared" / "meshes")
+    parser.add_argument("--out", type=Path, default=BENCH / "out",
+                        help=f"output directory ({name}.json, or {name}-quick.json)")
+
+
+def results_file(args, name: str) -> Path:
+    """Where a run of ``args`` writes its results: ``<name>.json`` in ``args.out``
+    (made if missing), ``<name>-quick.json`` for a --quick run."""
+    args.out.mkdir(parents=True, exist_ok=True)
+    return args.out / (f"{name}-quick.json" if args.quick else f"{name}.json")
+
+
 def parse_args(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0].replace("\n", " "))
     parser.add_argument("--meshes", help=f"comma-separated, from: {', '.join(ALL_MESHES)}")
@@ -387,9 +403,7 @@ def parse_args(argv=None):
                         help="seconds per child process before it counts as failed")
     parser.add_argument("--quick", action="store_true",
                         help=f"smoke run: {', '.join(QUICK_MESHES)}; 1 repeat; 20000 samples")
-    parser.add_argument("--mesh-dir", type=Path, default=ROOT.parent / "shared" / "meshes")
-    parser.add_argument("--out", type=Path, default=BENCH / "out",
-                        help="output directory (simplify.json, or simplify-quick.json)")
+    add_io_arguments(parser, "simplify")
     args = parser.parse_args(argv)
     # --quick only changes what was not given explicitly
     if args.meshes is None:
@@ -408,8 +422,7 @@ def parse_args(argv=None):
 
 def main(argv=None):
     args = parse_args(argv)
-    args.out.mkdir(parents=True, exist_ok=True)
-    result_path = args.out / ("simplify-quick.json" if args.quick else "simplify.json")
+    result_path = results_file(args, "simplify")
     work = Path(tempfile.mkdtemp(prefix="work-", dir=args.out))
 
     _log("measuring lodserver compile time (empty numba cache) ...")

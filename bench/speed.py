@@ -28,7 +28,6 @@ import os
 import re
 import shutil
 import statistics
-import sys
 import tempfile
 from pathlib import Path
 
@@ -40,12 +39,13 @@ from simplify import (
     WorkerFailed,
     _g,
     _largest_peak,
+    _log,
+    add_io_arguments,
     markdown_table,
+    results_file,
     run_worker,
 )
 
-BENCH = Path(__file__).resolve().parent
-ROOT = BENCH.parent
 
 # size key -> (cache name, shared mesh, Loop iterations): triangles x 4 per iteration
 SIZES = {
@@ -235,11 +235,6 @@ def levels_table(results) -> str:
     return markdown_table(header, lines)
 
 
-def _log(*parts):
-    """Progress, on stderr, so stdout holds only the final tables."""
-    print(*parts, file=sys.stderr, flush=True)
-
-
 def parse_args(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0].replace("\n", " "))
     parser.add_argument("--sizes", help=f"comma-separated, from: {', '.join(SIZES)} (default: all)")
@@ -253,9 +248,7 @@ def parse_args(argv=None):
     parser.add_argument("--timeout", type=float, default=900.0,
                         help="seconds per child process before it counts as failed; 900")
     parser.add_argument("--quick", action="store_true", help="1m only, 1 repeat")
-    parser.add_argument("--mesh-dir", type=Path, default=ROOT.parent / "shared" / "meshes")
-    parser.add_argument("--out", type=Path, default=BENCH / "out",
-                        help="output directory (speed.json, or speed-quick.json)")
+    add_io_arguments(parser, "speed")
     args = parser.parse_args(argv)
     args.sizes = (args.sizes or ("1m" if args.quick else ",".join(SIZES))).split(",")
     args.methods = args.methods.split(",")
@@ -275,8 +268,7 @@ def main(argv=None):
     args = parse_args(argv)
     from machine import cpu_busy, machine_info
 
-    args.out.mkdir(parents=True, exist_ok=True)
-    result_path = args.out / ("speed-quick.json" if args.quick else "speed.json")
+    result_path = results_file(args, "speed")
     fresh_numba_cache()
     results = {"machine": {**machine_info(PACKAGES), "cpu_busy_before": cpu_busy()},
                "settings": {"ratio": RATIO, "repeats": args.repeats,

@@ -12,6 +12,8 @@ from pathlib import Path
 
 import httpx
 
+from tests.services.processes import stop_processes
+
 
 def _free_port() -> int:
     with socket.socket() as sock:
@@ -64,12 +66,7 @@ def server_process(data_dir, *, log: Path | None = None, warm_kernels: bool = Fa
             time.sleep(0.2)
         yield base, process
     finally:
-        process.terminate()
-        try:
-            process.wait(timeout=30)
-        except subprocess.TimeoutExpired:
-            process.kill()
-            process.wait()
+        stop_processes([process], grace=30)
 
 
 @contextmanager
@@ -80,16 +77,29 @@ def serve(data_dir, *, timeout: float = 60, **options):
         yield client
 
 
+def upload(client, name: str, content) -> str:
+    """``POST /meshes`` of ``content`` (bytes or a binary file) named ``name``
+    through ``client`` (httpx's or FastAPI's TestClient); the new mesh's id. The
+    answer must be a 202."""
+    created = client.post("/meshes", files={"file": (name, content)})
+    assert created.status_code == 202, created.text
+    return created.json()["id"]
+
+
+def wait_ready(client, mesh_id: str, timeout: float = 120) -> dict:
+    """Poll ``GET /meshes/{mesh_id}`` until the mesh is ready (a failed build, or
+    none ready within ``timeout`` seconds, fails the test); that body."""
+    deadline = time.monotonic() + timeout
+    while (body := client.get(f"/meshes/{mesh_id}").json())["status"] != "ready":
+        assert body["status"] != "failed", body["failure"]
+        assert time.monotonic() < deadline, f"the build did not finish in {timeout:g} s"
+        time.sleep(0.2)
+    return body
+
+
 def upload_and_wait(client, path):
     """Upload ``path`` through ``client`` and wait (up to 2 min) until it is built;
     its ``GET /meshes/{id}`` body."""
     with open(path, "rb") as file:
-        created = client.post("/meshes", files={"file": (path.name, file)})
-    assert created.status_code == 202, created.text
-    mesh_id = created.json()["id"]
-    deadline = time.monotonic() + 120
-    while (body := client.get(f"/meshes/{mesh_id}").json())["status"] != "ready":
-        assert body["status"] != "failed", body["failure"]
-        assert time.monotonic() < deadline, "the build did not finish"
-        time.sleep(0.2)
-    return body
+        mesh_id = upload(client, path.name, file)
+    return wait_ready(client, mesh_id)

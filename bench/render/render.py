@@ -23,12 +23,8 @@ triangle count, and the page is saved as ``bench/out/render/<model>.png``.
 from __future__ import annotations
 
 import argparse
-import contextlib
-import functools
-import http.server
 import json
 import sys
-import threading
 from pathlib import Path
 
 import numpy as np
@@ -48,6 +44,7 @@ from appearance import (  # noqa: E402
 from lodserver.build import build  # noqa: E402
 from lodserver.io import encode_mesh, load_mesh  # noqa: E402
 from lodserver.mesh import Materials, Mesh  # noqa: E402
+from static_server import serve  # noqa: E402
 
 OUT = ROOT / "bench" / "out" / "render"
 CHROMIUM = "/usr/bin/chromium"
@@ -116,29 +113,6 @@ def panels_for(key: str, mesh: Mesh, ratios, peers: bool):
                 detail += f" (asked {target:,})"
             rows[method].append((f"{method}-{ratio:g}", f"{method} {100 * ratio:g}%", detail, lod))
     return rows
-
-
-@contextlib.contextmanager
-def serve(directory: Path):
-    """A quiet HTTP server for ``directory`` on 127.0.0.1 and an ephemeral port."""
-
-    class Handler(http.server.SimpleHTTPRequestHandler):
-        extensions_map = {**http.server.SimpleHTTPRequestHandler.extensions_map,
-                          ".js": "text/javascript", ".mjs": "text/javascript",
-                          ".glb": "model/gltf-binary", ".json": "application/json"}
-
-        def log_message(self, *args):
-            pass
-
-    server = http.server.ThreadingHTTPServer(
-        ("127.0.0.1", 0), functools.partial(Handler, directory=str(directory)))
-    thread = threading.Thread(target=server.serve_forever, daemon=True)
-    thread.start()
-    try:
-        yield f"http://127.0.0.1:{server.server_address[1]}"
-    finally:
-        server.shutdown()
-        server.server_close()
 
 
 def bounding_sphere(mesh: Mesh):

@@ -41,8 +41,6 @@ from __future__ import annotations
 import argparse
 import base64
 import contextlib
-import functools
-import http.server
 import json
 import os
 import re
@@ -50,14 +48,15 @@ import shutil
 import statistics
 import subprocess
 import sys
-import threading
 import time
 from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
 ROOT = HERE.parents[1]
 sys.path.insert(0, str(HERE))
-from glb import read_glb, triangle_count
+sys.path.insert(0, str(HERE.parent))  # bench/, for static_server.py
+from glb import read_glb, triangle_count  # noqa: E402
+from static_server import serve  # noqa: E402
 
 SCENES = ROOT.parent / "shared" / "meshes" / "scenes"
 SUBDIVIDED = ROOT / "bench" / "out" / "scenes"
@@ -76,28 +75,6 @@ CHROMIUM_ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic"
 # front-right and a little above, behind-left, and from above
 VIEWS = [(0.8, 0.35, 1.0), (-1.0, 0.2, -0.6), (0.25, 1.0, 0.35)]
 MATCH = 0.02  # gltfpack's count within 2% of the target, else one retry
-
-
-@contextlib.contextmanager
-def serve(directory: Path):
-    """A quiet HTTP server for ``directory`` on 127.0.0.1 and an ephemeral port."""
-
-    class Handler(http.server.SimpleHTTPRequestHandler):
-        extensions_map = {**http.server.SimpleHTTPRequestHandler.extensions_map,
-                          ".js": "text/javascript", ".glb": "model/gltf-binary"}
-
-        def log_message(self, *args):
-            pass
-
-    server = http.server.ThreadingHTTPServer(
-        ("127.0.0.1", 0), functools.partial(Handler, directory=str(directory)))
-    thread = threading.Thread(target=server.serve_forever, daemon=True)
-    thread.start()
-    try:
-        yield f"http://127.0.0.1:{server.server_address[1]}"
-    finally:
-        server.shutdown()
-        server.server_close()
 
 
 def run(command: list[str], timeout: float) -> tuple[float, str]:

@@ -35,31 +35,28 @@ request that hangs past its client's patience.
 
 from __future__ import annotations
 
+import contextlib
 import errno
 import hashlib
 import logging
 import os
 import re
-import shutil
 import stat
 import threading
 import time
-import uuid
 from abc import ABC, abstractmethod
 from collections.abc import Iterator
 from pathlib import Path
 from typing import BinaryIO
 from urllib.parse import urlsplit
 
-from ..io.files import write_atomic
+from ..io.files import CHUNK, copy_atomic, temporary_beside, write_atomic
 from .errors import StorageFullError, StoreError, StoreUnavailable, is_disk_full
 
 log = logging.getLogger(__name__)
 
 MAX_KEY = 512
 _SEGMENT = re.compile(r"[A-Za-z0-9_-][A-Za-z0-9._-]*")
-# Reads and copies go in pieces of this size (bytes): bounded memory for any object.
-CHUNK = 1 << 20
 # s3fs's own default part size: 50 MiB parts, for files of 100 MiB and more.
 PART_BYTES = 50 * 2**20
 # Object-store timeouts (seconds). botocore's defaults are 60 s each with up to
@@ -201,27 +198,6 @@ def open_blobs(url_or_path) -> Blobs:
 
 # ---- a local folder ---------------------------------------------------------------
 
-def _temporary_beside(path: Path) -> Path:
-    # the naming of write_atomic's temporaries, so one sweep removes both
-    return path.with_name(f".{path.name}.{uuid.uuid4().hex}.tmp")
-
-
-def copy_atomic(source, dest) -> None:
-    """Copy the file ``source`` to ``dest`` through a temporary file beside ``dest``,
-    fsynced, then renamed: ``dest`` is the old file or the whole new one."""
-    dest = Path(dest)
-    temporary = _temporary_beside(dest)
-    try:
-        with open(source, "rb") as reader, open(temporary, "xb") as writer:
-            shutil.copyfileobj(reader, writer, CHUNK)
-            writer.flush()
-            os.fsync(writer.fileno())
-        os.replace(temporary, dest)
-    except BaseException:
-        temporary.unlink(missing_ok=True)
-        raise
-
-
 class LocalBlobs(Blobs):
     """Objects as files under a folder, a key's segments as sub-folders."""
 
@@ -239,7 +215,7 @@ class LocalBlobs(Blobs):
         return path
 
     def put_file(self, key: str, path, *, move: bool = False) -> None:
-        try:
+        with _local_errors(key, "storing"):
             target = self._writable(key)
             if move:
                 try:
@@ -255,41 +231,29 @@ class LocalBlobs(Blobs):
             copy_atomic(path, target)
             if move:
                 Path(path).unlink(missing_ok=True)
-        except OSError as exc:
-            raise _local_error(exc, key, "storing") from exc
 
     def put_bytes(self, key: str, data) -> None:
-        try:
+        with _local_errors(key, "storing"):
             write_atomic(self._writable(key), data)
-        except OSError as exc:
-            raise _local_error(exc, key, "storing") from exc
 
     def open(self, key: str) -> BinaryIO:
-        try:
+        with _local_errors(key, "reading"):
             return open(self._path(key), "rb")
-        except OSError as exc:
-            raise _local_error(exc, key, "reading") from exc
 
     def get_file(self, key: str, dest) -> None:
-        try:
+        with _local_errors(key, "copying"):
             copy_atomic(self._path(key), dest)
-        except OSError as exc:
-            raise _local_error(exc, key, "copying") from exc
 
     def exists(self, key: str) -> bool:
         return self._path(key).is_file()
 
     def size(self, key: str) -> int:
-        try:
+        with _local_errors(key, "reading"):
             return self._path(key).stat().st_size
-        except OSError as exc:
-            raise _local_error(exc, key, "reading") from exc
 
     def delete(self, key: str) -> None:
-        try:
+        with _local_errors(key, "deleting"):
             self._path(key).unlink(missing_ok=True)
-        except OSError as exc:
-            raise _local_error(exc, key, "deleting") from exc
 
     def keys(self, prefix: str = "") -> Iterator[str]:
         base = self._path(prefix) if prefix else self.root
@@ -314,6 +278,15 @@ class LocalBlobs(Blobs):
                              f"{exc.strerror or type(exc).__name__}") from None
         if not os.access(self.root, os.W_OK | os.X_OK):
             raise StoreError("the store's folder is not writable")
+
+
+@contextlib.contextmanager
+def _local_errors(key: str, doing: str) -> Iterator[None]:
+    """An OSError of the block as the :class:`StoreError` of :func:`_local_error`."""
+    try:
+        yield
+    except OSError as exc:
+        raise _local_error(exc, key, doing) from exc
 
 
 def _local_error(exc: OSError, key: str, doing: str) -> StoreError:
@@ -445,13 +418,11 @@ class FsspecBlobs(Blobs):
 
     def get_file(self, key: str, dest) -> None:
         dest = Path(dest)
-        temporary = _temporary_beside(dest)
+        temporary = temporary_beside(dest)
         try:
             self._call("copying", key, self.fs.get_file, self._path(key), os.fspath(temporary))
-            try:
+            with _local_errors(key, "copying"):
                 os.replace(temporary, dest)
-            except OSError as exc:
-                raise _local_error(exc, key, "copying") from exc
         finally:
             temporary.unlink(missing_ok=True)
 

@@ -6,7 +6,6 @@ Retry-After, while small bodies stay light."""
 from __future__ import annotations
 
 import threading
-import time
 
 import pytest
 from fastapi.testclient import TestClient
@@ -18,6 +17,7 @@ from lodserver.service.levels import carried_bytes, level_bytes, scene_bytes
 from lodserver.service.scenes import SceneAsset, scene_levels_for
 
 from ..hostile_files import animated_glb
+from ..server import upload, wait_ready
 
 KEYS = 60_000                   # 1.2 MB of keyframes: 20 bytes each with its time
 SLOT = 256 * 1024               # so a scene level weighs more than both slots
@@ -33,14 +33,8 @@ def scene(tmp_path_factory):
     """A data dir holding the animated grid, built once; (data dir, mesh id)."""
     data = tmp_path_factory.mktemp("scene") / "data"
     with _app(data) as client:
-        created = client.post("/meshes", files={"file": ("animated.glb", animated_glb(KEYS))})
-        assert created.status_code == 202, created.text
-        mesh_id = created.json()["id"]
-        deadline = time.monotonic() + 180
-        while (body := client.get(f"/meshes/{mesh_id}").json())["status"] != "ready":
-            assert body["status"] != "failed", body["failure"]
-            assert time.monotonic() < deadline, "the scene was not built"
-            time.sleep(0.1)
+        mesh_id = upload(client, "animated.glb", animated_glb(KEYS))
+        wait_ready(client, mesh_id, timeout=180)
     return data, mesh_id
 
 

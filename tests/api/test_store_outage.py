@@ -22,7 +22,7 @@ import httpx
 from lodserver.service.catalog import open_catalog
 
 from ..meshes import DATA
-from ..server import server_process
+from ..server import serve, upload
 from ..service.test_chaos import (BUILD_TIMEOUT, _check_no_orphans, _env, _keys, _poll,
                                   bucket, gate)  # noqa: F401 (fixtures)
 from ..services.postgres import postgres_server, postgres_url  # noqa: F401 (fixtures)
@@ -142,6 +142,16 @@ def run_outage(client: httpx.Client, gate, *, outage: float, readable: list[str]
     return load
 
 
+def upload_readable(client: httpx.Client, count: int = 2) -> list[str]:
+    """Upload :data:`SOURCE` ``count`` times (each answer a 202): the ids of the
+    meshes the load's level requests read."""
+    readable = []
+    for _ in range(count):
+        with open(SOURCE, "rb") as file:
+            readable.append(upload(client, SOURCE.name, file))
+    return readable
+
+
 def wait_all_ready(client: httpx.Client, mesh_ids) -> dict:
     """Poll until every mesh is ready or failed; {id: GET /meshes/{id} body}."""
     bodies = {}
@@ -159,15 +169,8 @@ def test_a_store_outage_under_load_is_503s_then_every_upload_ready_once(
     catalog._run("DELETE FROM meshes")
     env = _env(postgres_url, f"s3://{name}/prefix", gate.endpoint, **READS_FROM_STORE)
     try:
-        with server_process(tmp_path / "a", env=env, timeout=120,
-                            log=tmp_path / "server.log") as (base, _), \
-                httpx.Client(base_url=base, timeout=120) as client:
-            readable = []
-            for _ in range(2):
-                with open(SOURCE, "rb") as file:
-                    created = client.post("/meshes", files={"file": (SOURCE.name, file)})
-                assert created.status_code == 202, created.text
-                readable.append(created.json()["id"])
+        with serve(tmp_path / "a", env=env, timeout=120, log=tmp_path / "server.log") as client:
+            readable = upload_readable(client)
             assert all(body["status"] == "ready"
                        for body in wait_all_ready(client, readable).values())
             load = run_outage(client, gate, outage=8.0, readable=readable)

@@ -389,18 +389,26 @@ def _levels_of(document: dict, node: dict) -> list[dict]:
     return [node, *(document["nodes"][i] for i in ids)]
 
 
-def test_export_of_fox_keeps_skin_and_animations(shared_meshes, tmp_path, gltf_validator):
-    source = shared_meshes / "scenes" / "Fox.glb"
+def _exported_chain(source, tmp_path, gltf_validator, what: str):
+    """``lodserver export`` of ``source`` at 1, 0.5 and 0.2 (an exit code of 0, and
+    no validator error in the file): the source's JSON chunk, the chain's JSON and
+    binary chunks, and the chain's node carrying MSFT_lod."""
     out = tmp_path / "out.glb"
     assert main(["export", str(source), "-o", str(out), "--lods", "1,0.5,0.2"]) == 0
     before, _ = glb_chunks(source.read_bytes())
     document, binary = glb_chunks(out.read_bytes())
-    assert_valid(gltf_validator, out.read_bytes(), "Fox's chain")
+    assert_valid(gltf_validator, out.read_bytes(), what)
+    chained = next(n for n in document["nodes"] if "mesh" in n and "MSFT_lod" in
+                   n.get("extensions", {}))
+    return before, document, binary, chained
+
+
+def test_export_of_fox_keeps_skin_and_animations(shared_meshes, tmp_path, gltf_validator):
+    before, document, binary, fox = _exported_chain(
+        shared_meshes / "scenes" / "Fox.glb", tmp_path, gltf_validator, "Fox's chain")
     assert len(document["animations"]) == len(before["animations"]) == 3
     assert document["skins"][0]["joints"] == before["skins"][0]["joints"]
     joints = len(before["skins"][0]["joints"])
-    fox = next(n for n in document["nodes"] if "mesh" in n and "MSFT_lod" in
-               n.get("extensions", {}))
     levels = _levels_of(document, fox)
     faces = []
     for node in levels:
@@ -417,14 +425,9 @@ def test_export_of_fox_keeps_skin_and_animations(shared_meshes, tmp_path, gltf_v
 
 def test_export_of_the_morph_cube_keeps_its_targets(shared_meshes, tmp_path, gltf_validator):
     source = shared_meshes / "scenes" / "AnimatedMorphCube.glb"
-    out = tmp_path / "out.glb"
-    assert main(["export", str(source), "-o", str(out), "--lods", "1,0.5,0.2"]) == 0
-    before, _ = glb_chunks(source.read_bytes())
-    document, binary = glb_chunks(out.read_bytes())
-    assert_valid(gltf_validator, out.read_bytes(), "the morph cube's chain")
+    before, document, binary, cube = _exported_chain(source, tmp_path, gltf_validator,
+                                                     "the morph cube's chain")
     assert document["animations"][0]["channels"] == before["animations"][0]["channels"]
-    cube = next(n for n in document["nodes"] if "mesh" in n and "MSFT_lod" in
-                n.get("extensions", {}))
     for node in _levels_of(document, cube):
         mesh = document["meshes"][node["mesh"]]
         assert mesh["weights"] == before["meshes"][0]["weights"]

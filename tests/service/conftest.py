@@ -30,3 +30,15 @@ def catalog_url(request, tmp_path):
     catalog._run("DELETE FROM meshes")
     catalog.close()
     return url
+
+
+@pytest.fixture
+def two_stores(catalog_url, tmp_path):
+    """Two stores, as two servers see them: data directories of their own
+    (tmp_path/one, tmp_path/two), one catalogue (``catalog_url``), one folder of
+    blobs (tmp_path/blobs); closed after the test."""
+    stores = [LocalStore(tmp_path / name, catalog=catalog_url, blobs=str(tmp_path / "blobs"))
+              for name in ("one", "two")]
+    yield stores
+    for store in stores:
+        store.close()

@@ -49,9 +49,16 @@ def _ids(n):
     return [f"{chr(ord('A') + i)}" * 22 for i in range(n)]
 
 
-@pytest.mark.parametrize("catalog_url", DIALECTS, indirect=True)
-def test_rows_round_trip(catalog_url, tmp_path):
+@pytest.fixture
+def catalog(catalog_url, tmp_path):
+    """The catalogue at ``catalog_url``, closed after the test."""
     catalog = _open(catalog_url, tmp_path)
+    yield catalog
+    catalog.close()
+
+
+@pytest.mark.parametrize("catalog_url", DIALECTS, indirect=True)
+def test_rows_round_trip(catalog):
     a, b = _ids(2)
     catalog.insert(_row(a, 1.0))
     catalog.insert(_row(b, 2.0))
@@ -66,7 +73,6 @@ def test_rows_round_trip(catalog_url, tmp_path):
     assert catalog.delete(mesh_id=a).id == a
     assert catalog.get(mesh_id=a) is None and catalog.delete(mesh_id=a) is None
     assert catalog.update(mesh_id=a, values={"progress": 1.0}, updated=4.0) is None
-    catalog.close()
 
 
 @pytest.mark.parametrize("catalog_url", DIALECTS, indirect=True)
@@ -102,8 +108,7 @@ def test_claims_take_the_oldest_and_each_row_once(catalog_url, tmp_path):
 
 
 @pytest.mark.parametrize("catalog_url", DIALECTS, indirect=True)
-def test_an_expired_lease_is_taken_over_and_the_old_claim_is_fenced(catalog_url, tmp_path):
-    catalog = _open(catalog_url, tmp_path)
+def test_an_expired_lease_is_taken_over_and_the_old_claim_is_fenced(catalog):
     mesh_id, = _ids(1)
     catalog.insert(_row(mesh_id, 1.0))
     old = catalog.claim(owner="dead/1", lease_seconds=0.6, updated=2.0)
@@ -125,12 +130,10 @@ def test_an_expired_lease_is_taken_over_and_the_old_claim_is_fenced(catalog_url,
                           attempt=new.attempt) is None
     assert not catalog.renew(claim=new, lease_seconds=30)
     assert catalog.claim(owner="x/1", lease_seconds=30, updated=7.0) is None
-    catalog.close()
 
 
 @pytest.mark.parametrize("catalog_url", DIALECTS, indirect=True)
-def test_a_build_whose_builders_keep_vanishing_is_failed(catalog_url, tmp_path):
-    catalog = _open(catalog_url, tmp_path)
+def test_a_build_whose_builders_keep_vanishing_is_failed(catalog):
     mesh_id, = _ids(1)
     catalog.insert(_row(mesh_id, 1.0))
     for lost in range(MAX_LOST):
@@ -142,12 +145,10 @@ def test_a_build_whose_builders_keep_vanishing_is_failed(catalog_url, tmp_path):
     assert failed.id == mesh_id and failed.status is Status.FAILED
     assert catalog.get(mesh_id=mesh_id).failure == "killed them all"
     assert catalog.claim(owner="n9/1", lease_seconds=30, updated=4.0) is None
-    catalog.close()
 
 
 @pytest.mark.parametrize("catalog_url", DIALECTS, indirect=True)
-def test_recover_takes_back_only_its_own_nodes_builds(catalog_url, tmp_path):
-    catalog = _open(catalog_url, tmp_path)
+def test_recover_takes_back_only_its_own_nodes_builds(catalog):
     mine, other, legacy = _ids(3)
     for n, mesh_id in enumerate((mine, other, legacy)):
         catalog.insert(_row(mesh_id, 1.0 + n))
@@ -158,7 +159,6 @@ def test_recover_takes_back_only_its_own_nodes_builds(catalog_url, tmp_path):
     assert sorted(r.id for r in requeued) == sorted([mine, legacy])
     assert catalog.get(mesh_id=other).status is Status.BUILDING   # a live node's lease holds
     assert [r.id for r in catalog.pending()] == [mine, legacy]
-    catalog.close()
 
 
 def _open_at_once(url, tmp_path, openers: int = 6):
@@ -258,18 +258,6 @@ def _source(tmp_path, name="a.obj"):
     return path
 
 
-@pytest.fixture
-def two_stores(catalog_url, tmp_path):
-    """Two stores, as two servers see them: data directories of their own, one
-    catalogue, one folder of blobs."""
-    shared = str(tmp_path / "shared" / "store")
-    stores = [LocalStore(tmp_path / name, catalog=catalog_url, blobs=shared)
-              for name in ("one", "two")]
-    yield stores
-    for store in stores:
-        store.close()
-
-
 @pytest.mark.parametrize("catalog_url", DIALECTS, indirect=True)
 def test_two_stores_share_rows_artefacts_and_deletes(two_stores, tmp_path, monkeypatch):
     one, two = two_stores
@@ -282,9 +270,9 @@ def test_two_stores_share_rows_artefacts_and_deletes(two_stores, tmp_path, monke
     two.set_progress(mesh_id=record.id, progress=0.5, attempt=claim.attempt)
     assert one.get(mesh_id=record.id).progress == 0.5
     ready = two.put_artefact(mesh_id=record.id, pm=progressive("grid"), attempt=claim.attempt)
-    artefact = tmp_path / "shared" / "store" / "artefacts" / f"{record.id}.{ready.digest}.pm"
+    artefact = tmp_path / "blobs" / "artefacts" / f"{record.id}.{ready.digest}.pm"
     assert artefact.is_file()
-    assert not (tmp_path / "shared" / "store" / "sources" / f"{record.id}.obj").exists()
+    assert not (tmp_path / "blobs" / "sources" / f"{record.id}.obj").exists()
 
     reads = []
     real_load = store_module.load_progressive
@@ -324,7 +312,7 @@ def test_a_store_whose_claim_was_taken_over_records_nothing(two_stores, tmp_path
     assert not two.renew(claim=held, lease_seconds=30)
     with pytest.raises(UnknownMeshError):
         two.put_artefact(mesh_id=other.id, pm=progressive("grid"), attempt=held.attempt)
-    assert list((tmp_path / "shared" / "store" / "artefacts").glob(f"{other.id}*")) == []
+    assert list((tmp_path / "blobs" / "artefacts").glob(f"{other.id}*")) == []
 
 
 @pytest.mark.parametrize("catalog_url", DIALECTS, indirect=True)
@@ -338,7 +326,7 @@ def test_a_mesh_that_keeps_killing_its_builders_is_failed_and_its_source_dropped
     assert one.claim(lease_seconds=30) is None
     failed = two.get(mesh_id=record.id)
     assert failed.status is Status.FAILED and "not tried again" in failed.failure
-    assert not (tmp_path / "shared" / "store" / "sources" / f"{record.id}.obj").exists()
+    assert not (tmp_path / "blobs" / "sources" / f"{record.id}.obj").exists()
     with pytest.raises(NotReadyError, match="failed to build"):
         two.load(mesh_id=record.id)
 

@@ -9,16 +9,21 @@ import pytest
 from lodserver.service import jobs as jobs_module
 from lodserver.service.jobs import JobRunner
 from lodserver.mesh import MeshError
-from lodserver.service.store import LocalStore, Status
+from lodserver.service.store import Status
 
 from ..meshes import DATA, progressive
 from .conftest import DIALECTS
 
 
-def _queue(store, tmp_path, name):
+def _copy(tmp_path, name):
+    """A copy of spot.obj at tmp_path/<name>.obj."""
     source = tmp_path / f"{name}.obj"
     source.write_bytes((DATA / "spot.obj").read_bytes())
-    return store.create(name=name, source=source, file_type="obj",
+    return source
+
+
+def _queue(store, tmp_path, name):
+    return store.create(name=name, source=_copy(tmp_path, name), file_type="obj",
                         options={"min_vertices": 0}).id
 
 
@@ -64,9 +69,7 @@ def test_shutdown_requeues_a_running_build_but_not_a_finished_one(store, tmp_pat
     done = _queue(store, tmp_path, "done")
     runner.submit(done)
     _wait(store, done)
-    source = tmp_path / "slow.obj"
-    source.write_bytes((DATA / "spot.obj").read_bytes())
-    slow = store.create(name="slow", source=source, file_type="obj",
+    slow = store.create(name="slow", source=_copy(tmp_path, "slow"), file_type="obj",
                         options={"min_vertices": 7}).id
     runner.submit(slow)
     assert started.wait(30)
@@ -87,27 +90,16 @@ def test_a_build_reuses_the_mesh_its_upload_check_parsed(store, tmp_path, monkey
 
     monkeypatch.setattr(jobs_module, "check_mesh_file", counted)
     runner = JobRunner(store)
-    source = tmp_path / "spot.obj"
-    source.write_bytes((DATA / "spot.obj").read_bytes())
-    record = runner.accept(source=source, name="spot.obj", file_type="obj", options={})
+    record = runner.accept(source=_copy(tmp_path, "spot"), name="spot.obj", file_type="obj",
+                           options={})
     assert _wait(store, record.id).status is Status.READY
     runner.shutdown()
     assert len(parsed) == 1
 
 
-@pytest.fixture
-def shared(catalog_url, tmp_path):
-    """Two stores (two servers' view): own data directories, one catalogue, one store."""
-    stores = [LocalStore(tmp_path / name, catalog=catalog_url, blobs=str(tmp_path / "blobs"))
-              for name in ("one", "two")]
-    yield stores
-    for store in stores:
-        store.close()
-
-
 @pytest.mark.parametrize("catalog_url", DIALECTS, indirect=True)
-def test_a_delete_on_one_server_stops_the_build_on_another(shared, tmp_path, monkeypatch):
-    one, two = shared
+def test_a_delete_on_one_server_stops_the_build_on_another(two_stores, tmp_path, monkeypatch):
+    one, two = two_stores
     started, stopped = threading.Event(), threading.Event()
 
     def endless_build(mesh, *, cancel, progress, **options):
@@ -135,8 +127,8 @@ def test_a_delete_on_one_server_stops_the_build_on_another(shared, tmp_path, mon
 
 
 @pytest.mark.parametrize("catalog_url", DIALECTS, indirect=True)
-def test_progress_and_failures_are_seen_across_servers(shared, tmp_path, monkeypatch):
-    one, two = shared
+def test_progress_and_failures_are_seen_across_servers(two_stores, tmp_path, monkeypatch):
+    one, two = two_stores
     halfway, go_on = threading.Event(), threading.Event()
 
     def failing_build(mesh, *, progress, **options):
@@ -161,8 +153,8 @@ def test_progress_and_failures_are_seen_across_servers(shared, tmp_path, monkeyp
 
 
 @pytest.mark.parametrize("catalog_url", DIALECTS, indirect=True)
-def test_a_runner_that_only_serves_builds_nothing(shared, tmp_path):
-    one, two = shared
+def test_a_runner_that_only_serves_builds_nothing(two_stores, tmp_path):
+    one, two = two_stores
     serving = JobRunner(one, workers=0, poll_seconds=0.1)
     serving.start(warm=False)
     record = serving.accept(source=_copy(tmp_path, "s"), name="s.obj", file_type="obj",
@@ -174,9 +166,3 @@ def test_a_runner_that_only_serves_builds_nothing(shared, tmp_path):
     assert _wait(one, record.id).status is Status.READY
     for runner in (serving, builder):
         runner.shutdown()
-
-
-def _copy(tmp_path, name):
-    source = tmp_path / f"{name}.obj"
-    source.write_bytes((DATA / "spot.obj").read_bytes())
-    return source

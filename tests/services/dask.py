@@ -26,6 +26,7 @@ from pathlib import Path
 import pytest
 
 from tests.conftest import need
+from tests.services.processes import stop_processes
 
 SCHEDULER_VARIABLE = "LODSERVER_TEST_DASK_SCHEDULER"
 CHECKOUT = Path(__file__).resolve().parents[2]
@@ -83,16 +84,9 @@ def start_cluster(folder: Path, workers: int = WORKERS):
 
 
 def stop_cluster(processes) -> None:
-    """Stop the processes of :func:`start_cluster`, workers first (terminate, then kill)."""
-    for process in reversed(processes):
-        if process.poll() is None:
-            process.terminate()
-    for process in reversed(processes):
-        try:
-            process.wait(20)
-        except subprocess.TimeoutExpired:
-            process.kill()
-            process.wait()
+    """Stop the processes of :func:`start_cluster`, workers first (terminate, then
+    kill after 20 s)."""
+    stop_processes(reversed(processes), grace=20)
 
 
 @pytest.fixture(scope="session")

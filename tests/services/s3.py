@@ -33,6 +33,7 @@ import uuid
 import pytest
 
 from tests.conftest import need
+from tests.services.processes import stop_processes
 
 ENDPOINT_VARIABLE = "LODSERVER_TEST_S3_ENDPOINT"
 # moto accepts any credentials; these only have to be present and consistent.
@@ -87,13 +88,7 @@ def start_moto(port: int | None = None) -> tuple[subprocess.Popen, str]:
 
 def stop_moto(process: subprocess.Popen) -> None:
     """Stop a server of :func:`start_moto` (terminate, then kill after 10 s)."""
-    if process.poll() is None:
-        process.terminate()
-        try:
-            process.wait(10)
-        except subprocess.TimeoutExpired:
-            process.kill()
-            process.wait()
+    stop_processes([process], grace=10)
 
 
 @pytest.fixture(scope="session")
