@@ -1,5 +1,6 @@
-"""Where a version 4 packet's bytes go: per stream, its tables and its coded symbols,
-and each stream's empirical entropy in its contexts (the bound the tables approach).
+"""Where a version 4 packet's bytes go: per stream, its coded bytes and its empirical
+entropy in its contexts (static, order 0 per context: what an ideal coder of these
+symbols with these contexts would approach).
 
     PYTHONPATH=$PWD python bench/codec_streams.py spot stanford-bunny
 """
@@ -17,7 +18,7 @@ from codec_meshes import progressive  # noqa: E402
 
 from lodserver.packets import encode, grid_of  # noqa: E402
 from lodserver.packets import encode_v4 as v4  # noqa: E402
-from lodserver.packets.rans import bucket_counts, encode_symbols, extra_bits  # noqa: E402
+from lodserver.packets.rans import ALPHABET, bucket_of, encode_symbols, extra_bits  # noqa: E402
 from lodserver.packets.streams_v4 import shapes, stream_names_v4  # noqa: E402
 
 
@@ -30,8 +31,6 @@ def breakdown(pm, start, stop, flags=v4.DEFAULT_FLAGS, batch=None, bits=None):
     forward = stop > start
     records = abs(stop - start)
     n0, n = pm.base_vertices, pm.vertex_count
-    marks = np.zeros((len(encode.stream_names(grids, has_materials)) if hasattr(encode, "stream_names")
-                      else 0, records + 1), dtype=np.int64)
     from lodserver.packets.format import stream_names
     marks = np.zeros((len(stream_names(grids, has_materials)), records + 1), dtype=np.int64)
     streams = encode.encode_streams(pm, start, stop, grid, grids, marks)
@@ -52,15 +51,14 @@ def breakdown(pm, start, stop, flags=v4.DEFAULT_FLAGS, batch=None, bits=None):
             if not len(values):
                 out[name] += (len(whole), 0, 0)
                 continue
-            counts = bucket_counts(values, c, shape.contexts)
+            buckets = np.array([bucket_of(int(v))[0] for v in values])
+            counts = np.zeros((shape.contexts, ALPHABET))
+            np.add.at(counts, (np.asarray(c), buckets), 1)
             p = counts / np.maximum(counts.sum(1, keepdims=True), 1)
             with np.errstate(divide="ignore", invalid="ignore"):
                 h = -(counts * np.where(counts > 0, np.log2(p), 0)).sum()
             raw = sum(extra_bits(b) * int(k) for b, k in enumerate(counts.sum(0)))
-            tables = bytearray()
-            from lodserver.packets.rans import normalized, put_tables
-            put_tables(tables, np.array([normalized(r) for r in counts]))
-            out[name] += (len(tables), len(whole) - len(tables), (h + raw) / 8)
+            out[name] += (0, len(whole), (h + raw) / 8)
     return out
 
 
@@ -71,8 +69,8 @@ def show(name, pm, start, stop, **kw):
     print(f"{name} {start}->{stop}: {total} B, {total / records:.2f} B/record")
     for stream, (tables, coded, entropy) in out.items():
         if tables + coded > 2:
-            print(f"  {stream:18s} tables {tables:7.0f}  coded {coded:9.0f} ({coded / records:.3f} "
-                  f"B/rec)  entropy {entropy:9.0f}")
+            print(f"  {stream:18s} coded {coded:9.0f} ({coded / records:.3f} B/rec)  "
+                  f"entropy {entropy:9.0f}")
 
 
 if __name__ == "__main__":

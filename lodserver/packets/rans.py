@@ -12,6 +12,9 @@ table) followed by its *extra bits* (coded flat):
   ``n - 2`` bits below ``h`` as extra bits, in chunks of at most 16 bits, the
   low chunk first.
 
+Each context's frequencies adapt (:func:`frequencies`, :data:`FIRST_REBUILD`): no
+table is sent, and a context costs nothing until it is used.
+
 The coder is rANS (Duda 2013) as in Giesen's ``ryg_rans``: a 32-bit state
 ``x`` kept in ``[2^23, 2^31)`` (so a decoder in JavaScript stays in int32),
 frequencies out of ``2^12``, renormalized one byte at a time. Decoding a symbol
@@ -66,77 +69,40 @@ def extra_bits(bucket: int) -> int:
     return 0 if bucket < DIRECT else (bucket - DIRECT) // 2 + 3
 
 
-# ---- tables ------------------------------------------------------------------------
-def bucket_counts(values: np.ndarray, contexts: np.ndarray, n_contexts: int) -> np.ndarray:
-    """(n_contexts, ALPHABET) int64: how often each bucket occurs in each context."""
-    counts = np.zeros((n_contexts, ALPHABET), dtype=np.int64)
-    _count(np.ascontiguousarray(values, dtype=np.int64),
-           np.ascontiguousarray(contexts, dtype=np.int64), counts)
-    return counts
+# ---- the adaptive model -----------------------------------------------------------
+# Every context starts with a count of 1 for each of the ALPHABET buckets; each coded
+# bucket adds INCREMENT to its count (a light prior: a context learns its few buckets
+# from a few dozen symbols). The context's frequencies are rebuilt from its counts
+# (:func:`frequencies`) when it has coded FIRST_REBUILD symbols, then each time it has
+# coded as many again as since the start, at most REBUILD_EVERY more.
+FIRST_REBUILD, REBUILD_EVERY = 16, 64
+INCREMENT = 32
+# Frequencies reserve 1 for every bucket, and share the rest by count.
+SHARED = PROB_SCALE - ALPHABET
 
 
 @njit(cache=True, nogil=True)
-def _count(values, contexts, counts):
-    for i in range(values.shape[0]):
-        counts[contexts[i], bucket_of(values[i])[0]] += 1
+def frequencies(counts, freq):
+    """``freq[:]`` from ``counts`` (ALPHABET,), integers only, so that every decoder
+    gets the same: ``1 + counts[i] * SHARED // total`` each, and what is left of
+    ``PROB_SCALE`` to the first bucket of the largest count."""
+    total = 0
+    top = 0
+    for i in range(ALPHABET):
+        total += counts[i]
+        if counts[i] > counts[top]:
+            top = i
+    used = 0
+    for i in range(ALPHABET):
+        freq[i] = 1 + counts[i] * SHARED // total
+        used += freq[i]
+    freq[top] += PROB_SCALE - used
 
 
-def normalized(counts: np.ndarray) -> np.ndarray:
-    """Frequencies summing to ``PROB_SCALE`` (each symbol that occurs gets at least 1)
-    from one context's counts; all zeros for a context that never occurs."""
-    counts = np.asarray(counts, dtype=np.int64)
-    total = int(counts.sum())
-    freq = np.zeros(len(counts), dtype=np.int64)
-    if total == 0:
-        return freq
-    present = counts > 0
-    freq[present] = np.maximum(1, np.round(counts[present] * PROB_SCALE / total).astype(np.int64))
-    # give or take the rounding's difference from the largest frequencies, keeping each >= 1
-    while (excess := int(freq.sum()) - PROB_SCALE) != 0:
-        order = np.argsort(-freq, kind="stable")
-        for i in order[:max(1, min(abs(excess), int(present.sum())))]:
-            if excess > 0 and freq[i] > 1:
-                freq[i] -= 1
-                excess -= 1
-            elif excess < 0:
-                freq[i] += 1
-                excess += 1
-    return freq
-
-
-def put_tables(out: bytearray, freqs: np.ndarray) -> None:
-    """Each context's table: varint ``k`` (1 + its largest symbol; 0 for a context that
-    never occurs), then ``k`` varint frequencies."""
-    for row in freqs:
-        used = np.flatnonzero(row)
-        k = int(used[-1]) + 1 if len(used) else 0
-        put_varint(out, k)
-        for f in row[:k]:
-            put_varint(out, int(f))
-
-
-def read_tables(reader: Reader, n_contexts: int, name: str) -> list:
-    """The tables :func:`put_tables` wrote: per context ``None`` (never occurs) or
-    ``(freq, start, lookup)``, ``lookup`` the symbol of every slot of ``[0, 4096)``."""
-    tables = []
-    for _ in range(n_contexts):
-        k = reader.varint()
-        if k == 0:
-            tables.append(None)
-            continue
-        if k > ALPHABET:
-            raise PacketError(f"the packet's {name} stream has a table of {k} symbols; "
-                              f"at most {ALPHABET} exist")
-        freq = [reader.varint() for _ in range(k)]
-        if sum(freq) != PROB_SCALE:
-            raise PacketError(f"the packet's {name} stream has a table that does not "
-                              f"sum to {PROB_SCALE}")
-        start = [0] * k
-        for i in range(1, k):
-            start[i] = start[i - 1] + freq[i - 1]
-        lookup = bytes(np.repeat(np.arange(k, dtype=np.uint8), freq))
-        tables.append((freq, start, lookup))
-    return tables
+@njit(cache=True, nogil=True)
+def next_rebuild(coded):
+    """When a context that has coded ``coded`` symbols rebuilds next."""
+    return coded + min(coded, REBUILD_EVERY)
 
 
 # ---- encoding ------------------------------------------------------------------------
@@ -154,16 +120,44 @@ def _emit(out, used, x, x_max):
 
 
 @njit(cache=True, nogil=True)
-def _encode(values, contexts, freq, start):
-    """The rANS bytes of ``values`` (int64 >= 0) in ``contexts`` with tables ``freq``
-    and ``start`` (n_contexts, ALPHABET): symbols are coded last first, so that a
-    decoder reads them first first."""
+def _model(values, contexts, n_contexts):
+    """The (start, freq) each symbol is coded with, running the adaptive model forward."""
+    counts = np.ones((n_contexts, ALPHABET), dtype=np.int64)
+    freq = np.empty((n_contexts, ALPHABET), dtype=np.int64)
+    start = np.empty((n_contexts, ALPHABET), dtype=np.int64)
+    coded = np.zeros(n_contexts, dtype=np.int64)
+    rebuild = np.full(n_contexts, FIRST_REBUILD, dtype=np.int64)
+    for c in range(n_contexts):
+        frequencies(counts[c], freq[c])
+        start[c, 0] = 0
+        for b in range(1, ALPHABET):
+            start[c, b] = start[c, b - 1] + freq[c, b - 1]
+    out = np.empty((values.shape[0], 2), dtype=np.int64)
+    for i in range(values.shape[0]):
+        c = contexts[i]
+        b = bucket_of(values[i])[0]
+        out[i, 0] = start[c, b]
+        out[i, 1] = freq[c, b]
+        counts[c, b] += INCREMENT
+        coded[c] += 1
+        if coded[c] == rebuild[c]:
+            rebuild[c] = next_rebuild(coded[c])
+            frequencies(counts[c], freq[c])
+            for k in range(1, ALPHABET):
+                start[c, k] = start[c, k - 1] + freq[c, k - 1]
+    return out
+
+
+@njit(cache=True, nogil=True)
+def _encode(values, coding):
+    """The rANS bytes of ``values`` (int64 >= 0), bucket ``i`` coded with ``coding[i]``
+    (start, freq): symbols are coded last first, so that a decoder reads them first first."""
     out = np.empty(16 + values.shape[0], dtype=np.uint8)
     used = 0
     x = STATE_LOW
     for i in range(values.shape[0] - 1, -1, -1):
         v = values[i]
-        b, extra = bucket_of(v)
+        extra = bucket_of(v)[1]
         # extra bits: the high chunk first (the decoder reads the low chunk first)
         chunks = (extra + RAW_CHUNK - 1) // RAW_CHUNK
         for k in range(chunks - 1, -1, -1):
@@ -171,9 +165,9 @@ def _encode(values, contexts, freq, start):
             bits = (v >> (k * RAW_CHUNK)) & ((1 << size) - 1)
             out, used, x = _emit(out, used, x, (STATE_LOW >> size) << 8)
             x = (x << size) | bits
-        f = freq[contexts[i], b]
+        f = coding[i, 1]
         out, used, x = _emit(out, used, x, ((STATE_LOW >> PROB_BITS) << 8) * f)
-        x = ((x // f) << PROB_BITS) + (x % f) + start[contexts[i], b]
+        x = ((x // f) << PROB_BITS) + (x % f) + coding[i, 0]
     if used + 4 > out.shape[0]:
         bigger = np.empty(used + 4, dtype=np.uint8)
         bigger[:used] = out[:used]
@@ -186,8 +180,8 @@ def _encode(values, contexts, freq, start):
 
 def encode_symbols(out: bytearray, values: np.ndarray, contexts: np.ndarray,
                    n_contexts: int) -> None:
-    """Append one coded stream to ``out``: varint symbol count; then, unless 0, the
-    tables of its ``n_contexts`` contexts, varint byte length and the rANS bytes.
+    """Append one coded stream to ``out``: varint symbol count, then unless 0 varint
+    byte length and the rANS bytes.
 
     ``values`` (m,) int64 >= 0 and below 2^44; ``contexts`` (m,) in ``[0, n_contexts)``.
     """
@@ -198,29 +192,53 @@ def encode_symbols(out: bytearray, values: np.ndarray, contexts: np.ndarray,
         return
     if values.min() < 0 or values.max() >= 1 << MAX_BIT_LENGTH:
         raise ValueError(f"rANS streams code integers in [0, 2^{MAX_BIT_LENGTH})")
-    freq = np.array([normalized(row) for row in bucket_counts(values, contexts, n_contexts)],
-                    dtype=np.int64)
-    start = np.zeros_like(freq)
-    np.cumsum(freq[:, :-1], axis=1, out=start[:, 1:])
-    put_tables(out, freq)
-    coded = _encode(values, contexts, freq, start)
+    if contexts.min() < 0 or contexts.max() >= n_contexts:
+        raise ValueError(f"contexts must lie in [0, {n_contexts})")
+    coded = _encode(values, _model(values, contexts, n_contexts))
     put_varint(out, len(coded))
     out += coded.tobytes()
 
 
 # ---- decoding (the reference) ---------------------------------------------------------
+class Context:
+    """One context's adaptive model as a decoder keeps it: counts, frequencies, starts,
+    and the bucket of every slot of ``[0, PROB_SCALE)``."""
+
+    def __init__(self):
+        self.counts = np.ones(ALPHABET, dtype=np.int64)
+        self.coded, self.rebuild = 0, FIRST_REBUILD
+        self._tables()
+
+    def _tables(self) -> None:
+        freq = np.empty(ALPHABET, dtype=np.int64)
+        frequencies(self.counts, freq)
+        self.freq = freq.tolist()
+        self.start = [0] * ALPHABET
+        for b in range(1, ALPHABET):
+            self.start[b] = self.start[b - 1] + self.freq[b - 1]
+        self.lookup = bytes(np.repeat(np.arange(ALPHABET, dtype=np.uint8), freq))
+
+    def update(self, bucket: int) -> None:
+        self.counts[bucket] += INCREMENT
+        self.coded += 1
+        if self.coded == self.rebuild:
+            self.rebuild = next_rebuild(self.coded)
+            self._tables()
+
+
 class SymbolReader:
     """The symbols of one coded stream, read one at a time: :meth:`read` takes the
-    context of the next symbol. Running out of bytes, a context without a table or
-    a symbol past its table is a PacketError."""
+    context of the next symbol (in ``[0, n_contexts)``). Running out of bytes or
+    symbols is a PacketError."""
 
     def __init__(self, reader: Reader, n_contexts: int, name: str | None = None):
         self.name = name or reader.name
         self.count = reader.varint()
         self.left = self.count
-        self.tables, self.data, self.at, self.x = [], b"", 0, STATE_LOW
+        self.models: dict = {}
+        self.n_contexts = n_contexts
+        self.data, self.at, self.x = b"", 0, STATE_LOW
         if self.count:
-            self.tables = read_tables(reader, n_contexts, self.name)
             self.data = reader.take(reader.varint())
             if len(self.data) < 4:
                 raise PacketError(f"the packet's {self.name} stream is shorter than its state")
@@ -240,17 +258,17 @@ class SymbolReader:
         if self.left <= 0:
             raise PacketError(f"the packet's {self.name} stream holds fewer symbols than its "
                               "records read")
+        if not 0 <= context < self.n_contexts:
+            raise ValueError(f"context {context} is not one of {self.n_contexts}")
         self.left -= 1
-        table = self.tables[context]
-        if table is None:
-            raise PacketError(f"the packet's {self.name} stream has no table for a symbol")
-        freq, start, lookup = table
+        model = self.models.get(context)
+        if model is None:
+            model = self.models[context] = Context()
         slot = self.x & (PROB_SCALE - 1)
-        if slot >= len(lookup):
-            raise PacketError(f"the packet's {self.name} stream decodes past its table")
-        b = lookup[slot]
-        self.x = freq[b] * (self.x >> PROB_BITS) + slot - start[b]
+        b = model.lookup[slot]
+        self.x = model.freq[b] * (self.x >> PROB_BITS) + slot - model.start[b]
         self._renormalize()
+        model.update(b)
         n = extra_bits(b)
         extra = 0
         for k in range(0, n, RAW_CHUNK):

@@ -238,7 +238,8 @@ def test_rans_codes_near_the_entropy():
     out = bytearray()
     rans.encode_symbols(out, values, np.zeros(len(values), dtype=np.int64), 1)
     entropy = -(p * np.log2(p)).sum() * len(values) / 8
-    assert len(out) < 1.01 * entropy + 64
+    # within 3%: the model reserves 1/4096 for each of the 96 buckets (2.3% of the range)
+    assert len(out) < 1.03 * entropy + 64
 
 
 def test_rans_refuses_values_it_cannot_code():
