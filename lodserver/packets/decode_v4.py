@@ -17,6 +17,7 @@ import zlib
 import numpy as np
 
 from .format import (
+    COUNT,
     EDGE_POSITIONS,
     FAN,
     HAS_MATERIALS,
@@ -34,7 +35,7 @@ from .format import (
 from .grids import AttributeGrid, Grid
 from .rans import SymbolReader
 from .reference import Packet, decode_packet
-from .streams_v4 import context_of, position_fields, shapes, stream_names_v4
+from .streams_v4 import FACE_CONTEXTS, context_of, position_fields, shapes, stream_names_v4
 
 # At most this many symbols per record of a segment, and this many more, in any stream
 # but the position's (whose count is fixed): bounds a damaged packet's work.
@@ -115,6 +116,16 @@ def _segment(reader: Reader, names, layout, size: int, forward: bool, flags: int
                 raise PacketError("the packet's vertex stream does not hold one gap per split")
             for i in range(size):
                 values.append(stream.read(0 if first_of_run[i] else 1))
+        elif shape.faces:               # patterns: by their place in their record
+            if stream.count != sum(decoded[1 + COUNT]):
+                raise PacketError("the packet's pattern stream does not hold one pattern per "
+                                  "new face")
+            for k in decoded[1 + COUNT]:
+                for f in range(k):
+                    values.append(stream.read(0 if f == 0 else 1 + values[-1]))
+                    if values[-1] >= FACE_CONTEXTS - 1:
+                        raise PacketError(f"the packet holds a pattern above "
+                                          f"{FACE_CONTEXTS - 2}")
         else:
             for i in range(stream.count):
                 values.append(stream.read(context_of(shape, i, values)))

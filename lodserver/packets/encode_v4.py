@@ -24,6 +24,7 @@ from numba import njit
 
 from .encode import encode_streams
 from .format import (
+    COUNT,
     EDGE_POSITIONS,
     FAN,
     MAGNITUDE_CONTEXTS,
@@ -38,7 +39,7 @@ from .format import (
 from .grids import attribute_grids_of, grid_of
 from .rans import encode_symbols
 from .records import CHUNK_RECORDS
-from .streams_v4 import contexts, position_symbols, shapes, unzigzag
+from .streams_v4 import contexts, face_contexts, position_symbols, shapes, unzigzag
 
 if TYPE_CHECKING:
     from ..progressive.mesh import ProgressiveMesh
@@ -120,6 +121,7 @@ def _segment_symbols(fields: list, t0: int | None, ids, flags: int, layout: list
     a split segment (None for collapses); ``ids`` its splits' batch ids (None: one
     batch each)."""
     symbols = list(fields)
+    vertex_contexts = None
     if t0 is not None:
         d = fields[0]
         s = t0 + np.arange(len(d), dtype=np.int64) - 1 - d
@@ -131,8 +133,9 @@ def _segment_symbols(fields: list, t0: int | None, ids, flags: int, layout: list
         symbols.insert(0, runs)
     else:
         symbols.insert(0, np.zeros(0, dtype=np.int64))
-    ctx = [vertex_contexts if (k == 1 and t0 is not None) else contexts(shape, values)
-           for k, (values, shape) in enumerate(zip(symbols, layout))]
+    ctx = [vertex_contexts if shape.runs else
+           face_contexts(symbols[1 + COUNT], values) if shape.faces else contexts(shape, values)
+           for values, shape in zip(symbols, layout)]
     return symbols, ctx
 
 

@@ -6,9 +6,9 @@ computes from what it has decoded before). Every integer is written as a
 *bucket* (one of :data:`ALPHABET` symbols, coded with its context's frequency
 table) followed by its *extra bits* (coded flat):
 
-- ``v < 16``: bucket ``v``, no extra bits;
-- otherwise, with ``n`` the bit length of ``v`` (``n >= 5``): bucket
-  ``16 + 2 (n - 5) + h``, ``h`` the bit below the leading one, then the
+- ``v < 32``: bucket ``v``, no extra bits;
+- otherwise, with ``n`` the bit length of ``v`` (``n >= 6``): bucket
+  ``32 + 2 (n - 6) + h``, ``h`` the bit below the leading one, then the
   ``n - 2`` bits below ``h`` as extra bits, in chunks of at most 16 bits, the
   low chunk first.
 
@@ -39,9 +39,9 @@ from .format import PacketError, Reader, put_varint
 PROB_BITS = 12
 PROB_SCALE = 1 << PROB_BITS
 STATE_LOW = 1 << 23                 # x stays in [STATE_LOW, 2^31)
-DIRECT = 16                         # values below this are their own bucket
+DIRECT = 32                         # values below this are their own bucket
 MAX_BIT_LENGTH = 44                 # larger values are refused (no record writes them)
-ALPHABET = DIRECT + 2 * (MAX_BIT_LENGTH - 4)
+ALPHABET = DIRECT + 2 * (MAX_BIT_LENGTH - 5)
 RAW_CHUNK = 16                      # flat bits are coded at most this many at a time
 
 
@@ -50,23 +50,23 @@ def bucket_of(v):
     """The bucket of ``v >= 0`` and its number of extra bits."""
     if v < DIRECT:
         return v, 0
-    n = 5
+    n = 6
     while v >> n:
         n += 1
-    return DIRECT + 2 * (n - 5) + ((v >> (n - 2)) & 1), n - 2
+    return DIRECT + 2 * (n - 6) + ((v >> (n - 2)) & 1), n - 2
 
 
 def value_of(bucket: int, extra: int) -> int:
     """The value of ``bucket`` with extra bits ``extra`` (the inverse of :func:`bucket_of`)."""
     if bucket < DIRECT:
         return bucket
-    n = (bucket - DIRECT) // 2 + 5
+    n = (bucket - DIRECT) // 2 + 6
     return (1 << (n - 1)) | (((bucket - DIRECT) & 1) << (n - 2)) | extra
 
 
 def extra_bits(bucket: int) -> int:
     """How many extra bits follow ``bucket``."""
-    return 0 if bucket < DIRECT else (bucket - DIRECT) // 2 + 3
+    return 0 if bucket < DIRECT else (bucket - DIRECT) // 2 + 4
 
 
 # ---- the adaptive model -----------------------------------------------------------
@@ -259,7 +259,8 @@ class SymbolReader:
             raise PacketError(f"the packet's {self.name} stream holds fewer symbols than its "
                               "records read")
         if not 0 <= context < self.n_contexts:
-            raise ValueError(f"context {context} is not one of {self.n_contexts}")
+            raise PacketError(f"the packet's {self.name} stream asks for context {context}"
+                              f" of {self.n_contexts}")
         self.left -= 1
         model = self.models.get(context)
         if model is None:

@@ -30,7 +30,6 @@ import numpy as np
 from numba import njit
 
 from .format import EDGE_POSITIONS, MAGNITUDE_CONTEXTS, stream_names
-from .rans import bucket_of
 
 # The magnitude classes of a classed stream's contexts (see Shape).
 CLASSES = 8
@@ -39,6 +38,8 @@ PLACES = 16
 # Runs of a split packet: a vertex symbol is the first of its run (context 0) or a
 # gap after another (context 1).
 RUN_CONTEXTS = 2
+# A pattern symbol's context: first of its record, or after one of the 27 patterns.
+FACE_CONTEXTS = 28
 
 
 @dataclass(frozen=True)
@@ -48,19 +49,24 @@ class Shape:
     ``period`` symbols make a *group* (a record's position, a wedge's values);
     symbol ``i`` sits at ``j = i % period`` in its group. Unclassed: the context
     is ``j``. Classed: ``j * CLASSES + c``, ``c`` the :func:`magnitude_class` of
-    the largest bucket among the symbols of its group before it, or for the
-    first of a group, among the previous group's (0 for the very first).
+    the largest symbol of its group before it, or for the first of a group, of
+    the previous group's (0 for the very first).
     ``runs``: the vertex stream of a split packet (:data:`RUN_CONTEXTS`).
+    ``faces``: the pattern stream, whose context is 0 for a record's first new
+    face and ``1 + p`` after a face of pattern ``p`` (:data:`FACE_CONTEXTS`).
     """
 
     period: int = 1
     classed: bool = False
     runs: bool = False
+    faces: bool = False
 
     @property
     def contexts(self) -> int:
         if self.runs:
             return RUN_CONTEXTS
+        if self.faces:
+            return FACE_CONTEXTS
         return self.period * (CLASSES if self.classed else 1)
 
 
@@ -73,7 +79,7 @@ def shapes(attribute_grids: tuple, has_materials: bool, forward: bool, flags: in
     """The :class:`Shape` of every stream of :func:`stream_names_v4`."""
     classed = bool(flags & MAGNITUDE_CONTEXTS)
     position = (7 if flags & EDGE_POSITIONS else 6) if forward else 3
-    out = [Shape(), Shape(runs=forward)] + [Shape()] * 6
+    out = [Shape(), Shape(runs=forward), Shape(), Shape(faces=forward)] + [Shape()] * 4
     out[7] = Shape(position, classed)
     if attribute_grids:
         out += [Shape()] * 3
@@ -84,10 +90,13 @@ def shapes(attribute_grids: tuple, has_materials: bool, forward: bool, flags: in
 
 
 @njit(cache=True, nogil=True)
-def magnitude_class(bucket):
-    """The class of a bucket: 0 up to bucket 13 (values below 14), then one class per
-    power of two of the value, the last for 2^9 and more."""
-    return min(max((bucket - 12) >> 1, 0), CLASSES - 1)
+def magnitude_class(value):
+    """The class of a symbol ``value >= 0``: 0 below 8, then one per power of two,
+    the last for 512 and more."""
+    n = 0
+    while value >> n and n < CLASSES + 2:
+        n += 1
+    return min(max(n - 3, 0), CLASSES - 1)
 
 
 def context_of(shape: Shape, i: int, decoded: list) -> int:
@@ -97,16 +106,14 @@ def context_of(shape: Shape, i: int, decoded: list) -> int:
     if not shape.classed:
         return j
     lo = i - j if j else i - shape.period
-    largest = 0
-    for v in decoded[max(lo, 0):i]:
-        largest = max(largest, bucket_of(v)[0])
+    largest = max(decoded[max(lo, 0):i], default=0)
     return j * CLASSES + magnitude_class(largest)
 
 
 @njit(cache=True, nogil=True)
 def _classed_contexts(values, period):
     out = np.empty(values.shape[0], dtype=np.int64)
-    group = 0                       # the largest bucket of the group so far
+    group = 0                       # the largest symbol of the group so far
     previous = 0                    # ... and of the group before
     for i in range(values.shape[0]):
         j = i % period
@@ -115,12 +122,23 @@ def _classed_contexts(values, period):
             out[i] = magnitude_class(previous)
         else:
             out[i] = j * CLASSES + magnitude_class(group)
-        group = max(group, bucket_of(values[i])[0])
+        group = max(group, values[i])
+    return out
+
+
+def face_contexts(counts, patterns) -> np.ndarray:
+    """The contexts of a segment's pattern symbols, from its records' face counts."""
+    out = np.empty(len(patterns), dtype=np.int64)
+    i = 0
+    for k in counts:
+        for f in range(int(k)):
+            out[i] = 0 if f == 0 else 1 + patterns[i - 1]
+            i += 1
     return out
 
 
 def contexts(shape: Shape, values: np.ndarray) -> np.ndarray:
-    """The context of every symbol of ``values`` (not for ``runs`` streams)."""
+    """The context of every symbol of ``values`` (not for ``runs`` or ``faces`` streams)."""
     if shape.classed:
         return _classed_contexts(np.ascontiguousarray(values, dtype=np.int64), shape.period)
     return np.arange(len(values), dtype=np.int64) % shape.period
