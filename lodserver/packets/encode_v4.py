@@ -48,7 +48,10 @@ if TYPE_CHECKING:
 SEGMENT_RECORDS = CHUNK_RECORDS
 # The version 3 streams that hold bytes rather than varints.
 BYTE_STREAMS = (PATTERN, FAN, MASK)
-DEFAULT_FLAGS = EDGE_POSITIONS | MAGNITUDE_CONTEXTS
+# The codings used unless asked otherwise: the split edge pays on meshes of tens of
+# thousands of splits and costs little on small ones; the magnitude classes do not
+# earn their contexts' learning (bench/codec.py measures both).
+DEFAULT_FLAGS = EDGE_POSITIONS
 
 
 def encode_packet_v4(pm: ProgressiveMesh, start: int, stop: int, *, bits: int | None = None,
@@ -65,8 +68,7 @@ def encode_packet_v4(pm: ProgressiveMesh, start: int, stop: int, *, bits: int | 
         a run of one batch codes its ``vs`` as gaps. Default: every split its own batch.
     flags : int
         Which codings to use: :data:`~.format.EDGE_POSITIONS`,
-        :data:`~.format.MAGNITUDE_CONTEXTS` (both by default; the bench turns them off
-        to measure each).
+        :data:`~.format.MAGNITUDE_CONTEXTS` (default :data:`DEFAULT_FLAGS`).
 
     Returns
     -------
