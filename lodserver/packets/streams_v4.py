@@ -128,10 +128,16 @@ def _classed_contexts(values, period):
 
 def face_contexts(counts, patterns) -> np.ndarray:
     """The contexts of a segment's pattern symbols, from its records' face counts."""
-    out = np.empty(len(patterns), dtype=np.int64)
+    return _face_contexts(np.ascontiguousarray(counts, dtype=np.int64),
+                          np.ascontiguousarray(patterns, dtype=np.int64))
+
+
+@njit(cache=True, nogil=True)
+def _face_contexts(counts, patterns):
+    out = np.empty(patterns.shape[0], dtype=np.int64)
     i = 0
     for k in counts:
-        for f in range(int(k)):
+        for f in range(k):
             out[i] = 0 if f == 0 else 1 + patterns[i - 1]
             i += 1
     return out
