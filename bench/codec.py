@@ -11,7 +11,7 @@ with normals also get version 4 with 8-bit normals (``v4 +edge n8``). Also the e
 base -> full packet in each version (one call, after a warm-up).
 
     cd bench/out/codec/npm && npm i --no-save gltfpack && cd -   # gltfpack 1.3 (WASM)
-    PYTHONPATH=$PWD python bench/codec.py [mesh ...]              # bench/codec_meshes.py names
+    PYTHONPATH=$PWD python bench/codec.py [mesh ...]    # names of bench/codec_meshes.py
 
 Meshes are built once into bench/out/codec/ (``bench/codec_meshes.py``).
 """

@@ -103,7 +103,7 @@ def _segment(reader: Reader, names, layout, size: int, forward: bool, flags: int
     for k, (name, shape) in enumerate(zip(names, layout)):
         stream = SymbolReader(reader, shape.contexts, name)
         period = shape.period
-        if k == 7:                       # positions: a fixed count per record
+        if k == 1 + POSITION:            # positions: a fixed count per record
             if stream.count != size * period:
                 raise PacketError(f"the packet's {name} stream holds {stream.count} symbols "
                                   f"for {size} records")
@@ -120,8 +120,8 @@ def _segment(reader: Reader, names, layout, size: int, forward: bool, flags: int
             if stream.count != sum(decoded[1 + COUNT]):
                 raise PacketError("the packet's pattern stream does not hold one pattern per "
                                   "new face")
-            for k in decoded[1 + COUNT]:
-                for f in range(k):
+            for faces in decoded[1 + COUNT]:
+                for f in range(faces):
                     values.append(stream.read(0 if f == 0 else 1 + values[-1]))
                     if values[-1] >= FACE_CONTEXTS - 1:
                         raise PacketError(f"the packet holds a pattern above "
@@ -130,11 +130,13 @@ def _segment(reader: Reader, names, layout, size: int, forward: bool, flags: int
             for i in range(stream.count):
                 values.append(stream.read(context_of(shape, i, values)))
         stream.check_done()
+        if k == 0 and not forward and values:
+            raise PacketError("the packet's batch stream holds runs, but it collapses")
         if k == 0 and forward:           # batch runs: which splits start a run
             for length in values:
-                first_of_run += [True] + [False] * length
-                if len(first_of_run) > size:
+                if len(first_of_run) + 1 + length > size:
                     raise PacketError("the packet's batch runs hold more splits than its segment")
+                first_of_run += [True] + [False] * length
             if len(first_of_run) != size:
                 raise PacketError("the packet's batch runs do not cover its segment")
         decoded.append(values)

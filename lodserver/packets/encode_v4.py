@@ -27,7 +27,6 @@ from .format import (
     COUNT,
     EDGE_POSITIONS,
     FAN,
-    MAGNITUDE_CONTEXTS,
     MASK,
     PATTERN,
     POSITION,

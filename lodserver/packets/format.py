@@ -44,8 +44,8 @@ MAX_ATTRIBUTES, MAX_NAME = 255, 64
 # header flags
 HAS_MATERIALS = 1
 # version 4 only: positions coded as the split edge and the place of vs along it
-# (EDGE_POSITIONS); value symbols coded in contexts of the magnitudes before them
-# (MAGNITUDE_CONTEXTS)
+# (EDGE_POSITIONS); position and value symbols coded in contexts of the magnitudes
+# before them (MAGNITUDE_CONTEXTS)
 EDGE_POSITIONS, MAGNITUDE_CONTEXTS = 2, 4
 
 # Version 2's attribute kind codes (read only); version 3 names every attribute.

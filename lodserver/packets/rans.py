@@ -1,10 +1,10 @@
-"""The entropy coder of version 4 packets: byte-oriented rANS over static tables.
+"""The entropy coder of version 4 packets: byte-oriented rANS, adaptive frequencies.
 
-docs/packets.md, "Version 4: the coder". One coded stream is a sequence of
+docs/packets.md, "Version 4", "The coder". One coded stream is a sequence of
 non-negative integers, each with a *context* (a small integer the decoder
 computes from what it has decoded before). Every integer is written as a
-*bucket* (one of :data:`ALPHABET` symbols, coded with its context's frequency
-table) followed by its *extra bits* (coded flat):
+*bucket* (one of :data:`ALPHABET` symbols, coded with its context's
+frequencies) followed by its *extra bits* (coded flat):
 
 - ``v < 32``: bucket ``v``, no extra bits;
 - otherwise, with ``n`` the bit length of ``v`` (``n >= 6``): bucket
