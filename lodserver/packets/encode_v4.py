@@ -91,27 +91,50 @@ def encode_packet_v4(pm: ProgressiveMesh, start: int, stop: int, *, bits: int | 
         if batch.shape != (n - n0,) or (len(batch) > 1 and np.any(np.diff(batch) < 0)):
             raise ValueError(f"a batch schedule is one non-decreasing id per split "
                              f"({n - n0} splits)")
-    body = bytearray()
-    if records == 0:
-        put_varint(body, 0)
-    else:
+    segments = []
+    if records:
         marks = np.zeros((len(stream_names(grids, has_materials)), records + 1), dtype=np.int64)
         streams = encode_streams(pm, start, stop, grid, grids, marks)
         first = start - n0 if forward else n - start
-        cuts = [0] + [r for r in range(1, records)
-                      if (first + r) % SEGMENT_RECORDS == 0] + [records]
-        put_varint(body, len(cuts) - 1)
         layout = shapes(grids, has_materials, forward, flags)
-        for r0, r1 in zip(cuts, cuts[1:]):
-            put_varint(body, r1 - r0)
-            fields = [_integers(s[m[r0]:m[r1]], k in BYTE_STREAMS)
-                      for k, (s, m) in enumerate(zip(streams, marks))]
+        for r0, r1 in segment_cuts(first, records):
+            slices = [s[m[r0]:m[r1]] for s, m in zip(streams, marks)]
             ids = None if batch is None else batch[first + r0:first + r1]
-            for symbols, ctx, shape in zip(*_segment_symbols(fields, start + r0 if forward else
-                                                             None, ids, flags, layout), layout):
-                encode_symbols(body, symbols, ctx, shape.contexts)
-    header = pack_header(grid, grids, has_materials, start, stop, pm.faces_at_level(start),
-                         pm.faces_at_level(stop), len(body), version=VERSION_4, flags=flags)
+            segments.append(segment_bytes(slices, start + r0 if forward else None, ids, flags,
+                                          layout))
+    return assemble_v4(pm, grid, grids, start, stop, flags, segments)
+
+
+def segment_cuts(first: int, records: int) -> list:
+    """The segments ``[(r0, r1), ...]`` of a packet's ``records`` records, the first
+    of them record ``first`` counted from the base (splits) or full detail (collapses):
+    cut at every multiple of :data:`SEGMENT_RECORDS`."""
+    cuts = [0] + [r for r in range(1, records) if (first + r) % SEGMENT_RECORDS == 0]
+    return list(zip(cuts, cuts[1:] + [records]))
+
+
+def segment_bytes(slices: list, t0: int | None, ids, flags: int, layout: list) -> bytes:
+    """One segment of the body: varint records, then every coded stream, from the
+    segment's version 3 stream bytes ``slices`` (``t0``, ``ids``: as
+    :func:`_segment_symbols`; ``layout``: :func:`~.streams_v4.shapes`)."""
+    fields = [_integers(s, k in BYTE_STREAMS) for k, s in enumerate(slices)]
+    out = bytearray()
+    put_varint(out, len(fields[POSITION]) // (6 if t0 is not None else 3))
+    for symbols, ctx, shape in zip(*_segment_symbols(fields, t0, ids, flags, layout), layout):
+        encode_symbols(out, symbols, ctx, shape.contexts)
+    return bytes(out)
+
+
+def assemble_v4(pm: ProgressiveMesh, grid, grids: tuple, start: int, stop: int, flags: int,
+                segments: list) -> bytes:
+    """Header, the body of ``segments`` (bytes of :func:`segment_bytes`), CRC-32."""
+    body = bytearray()
+    put_varint(body, len(segments))
+    for segment in segments:
+        body += segment
+    header = pack_header(grid, grids, pm.face_material is not None, start, stop,
+                         pm.faces_at_level(start), pm.faces_at_level(stop), len(body),
+                         version=VERSION_4, flags=flags)
     packet = header + bytes(body)
     return packet + struct.pack("<I", zlib.crc32(packet))
 

@@ -255,3 +255,22 @@ def test_the_split_edge_is_an_exact_rewrite(rows):
     e = to_edge(d)
     assert np.all((e[:, 3] >= 0) & (e[:, 3] <= 16))
     assert np.array_equal(from_edge(e), d)
+
+
+@settings(max_examples=30, deadline=None)
+@given(st.data())
+def test_packets_cut_from_kept_segments_are_the_encoded_packets(data):
+    from lodserver.packets import encode_v4
+    from lodserver.packets.records_v4 import packet_between_v4
+    pm = _pm(data.draw(st.sampled_from(["every_attribute", "materials"])))
+    size = data.draw(st.sampled_from([64, 8192]))
+    levels = st.integers(pm.base_vertices, pm.vertex_count)
+    a, b = data.draw(levels), data.draw(levels)
+    original = encode_v4.SEGMENT_RECORDS
+    encode_v4.SEGMENT_RECORDS = size
+    try:
+        # twice: the second cuts from the segments the first kept
+        for _ in range(2):
+            assert packet_between_v4(pm, a, b) == encode_packet_v4(pm, a, b)
+    finally:
+        encode_v4.SEGMENT_RECORDS = original
