@@ -22,14 +22,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from codec import stream_bytes  # noqa: E402
 from codec_meshes import OUT  # noqa: E402
-from codec_streams import breakdown  # noqa: E402
-
-from lodserver.packets import apply_packet, encode_packet, grid_of, quantized_level  # noqa: E402
-from lodserver.packets.decode_v4 import decode_packet_v4  # noqa: E402
-from lodserver.packets.encode_v4 import DEFAULT_FLAGS, encode_packet_v4  # noqa: E402
-from lodserver.progressive.mesh import ProgressiveMesh  # noqa: E402
 
 
 
@@ -46,6 +39,14 @@ def build_batched(names):
 
 
 def main(names):
+    """Bytes of each batched mesh's packets, with and without its schedule."""
+    from codec import stream_bytes
+    from codec_streams import breakdown
+
+    from lodserver.packets import apply_packet, encode_packet, grid_of, quantized_level
+    from lodserver.packets.decode_v4 import decode_packet_v4
+    from lodserver.packets.encode_v4 import DEFAULT_FLAGS, encode_packet_v4
+    from lodserver.progressive.mesh import ProgressiveMesh
     for name in names:
         pm = ProgressiveMesh.load(OUT / f"{name}-batched.pm")
         ids = np.load(OUT / f"{name}-batched-ids.npy")
