@@ -8,7 +8,7 @@ as batch runs and gaps and (optionally) the positions as the split edge
 
 Records are coded in *segments* that start at fixed record indices of the mesh
 (every :data:`SEGMENT_RECORDS` records from the base, or from full detail for
-collapses) and at the packet's ends, each with its own tables and rANS
+collapses) and at the packet's ends, each with fresh models and rANS
 states: a segment's bytes depend only on its records, so a server can code a
 mesh's segments once and cut a packet from them as it does version 3's chunks.
 """
