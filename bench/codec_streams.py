@@ -18,28 +18,27 @@ from codec_meshes import progressive  # noqa: E402
 
 from lodserver.packets import encode, grid_of  # noqa: E402
 from lodserver.packets import encode_v4 as v4  # noqa: E402
+from lodserver.packets.format import stream_names  # noqa: E402
 from lodserver.packets.rans import ALPHABET, bucket_of, encode_symbols, extra_bits  # noqa: E402
 from lodserver.packets.streams_v4 import shapes, stream_names_v4  # noqa: E402
 
 
 def breakdown(pm, start, stop, flags=v4.DEFAULT_FLAGS, batch=None, bits=None):
-    """{stream: (table bytes, coded bytes, entropy bytes)} of the packet start -> stop,
-    summed over its segments."""
+    """{stream: (bytes of an empty stream, coded bytes, entropy bytes)} of the packet
+    start -> stop, summed over its segments."""
     grid = grid_of(pm, bits=bits)
     grids = encode.attribute_grids_of(pm)
     has_materials = pm.face_material is not None
     forward = stop > start
     records = abs(stop - start)
     n0, n = pm.base_vertices, pm.vertex_count
-    from lodserver.packets.format import stream_names
     marks = np.zeros((len(stream_names(grids, has_materials)), records + 1), dtype=np.int64)
     streams = encode.encode_streams(pm, start, stop, grid, grids, marks)
     first = start - n0 if forward else n - start
-    cuts = [0] + [r for r in range(1, records) if (first + r) % v4.SEGMENT_RECORDS == 0] + [records]
     layout = shapes(grids, has_materials, forward, flags)
     names = stream_names_v4(grids, has_materials)
     out = {name: np.zeros(3) for name in names}
-    for r0, r1 in zip(cuts, cuts[1:]):
+    for r0, r1 in v4.segment_cuts(first, records):
         fields = [v4._integers(s[m[r0]:m[r1]], k in v4.BYTE_STREAMS)
                   for k, (s, m) in enumerate(zip(streams, marks))]
         ids = None if batch is None else batch[first + r0:first + r1]
