@@ -19,12 +19,17 @@ The package, in the order data flows through it:
                     kernels take the small records of ``kernel_types.py``
 - ``records.py``    every record encoded once per mesh; the server's packets are slices
 - ``reference.py``  the readable decoder, the reference for clients
+- ``rans.py``, ``streams_v4.py``, ``encode_v4.py``, ``decode_v4.py``  version 4:
+                    the same records, each field coded by kind with adaptive rANS
+                    (not served yet; docs/packets.md, "Version 4")
 
 The compiled encoder is checked byte for byte against the readable encoder in
 ``tests/naive_packets.py``, which predicts with ``reference.py``'s functions.
 """
 
+from .decode_v4 import decode_any, decode_packet_v4
 from .encode import encode_packet
+from .encode_v4 import encode_packet_v4
 from .format import (
     ATTRIBUTE_IDS,
     COUNT,
@@ -92,8 +97,9 @@ __all__ = [
     "READABLE_VERSIONS", "TANGENT", "VERTEX", "WEDGE_CORNER", "WEDGE_COUNT",
     "WEDGE_PARENT", "AttributeGrid", "Grid", "LodState", "Packet", "PacketError",
     "RecordStreams", "apply_packet", "attribute_grids_of", "cached_records", "check_bits",
-    "decode_packet", "default_attribute_bits", "default_bits", "deflate_body",
-    "encode_packet", "encode_records", "fold_octahedral", "grid_of", "mean_edge",
+    "decode_any", "decode_packet", "decode_packet_v4", "default_attribute_bits",
+    "default_bits", "deflate_body", "encode_packet", "encode_packet_v4", "encode_records",
+    "fold_octahedral", "grid_of", "mean_edge",
     "pack_header", "packet_between", "prepare_records", "quantize_wedges", "quantized_level",
     "record_cache", "record_streams", "records_ready", "shutdown_background",
     "state_from_json", "stream_names", "unfold_octahedral",

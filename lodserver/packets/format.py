@@ -22,6 +22,10 @@ PACKET_VERSION = 3
 # version 1 packet is a geometry-only one of either ("A geometry-only mesh's version 3
 # packet is byte for byte a version 1 (and 2) packet but for the version byte").
 READABLE_VERSIONS = (1, 2, 3)
+# Version 4 ("Version 4" in docs/packets.md): the same records, their fields coded by
+# kind with rANS (packets/rans.py) instead of varints and deflate. Read by
+# packets/decode_v4.py; the server still serves version 3.
+VERSION_4 = 4
 # The server's range for the header's ``bits`` (positions and attributes alike).
 MIN_BITS, MAX_BITS = 8, 24
 
@@ -39,6 +43,10 @@ ATTRIBUTE_V2 = struct.Struct("<BBBBd")
 MAX_ATTRIBUTES, MAX_NAME = 255, 64
 # header flags
 HAS_MATERIALS = 1
+# version 4 only: positions coded as the split edge and the place of vs along it
+# (EDGE_POSITIONS); position and value symbols coded in contexts of the magnitudes
+# before them (MAGNITUDE_CONTEXTS)
+EDGE_POSITIONS, MAGNITUDE_CONTEXTS = 2, 4
 
 # Version 2's attribute kind codes (read only); version 3 names every attribute.
 ATTRIBUTE_IDS = {"NORMAL": 0, "TEXCOORD_0": 1, "TEXCOORD_1": 2, "COLOR_0": 3}
@@ -95,16 +103,18 @@ def stream_names(attribute_grids: tuple, has_materials: bool) -> tuple[str, ...]
 
 
 def pack_header(grid, attribute_grids: tuple, has_materials: bool, start: int, stop: int,
-                start_faces: int, stop_faces: int, body_length: int) -> bytes:
+                start_faces: int, stop_faces: int, body_length: int, *,
+                version: int = PACKET_VERSION, flags: int = 0) -> bytes:
     """The header of a packet, attribute records included ("Byte layout").
 
     ``grid`` is a :class:`~lodserver.packets.grids.Grid` (``bits``, ``origin``,
     ``step``), ``attribute_grids`` its :class:`~lodserver.packets.grids.AttributeGrid`
     per attribute in layout order.
     """
-    out = bytearray(HEADER.pack(MAGIC, PACKET_VERSION, grid.bits, len(attribute_grids),
-                                HAS_MATERIALS if has_materials else 0, start, stop,
-                                start_faces, stop_faces, *grid.origin, grid.step, body_length))
+    flags |= HAS_MATERIALS if has_materials else 0
+    out = bytearray(HEADER.pack(MAGIC, version, grid.bits, len(attribute_grids), flags, start,
+                                stop, start_faces, stop_faces, *grid.origin, grid.step,
+                                body_length))
     if len(attribute_grids) > MAX_ATTRIBUTES:
         raise ValueError(f"a packet carries at most {MAX_ATTRIBUTES} attributes, "
                          f"got {len(attribute_grids)}")
@@ -119,8 +129,10 @@ def pack_header(grid, attribute_grids: tuple, has_materials: bool, start: int, s
     return bytes(out)
 
 
-def unpack_header(data: bytes) -> tuple[dict, list, int]:
-    """The fields of a packet's header ("Byte layout"), checked.
+def unpack_header(data: bytes, versions: tuple = READABLE_VERSIONS,
+                  known_flags: int = HAS_MATERIALS) -> tuple[dict, list, int]:
+    """The fields of a packet's header ("Byte layout"), checked: its version one of
+    ``versions``, no flag outside ``known_flags``.
 
     Returns
     -------
@@ -144,12 +156,12 @@ def unpack_header(data: bytes) -> tuple[dict, list, int]:
      ox, oy, oz, step, body_length) = HEADER.unpack_from(data)
     if magic != MAGIC:
         raise PacketError("this is not a lodserver vsplit packet (bad magic bytes)")
-    if version not in READABLE_VERSIONS:
+    if version not in versions:
         raise PacketError(f"the packet has version {version}; this decoder reads "
-                          f"{' and '.join(map(str, READABLE_VERSIONS))}")
+                          f"{' and '.join(map(str, versions))}")
     if version == 1 and (attributes or flags):
         raise PacketError("the packet has version 1 but sets reserved header bytes")
-    if flags & ~HAS_MATERIALS:
+    if flags & ~known_flags:
         raise PacketError(f"the packet sets unknown header flags {flags:#x}")
     if attributes > MAX_ATTRIBUTES:
         raise PacketError(f"the packet has {attributes} attribute records; at most "
@@ -161,8 +173,9 @@ def unpack_header(data: bytes) -> tuple[dict, list, int]:
         records.append(record)
     if len({record[0] for record in records}) != len(records):
         raise PacketError("the packet names an attribute twice")
-    fields = dict(bits=bits, flags=flags, start=start, stop=stop, start_faces=start_faces,
-                  stop_faces=stop_faces, origin=(ox, oy, oz), step=step, body_length=body_length)
+    fields = dict(version=version, bits=bits, flags=flags, start=start, stop=stop,
+                  start_faces=start_faces, stop_faces=stop_faces, origin=(ox, oy, oz), step=step,
+                  body_length=body_length)
     return fields, records, at
 
 

@@ -1,0 +1,65 @@
+"""The meshes of the codec bench, built once and kept as .pm files in bench/out/codec/.
+
+spot (tests/data), the Stanford bunny, Duck and Avocado (/work/shared/meshes), and
+bunny_loop2: the Stanford bunny Loop-subdivided twice, as bench/simplify.py makes it.
+"""
+
+from __future__ import annotations
+
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+HERE = Path(__file__).resolve().parent
+REPO = HERE.parent
+SHARED = REPO.parent / "shared" / "meshes"
+OUT = REPO / "bench" / "out" / "codec"
+
+SOURCES = {
+    "spot": REPO / "tests" / "data" / "spot.obj",
+    "stanford-bunny": SHARED / "stanford-bunny.obj",
+    "Duck": SHARED / "Duck.glb",
+    "Avocado": SHARED / "Avocado" / "Avocado.gltf",
+    "bunny_loop2": None,
+}
+
+
+def source_mesh(name: str):
+    """The full-detail :class:`~lodserver.mesh.Mesh` of ``name``."""
+    from lodserver.io import clean_mesh, load_mesh
+    if name != "bunny_loop2":
+        return load_mesh(SOURCES[name])[0]
+    npz = REPO / "bench" / "out" / "bunny_loop2.npz"
+    if npz.exists():
+        data = np.load(npz)
+        return clean_mesh(data["positions"], data["faces"])[0]
+    import trimesh
+    bunny, _ = load_mesh(SHARED / "stanford-bunny.obj")
+    positions, faces = trimesh.remesh.subdivide_loop(bunny.positions, bunny.faces, iterations=2)
+    mesh = clean_mesh(positions, faces)[0]
+    npz.parent.mkdir(parents=True, exist_ok=True)
+    np.savez(npz, positions=mesh.positions, faces=mesh.faces)
+    return mesh
+
+
+def progressive(name: str):
+    """The built progressive mesh of ``name``, from bench/out/codec/ when there."""
+    from lodserver import build
+    from lodserver.progressive.mesh import ProgressiveMesh
+    path = OUT / f"{name}.pm"
+    if path.exists():
+        return ProgressiveMesh.load(path)
+    OUT.mkdir(parents=True, exist_ok=True)
+    began = time.perf_counter()
+    pm = build(source_mesh(name))
+    print(f"built {name} in {time.perf_counter() - began:.1f} s", file=sys.stderr)
+    pm.save(path)
+    return pm
+
+
+if __name__ == "__main__":
+    for name in sys.argv[1:] or list(SOURCES):
+        pm = progressive(name)
+        print(name, pm.base_vertices, pm.vertex_count)
