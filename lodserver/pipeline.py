@@ -38,7 +38,7 @@ from pathlib import Path, PurePosixPath
 
 from .folders import (MANIFEST, MANIFEST_VERSION, Folder, fetch_with_references, filesystem,
                       is_url, listing)
-from .io.glb import coverage_from_ratios, encode_lod_chain
+from .io.glb import check_compress, coverage_from_ratios, encode_lod_chain
 from .io import SUPPORTED_INPUT, encode_mesh, write_atomic
 from .mesh import Mesh, MeshError
 from .options import BuildOptions
@@ -181,6 +181,11 @@ class ChainOptions:
         ``errors``.
     separate : bool
         Write ``OUT_lod0.glb``, ``OUT_lod1.glb``, ... instead of one file.
+    compress : str
+        How the GLB files store the levels (``io.glb.COMPRESSIONS``): ``"none"``
+        (float32, the progressive mesh's order: lossless, the library's default),
+        ``"quantize"`` (the command line's default, ``io.glb.DEFAULT_COMPRESS``) or
+        ``"meshopt"``.
     reach : str
         ``"none"``: a level edge collapse cannot bring down to its budget stays
         at the coarsest it reaches. ``"cluster"``: such a level is made by vertex
@@ -195,9 +200,11 @@ class ChainOptions:
     per_mesh: bool = False
     separate: bool = False
     reach: str = "none"
+    compress: str = "none"
 
     def __post_init__(self):
         check_reach(self.reach)
+        check_compress(self.compress)
         if self.lods is not None and self.errors is not None:
             raise MeshError("give LOD ratios or LOD errors, not both")
         if self.errors is not None:
@@ -284,19 +291,19 @@ def export_lods(source, output, chain: ChainOptions | None = None, *,
         (meshes, coverage), clustered = error_chain(pm, chain.errors), []
     else:
         meshes, coverage, clustered = lod_chain(pm, chain.lods, reach=chain.reach)
-    outputs = _write_chain(output, chain.separate, meshes, coverage)
+    outputs = _write_chain(output, chain, meshes, coverage)
     return Exported(source, outputs, [mesh.face_count for mesh in meshes], coverage,
                     time.perf_counter() - start, pm.faces_at_level(pm.base_vertices),
                     clustered)
 
 
-def _write_chain(output: Path, separate: bool, meshes, coverage) -> list[Path]:
-    if separate:
+def _write_chain(output: Path, chain: ChainOptions, meshes, coverage) -> list[Path]:
+    if chain.separate:
         outputs = [output.with_name(f"{output.stem}_lod{i}{output.suffix}")
                    for i in range(len(meshes))]
-        blobs = [encode_mesh(mesh, "glb") for mesh in meshes]
+        blobs = [encode_mesh(mesh, "glb", compress=chain.compress) for mesh in meshes]
     else:
-        outputs, blobs = [output], [encode_lod_chain(meshes, coverage)]
+        outputs, blobs = [output], [encode_lod_chain(meshes, coverage, chain.compress)]
     output.parent.mkdir(parents=True, exist_ok=True)
     for path, blob in zip(outputs, blobs):
         write_atomic(path, blob)
@@ -375,9 +382,11 @@ def _export_scene(scene, source: Path, output: Path, chain: ChainOptions, option
     coverage = coverage_from_errors(worst, diagonal) if count else []
     if chain.separate:
         outputs = [output.with_name(f"{output.stem}_lod{i}{output.suffix}") for i in range(count)]
-        blobs = [encode_scene(scene, levels, coverage, level=i) for i in range(count)]
+        blobs = [encode_scene(scene, levels, coverage, level=i, compress=chain.compress)
+                 for i in range(count)]
     else:
-        outputs, blobs = [output], [encode_scene(scene, levels, coverage)]
+        outputs, blobs = [output], [encode_scene(scene, levels, coverage,
+                                                 compress=chain.compress)]
     output.parent.mkdir(parents=True, exist_ok=True)
     for path, blob in zip(outputs, blobs):
         write_atomic(path, blob)
@@ -527,6 +536,8 @@ def export_folder(source, output, chain: ChainOptions | None = None, *, jobs: in
                 "separate": chain.separate, "reach": chain.reach, "build": options.model_dump()}
     if chain.errors is not None:
         recorded["errors"] = list(chain.errors)
+    if chain.compress != "none":    # (the manifests of uncompressed runs stay as they were)
+        recorded["compress"] = chain.compress
 
     def recorded_for(relative) -> dict:
         # a glTF scene's levels depend on whether they share one budget; other

@@ -33,31 +33,65 @@ from ..mesh import Materials, Mesh, MeshError
 from .gltf import (ARRAY_BUFFER, ELEMENT_ARRAY_BUFFER, FLOAT, TRIANGLES, UINT,
                    extension_names)
 from .gltf_attributes import perpendicular
+from .meshopt import EXTENSION as MESHOPT, encode_view
+from .quantize import (EXTENSION as QUANTIZATION, attribute_stream, grid_transform,
+                       plain_stream, position_grid, position_stream)
+from .vertex_order import optimize_order
+
+# How a GLB's meshes may be stored (GlbWriter): the CLI's --compress and the server's
+# compress= take these. "none": float32 in the progressive mesh's order, what every
+# glTF reader opens; "quantize": KHR_mesh_quantization, which the mainstream engines
+# read (three.js, Babylon.js, Unity's glTFast, Godot 4, Blender); "meshopt": also
+# EXT_meshopt_compression, which needs a decoder in the viewer (three.js's
+# MeshoptDecoder, glTFast, Babylon.js): gltfpack -cc's form.
+COMPRESSIONS = ("none", "quantize", "meshopt")
+# What `lodserver export` writes unless told: quantized, as gltfpack writes by default
+# (its compression is opt-in, -c/-cc, and so is ours): a level takes about half the
+# bytes, and every mainstream engine reads it without a decoder.
+DEFAULT_COMPRESS = "quantize"
 
 
 # numpy dtype -> glTF componentType of the accessors written, and back
 _COMPONENTS = {"<f4": FLOAT, "<u4": UINT, "|u1": 5121, "<u2": 5123}
-_DTYPES = {FLOAT: "<f4", UINT: "<u4", 5121: "<u1", 5123: "<u2"}
+_DTYPES = {FLOAT: "<f4", UINT: "<u4", 5121: "<u1", 5123: "<u2", 5120: "<i1"}
 
 _TARGET = re.compile(r"TARGET(\d+)_(POSITION|NORMAL|TANGENT)")
 
 
-def encode_glb(mesh: Mesh) -> bytes:
+def encode_glb(mesh: Mesh, compress: str = "none") -> bytes:
     """A binary glTF 2.0 file of one mesh, with its attributes and materials.
 
     One node, one mesh, one primitive per material used (faces without a
     material in a primitive of their own); every image, texture and material of
     ``mesh.materials`` is written, used or not. A mesh with neither attributes
-    nor materials is written by the positions-only fast path.
+    nor materials is written by the positions-only fast path, uncompressed.
+    ``compress`` is one of :data:`COMPRESSIONS` (see :class:`GlbWriter`).
     """
-    if mesh.attributes is None and mesh.face_material is None and mesh.materials is None:
+    check_compress(compress)
+    if compress == "none" and mesh.attributes is None and mesh.face_material is None \
+            and mesh.materials is None:
         return geometry_glb(mesh.positions, mesh.faces)
-    writer = GlbWriter(mesh.materials)
+    writer = GlbWriter(mesh.materials, compress, boxes=[_box(mesh)])
     writer.add_mesh(mesh)
-    return writer.finish([{"mesh": 0}], scene_nodes=[0])
+    return writer.finish([writer.placed({"mesh": 0})], scene_nodes=[0])
 
 
-def encode_lod_chain(meshes: list[Mesh], screen_coverage: list[float]) -> bytes:
+def check_compress(compress: str) -> None:
+    """MeshError unless ``compress`` is one of :data:`COMPRESSIONS`."""
+    if compress not in COMPRESSIONS:
+        raise MeshError(f"compress must be one of {', '.join(COMPRESSIONS)}, "
+                        f"got {str(compress)[:40]!r}")
+
+
+def _box(mesh: Mesh) -> tuple[np.ndarray, np.ndarray]:
+    """(lo (3,), hi (3,)) of a mesh's positions (zeros for a mesh without any)."""
+    if not len(mesh.positions):
+        return np.zeros(3), np.zeros(3)
+    return mesh.positions.min(axis=0), mesh.positions.max(axis=0)
+
+
+def encode_lod_chain(meshes: list[Mesh], screen_coverage: list[float],
+                     compress: str = "none") -> bytes:
     """One GLB holding levels of detail, finest first, linked by the ``MSFT_lod`` extension.
 
     Parameters
@@ -89,9 +123,11 @@ def encode_lod_chain(meshes: list[Mesh], screen_coverage: list[float]) -> bytes:
             later > earlier for earlier, later in itertools.pairwise(coverage)):
         raise MeshError(f"screen coverage values must lie in [0, 1] and not increase, "
                         f"got {coverage}")
+    check_compress(compress)
     materials = meshes[0].materials
     count = materials.count if materials is not None else 0
-    writer = GlbWriter(materials)
+    # one position grid for every level, so that every LOD node has the same transform
+    writer = GlbWriter(materials, compress, boxes=[_box(mesh) for mesh in meshes])
     nodes = []
     for level, mesh in enumerate(meshes):
         used = mesh.face_material
@@ -99,7 +135,7 @@ def encode_lod_chain(meshes: list[Mesh], screen_coverage: list[float]) -> bytes:
             raise MeshError(f"level {level} uses material {int(used.max())}, "
                             f"but the first level has {count} materials")
         writer.add_mesh(mesh)
-        nodes.append({"name": f"LOD{level}", "mesh": level})
+        nodes.append(writer.placed({"name": f"LOD{level}", "mesh": level}))
     extensions = []
     if len(meshes) > 1:
         nodes[0]["extensions"] = {"MSFT_lod": {"ids": list(range(1, len(meshes)))}}
@@ -131,12 +167,74 @@ def coverage_from_ratios(ratios) -> list[float]:
 
 
 class GlbWriter:
-    """Accumulates the binary chunk, bufferViews, accessors and meshes of one GLB."""
+    """Accumulates the binary chunk, bufferViews, accessors and meshes of one GLB.
 
-    def __init__(self, materials: Materials | None):
+    ``compress`` (one of :data:`COMPRESSIONS`) chooses how meshes are stored:
+    ``"none"`` float32 attributes and uint32 indices in the mesh's face order;
+    ``"quantize"`` KHR_mesh_quantization (:mod:`.quantize`: int8 normals and
+    tangents, uint16 UVs and colours, and, when ``boxes`` is given, 14-bit positions
+    on one grid whose transform :meth:`placed` puts on every node drawing a mesh)
+    with each primitive in vertex cache and fetch order (:mod:`.vertex_order`);
+    ``"meshopt"`` the same, every vertex and index bufferView compressed by
+    EXT_meshopt_compression (normals and tangents by its octahedral filter), the
+    compressed bytes in the GLB's buffer and the decoded layout in a uri-less
+    fallback buffer (so the extension is required).
+    """
+
+    def __init__(self, materials: Materials | None, compress: str = "none", *, boxes=None):
+        check_compress(compress)
         self.blobs, self.size = [], 0
         self.views, self.accessors, self.meshes = [], [], []
         self.materials = materials
+        self.compress = compress
+        self.grid = position_grid(boxes) if boxes and compress != "none" else None
+        self.fallback = 0       # bytes of the decoded views in the fallback buffer
+
+    def placed(self, node: dict) -> dict:
+        """``node`` (one drawing a mesh of this writer) with the transform that undoes
+        the position grid, when positions are quantized on one."""
+        return {**node, **grid_transform(self.grid)} if self.grid is not None else node
+
+    def add_stream(self, stream, kind: str, *, bounds: bool = False,
+                   target: int = ARRAY_BUFFER) -> int:
+        """An accessor over a :class:`.quantize.Stream` (its own bufferView, meshopt
+        compressed when the writer compresses); its index."""
+        count, stride = stream.rows.shape
+        if self.compress == "meshopt" and count:
+            view = self.add_compressed_view(stream.rows, "ATTRIBUTES", stream.filter, target)
+        else:
+            view = self.add_view(stream.rows.tobytes(), target)
+        if stride != _element_bytes(stream):
+            self.views[view]["byteStride"] = stride     # rows padded to 4 bytes
+        accessor = {"bufferView": view, "componentType": stream.component, "count": count,
+                    "type": kind}
+        if stream.normalized:
+            accessor["normalized"] = True
+        if bounds:
+            accessor["min"], accessor["max"] = _bounds(stream.values)
+        self.accessors.append(accessor)
+        return len(self.accessors) - 1
+
+    def add_compressed_view(self, elements: np.ndarray, mode: str, kind: str = "NONE",
+                            target: int | None = None) -> int:
+        """A bufferView of ``elements`` (:func:`.meshopt.encode_view`'s input) stored
+        by EXT_meshopt_compression; its index."""
+        data, extension = encode_view(elements, mode, kind)
+        padding = -self.size % 4
+        if padding:
+            self.blobs.append(b"\0" * padding)
+            self.size += padding
+        extension.update(buffer=0, byteOffset=self.size)
+        self.blobs.append(data)
+        self.size += len(data)
+        length = extension["count"] * extension["byteStride"]
+        view = {"buffer": 1, "byteOffset": self.fallback, "byteLength": length,
+                "extensions": {MESHOPT: extension}}
+        if target is not None:
+            view["target"] = target
+        self.fallback += length + (-length % 4)
+        self.views.append(view)
+        return len(self.views) - 1
 
     def add_view(self, data: bytes, target: int | None = None) -> int:
         padding = -self.size % 4  # every bufferView starts 4-byte aligned
@@ -166,6 +264,8 @@ class GlbWriter:
 
     def add_mesh(self, mesh: Mesh) -> int:
         """A glTF mesh of ``mesh``'s primitives; its index."""
+        if self.compress != "none":
+            return self._add_compressed_mesh(mesh)
         primitives = []
         for material, vertices, attributes, indices in render_primitives(mesh):
             # glTF requires POSITION bounds, taken from the float32 values written
@@ -193,6 +293,57 @@ class GlbWriter:
             primitives.append(record)
         self.meshes.append({"primitives": primitives})
         return len(self.meshes) - 1
+
+    def _add_compressed_mesh(self, mesh: Mesh) -> int:
+        """:meth:`add_mesh` when quantizing or compressing: each primitive in vertex
+        cache and fetch order, its attributes as :mod:`.quantize` stores them."""
+        primitives = []
+        octahedral = self.compress == "meshopt"
+        for material, vertices, attributes, indices in render_primitives(mesh):
+            indices, order = optimize_order(indices, len(vertices))
+            vertices = vertices[order]
+            if self.grid is not None:
+                position = position_stream(vertices, self.grid)
+            else:
+                position = plain_stream(vertices.astype(np.float32))
+            record = {"attributes": {"POSITION": self.add_stream(position, "VEC3",
+                                                                  bounds=True)}}
+            targets = {}
+            for name, values in attributes.items():
+                values = values[order]
+                kind = "SCALAR" if values.shape[1] == 1 else f"VEC{values.shape[1]}"
+                morph = _TARGET.fullmatch(name)
+                stream = plain_stream(values) if morph else \
+                    attribute_stream(name, values, octahedral=octahedral)
+                index = self.add_stream(stream, kind, bounds=bool(morph)
+                                        and morph[2] == "POSITION")
+                if morph:
+                    targets.setdefault(int(morph[1]), {})[morph[2]] = index
+                else:
+                    record["attributes"][name] = index
+            if targets:
+                record["targets"] = [targets.get(t) or {"POSITION": self.add_stream(
+                    plain_stream(np.zeros((len(vertices), 3), np.float32)), "VEC3",
+                    bounds=True)} for t in range(max(targets) + 1)]
+            record["indices"] = self._add_indices(indices, len(vertices))
+            if material >= 0:
+                record["material"] = material
+            record["mode"] = TRIANGLES
+            primitives.append(record)
+        self.meshes.append({"primitives": primitives})
+        return len(self.meshes) - 1
+
+    def _add_indices(self, triangles: np.ndarray, vertex_count: int) -> int:
+        """The accessor of a primitive's triangles: uint16 when its vertices allow."""
+        dtype = "<u2" if vertex_count <= 0xFFFF else "<u4"
+        flat = np.ascontiguousarray(triangles.ravel(), dtype=dtype)
+        if self.compress == "meshopt" and flat.size:
+            view = self.add_compressed_view(flat, "TRIANGLES", target=ELEMENT_ARRAY_BUFFER)
+        else:
+            view = self.add_view(flat.tobytes(), ELEMENT_ARRAY_BUFFER)
+        self.accessors.append({"bufferView": view, "componentType": 5123 if dtype == "<u2"
+                               else UINT, "count": int(flat.size), "type": "SCALAR"})
+        return len(self.accessors) - 1
 
     def finish(self, nodes: list, *, scene_nodes: list, extensions=()) -> bytes:
         document = {"asset": {"version": "2.0", "generator": "lodserver"}, "scene": 0,
@@ -224,8 +375,18 @@ class GlbWriter:
             document.pop("extensionsRequired", None)
             if required:
                 document["extensionsRequired"] = list(required)
-        document.update(accessors=self.accessors, bufferViews=self.views,
-                        buffers=[{"byteLength": self.size + (-self.size % 4)}])
+        buffers = [{"byteLength": self.size + (-self.size % 4)}]
+        if self.compress != "none":
+            # what this writer's own meshes need to be read at all
+            needed = [QUANTIZATION] + ([MESHOPT] if self.fallback else [])
+            used += [name for name in needed if name not in used]
+            document["extensionsRequired"] = [*document.get("extensionsRequired", ()),
+                                              *(name for name in needed if name not in
+                                                document.get("extensionsRequired", ()))]
+        if self.fallback:
+            buffers.append({"byteLength": self.fallback,
+                            "extensions": {MESHOPT: {"fallback": True}}})
+        document.update(accessors=self.accessors, bufferViews=self.views, buffers=buffers)
         if used:
             document["extensionsUsed"] = used
         self.blobs.append(b"\0" * (-self.size % 4))
@@ -469,6 +630,11 @@ def level_glb(vertex_count: int, face_count: int, fill, *, copy: bool = True) ->
         out.flags.writeable = False
         return memoryview(out)
     return out.tobytes()
+
+
+def _element_bytes(stream) -> int:
+    """Bytes of one element of a :class:`.quantize.Stream`'s accessor, unpadded."""
+    return np.dtype(_DTYPES[stream.component]).itemsize * stream.width
 
 
 def _bounds(values: np.ndarray) -> tuple[list, list]:
