@@ -35,7 +35,7 @@ from .gltf import (ARRAY_BUFFER, ELEMENT_ARRAY_BUFFER, FLOAT, TRIANGLES, UINT,
 from .gltf_attributes import perpendicular
 from .meshopt import EXTENSION as MESHOPT, encode_view
 from .quantize import (EXTENSION as QUANTIZATION, attribute_stream, grid_transform,
-                       plain_stream, position_grid, position_stream)
+                       merge_vertices, plain_stream, position_grid, position_stream)
 from .vertex_order import optimize_order
 
 # How a GLB's meshes may be stored (GlbWriter): the CLI's --compress and the server's
@@ -53,7 +53,7 @@ DEFAULT_COMPRESS = "quantize"
 
 # numpy dtype -> glTF componentType of the accessors written, and back
 _COMPONENTS = {"<f4": FLOAT, "<u4": UINT, "|u1": 5121, "<u2": 5123}
-_DTYPES = {FLOAT: "<f4", UINT: "<u4", 5121: "<u1", 5123: "<u2", 5120: "<i1"}
+_DTYPES = {FLOAT: "<f4", UINT: "<u4", 5121: "<u1", 5123: "<u2", 5120: "<i1", 5122: "<i2"}
 
 _TARGET = re.compile(r"TARGET(\d+)_(POSITION|NORMAL|TANGENT)")
 
@@ -175,7 +175,8 @@ class GlbWriter:
     tangents, uint16 UVs and colours, and, when ``boxes`` is given, 14-bit positions
     on one grid whose transform :meth:`placed` puts on every node drawing a mesh)
     with each primitive in vertex cache and fetch order (:mod:`.vertex_order`);
-    ``"meshopt"`` the same, every vertex and index bufferView compressed by
+    ``"meshopt"`` the same (triangles in the strip-like cache order, which the codec
+    compresses best), every vertex and index bufferView compressed by
     EXT_meshopt_compression (normals and tangents by its octahedral filter), the
     compressed bytes in the GLB's buffer and the decoded layout in a uri-less
     fallback buffer (so the extension is required).
@@ -195,25 +196,33 @@ class GlbWriter:
         the position grid, when positions are quantized on one."""
         return {**node, **grid_transform(self.grid)} if self.grid is not None else node
 
-    def add_stream(self, stream, kind: str, *, bounds: bool = False,
-                   target: int = ARRAY_BUFFER) -> int:
-        """An accessor over a :class:`.quantize.Stream` (its own bufferView, meshopt
-        compressed when the writer compresses); its index."""
-        count, stride = stream.rows.shape
-        if self.compress == "meshopt" and count:
-            view = self.add_compressed_view(stream.rows, "ATTRIBUTES", stream.filter, target)
+    def add_streams(self, streams: list, kind: str, *, bounds: bool = False) -> list[int]:
+        """One accessor over each of ``streams`` (:class:`.quantize.Stream` of one
+        type and stride), their rows back to back in one bufferView (meshopt
+        compressed when the writer compresses): one view for a mesh's primitives,
+        as the codec's fixed cost and the JSON are per view. Their indices."""
+        rows = np.concatenate([stream.rows for stream in streams])
+        stride = rows.shape[1]
+        if self.compress == "meshopt" and len(rows):
+            view = self.add_compressed_view(rows, "ATTRIBUTES", streams[0].filter, ARRAY_BUFFER)
         else:
-            view = self.add_view(stream.rows.tobytes(), target)
-        if stride != _element_bytes(stream):
+            view = self.add_view(rows.tobytes(), ARRAY_BUFFER)
+        if stride != _element_bytes(streams[0]):
             self.views[view]["byteStride"] = stride     # rows padded to 4 bytes
-        accessor = {"bufferView": view, "componentType": stream.component, "count": count,
-                    "type": kind}
-        if stream.normalized:
-            accessor["normalized"] = True
-        if bounds:
-            accessor["min"], accessor["max"] = _bounds(stream.values)
-        self.accessors.append(accessor)
-        return len(self.accessors) - 1
+        found, start = [], 0
+        for stream in streams:
+            accessor = {"bufferView": view, "componentType": stream.component,
+                        "count": len(stream.rows), "type": kind}
+            if start:
+                accessor["byteOffset"] = start * stride
+            if stream.normalized:
+                accessor["normalized"] = True
+            if bounds:
+                accessor["min"], accessor["max"] = _bounds(stream.values)
+            self.accessors.append(accessor)
+            found.append(len(self.accessors) - 1)
+            start += len(stream.rows)
+        return found
 
     def add_compressed_view(self, elements: np.ndarray, mode: str, kind: str = "NONE",
                             target: int | None = None) -> int:
@@ -295,55 +304,75 @@ class GlbWriter:
         return len(self.meshes) - 1
 
     def _add_compressed_mesh(self, mesh: Mesh) -> int:
-        """:meth:`add_mesh` when quantizing or compressing: each primitive in vertex
-        cache and fetch order, its attributes as :mod:`.quantize` stores them."""
-        primitives = []
+        """:meth:`add_mesh` when quantizing or compressing: each primitive's attributes
+        as :mod:`.quantize` stores them, vertices equal once stored merged, then in
+        vertex cache and fetch order; the primitives' streams of one kind share a
+        bufferView, their indices another."""
         octahedral = self.compress == "meshopt"
+        records, shared, triangles = [], {}, []
         for material, vertices, attributes, indices in render_primitives(mesh):
-            indices, order = optimize_order(indices, len(vertices))
-            vertices = vertices[order]
-            if self.grid is not None:
-                position = position_stream(vertices, self.grid)
-            else:
-                position = plain_stream(vertices.astype(np.float32))
-            record = {"attributes": {"POSITION": self.add_stream(position, "VEC3",
-                                                                  bounds=True)}}
-            targets = {}
+            streams = {"POSITION": position_stream(vertices, self.grid) if self.grid is not None
+                       else plain_stream(vertices.astype(np.float32))}
             for name, values in attributes.items():
-                values = values[order]
-                kind = "SCALAR" if values.shape[1] == 1 else f"VEC{values.shape[1]}"
-                morph = _TARGET.fullmatch(name)
-                stream = plain_stream(values) if morph else \
+                streams[name] = plain_stream(values) if _TARGET.fullmatch(name) else \
                     attribute_stream(name, values, octahedral=octahedral)
-                index = self.add_stream(stream, kind, bounds=bool(morph)
-                                        and morph[2] == "POSITION")
-                if morph:
-                    targets.setdefault(int(morph[1]), {})[morph[2]] = index
-                else:
-                    record["attributes"][name] = index
-            if targets:
-                record["targets"] = [targets.get(t) or {"POSITION": self.add_stream(
-                    plain_stream(np.zeros((len(vertices), 3), np.float32)), "VEC3",
-                    bounds=True)} for t in range(max(targets) + 1)]
-            record["indices"] = self._add_indices(indices, len(vertices))
+            streams, indices = merge_vertices(streams, indices)
+            indices, order = optimize_order(indices, len(streams["POSITION"].rows),
+                                            strip=octahedral)
+            record = {"attributes": {}, "mode": TRIANGLES}
             if material >= 0:
                 record["material"] = material
-            record["mode"] = TRIANGLES
-            primitives.append(record)
-        self.meshes.append({"primitives": primitives})
+            for name, stream in streams.items():
+                stream = stream.take(order)
+                key = (name, stream.component, stream.width, stream.rows.shape[1],
+                       stream.normalized, stream.filter)
+                shared.setdefault(key, []).append((len(records), stream))
+            records.append(record)
+            triangles.append(indices)
+        targets = [{} for _ in records]
+        for (name, _, width, *_), members in shared.items():
+            kind = "SCALAR" if width == 1 else f"VEC{width}"
+            morph = _TARGET.fullmatch(name)
+            # POSITION and a morph target's POSITION need min and max
+            found = self.add_streams([stream for _, stream in members], kind,
+                                     bounds=name == "POSITION" or bool(morph)
+                                     and morph[2] == "POSITION")
+            for (number, _), index in zip(members, found):
+                if morph:
+                    targets[number].setdefault(int(morph[1]), {})[morph[2]] = index
+                else:
+                    records[number]["attributes"][name] = index
+        for record, found, indices in zip(records, targets, triangles):
+            if found:
+                count = self.accessors[record["attributes"]["POSITION"]]["count"]
+                record["targets"] = [found.get(t) or {"POSITION": self.add_streams(
+                    [plain_stream(np.zeros((count, 3), np.float32))], "VEC3", bounds=True)[0]}
+                    for t in range(max(found) + 1)]
+        for record, index in zip(records, self._add_indices(triangles)):
+            record["indices"] = index
+        self.meshes.append({"primitives": records})
         return len(self.meshes) - 1
 
-    def _add_indices(self, triangles: np.ndarray, vertex_count: int) -> int:
-        """The accessor of a primitive's triangles: uint16 when its vertices allow."""
-        dtype = "<u2" if vertex_count <= 0xFFFF else "<u4"
-        flat = np.ascontiguousarray(triangles.ravel(), dtype=dtype)
+    def _add_indices(self, triangles: list) -> list[int]:
+        """The index accessors of a mesh's primitives ((f, 3) triangles each), back to
+        back in one bufferView: uint16 when every primitive's vertices allow."""
+        wide = any(len(t) and int(t.max()) > 0xFFFF for t in triangles)
+        dtype = "<u4" if wide else "<u2"
+        flat = np.concatenate([np.ravel(t) for t in triangles]).astype(dtype)
         if self.compress == "meshopt" and flat.size:
             view = self.add_compressed_view(flat, "TRIANGLES", target=ELEMENT_ARRAY_BUFFER)
         else:
             view = self.add_view(flat.tobytes(), ELEMENT_ARRAY_BUFFER)
-        self.accessors.append({"bufferView": view, "componentType": 5123 if dtype == "<u2"
-                               else UINT, "count": int(flat.size), "type": "SCALAR"})
-        return len(self.accessors) - 1
+        found, start = [], 0
+        for t in triangles:
+            accessor = {"bufferView": view, "componentType": UINT if wide else 5123,
+                        "count": int(t.size), "type": "SCALAR"}
+            if start:
+                accessor["byteOffset"] = start * np.dtype(dtype).itemsize
+            self.accessors.append(accessor)
+            found.append(len(self.accessors) - 1)
+            start += t.size
+        return found
 
     def finish(self, nodes: list, *, scene_nodes: list, extensions=()) -> bytes:
         document = {"asset": {"version": "2.0", "generator": "lodserver"}, "scene": 0,

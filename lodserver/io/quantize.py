@@ -31,8 +31,9 @@ BYTE, UNSIGNED_BYTE, SHORT, UNSIGNED_SHORT, FLOAT = 5120, 5121, 5122, 5123, 5126
 
 # Attribute (name prefix) -> (componentType, normalized) when quantized, and why:
 # unit vectors need a degree or so (int8: 0.5 degree steps, the spec's allowed type);
-# UVs in [0, 1] a sixteenth of a texel of a 4k texture (uint16; outside [0, 1] they
-# stay float, since a texture transform would be needed to rescale them); linear
+# UVs a sixteenth of a texel of a 4k texture (uint16 in [0, 1]; int16 in [-1, 1], a
+# little past the unit square as atlases often are; beyond that they stay float, since
+# a texture transform on the materials would be needed to rescale them); linear
 # colours 16 bits (8 bits band in the darks); skin, morph and custom columns stay as
 # the writer has them (weights must sum to 1, which rounding would break).
 RULES = {
@@ -72,6 +73,11 @@ class Stream:
     normalized: bool = False
     filter: str = "NONE"
 
+    def take(self, rows: np.ndarray) -> Stream:
+        """The stream of ``rows`` (an index array) of this one."""
+        return Stream(self.rows[rows], self.component, self.width, self.normalized,
+                      self.filter)
+
     @property
     def values(self) -> np.ndarray:
         """(count, width) values as the accessor reads them (after any filter is undone
@@ -106,13 +112,51 @@ def attribute_stream(name: str, values: np.ndarray, *, octahedral: bool = False)
     component, normalized = rule
     if name.startswith("TEXCOORD_") and not (values.min(initial=0) >= 0
                                              and values.max(initial=0) <= 1):
-        return plain_stream(values)
+        if not (values.min(initial=0) >= -1 and values.max(initial=0) <= 1):
+            return plain_stream(values)
+        component = SHORT
     width = values.shape[1]
     if octahedral and name in ("NORMAL", "TANGENT"):
         return Stream(_rows(encode_octahedral(values)), BYTE, width, True, "OCTAHEDRAL")
     scale = _SCALE[component]
     stored = np.rint(np.asarray(values, np.float64) * scale).astype(_DTYPES[component])
     return Stream(_rows(stored), component, width, normalized)
+
+
+def merge_vertices(streams: dict, triangles: np.ndarray) -> tuple[dict, np.ndarray]:
+    """Vertices whose stored rows are equal in every stream merged into one, and the
+    triangles this leaves without area (two corners one vertex) dropped.
+
+    Wedges apart before quantization may round to the same bytes (normals a hair
+    apart, a UV seam of a thousandth of a texel): stored twice they cost twice, and
+    the index codec sees a seam that is not there.
+
+    Parameters
+    ----------
+    streams : dict of str to Stream
+        One primitive's streams, (r, stride) rows each.
+    triangles : (f, 3) integer array
+        Its triangles over the r vertices.
+
+    Returns
+    -------
+    streams : dict of str to Stream
+        The distinct vertices' rows, in order of first occurrence.
+    triangles : (g, 3) uint32
+        Over them, g <= f.
+    """
+    table = np.ascontiguousarray(np.concatenate([s.rows for s in streams.values()], axis=1))
+    keys = table.view(np.dtype((np.void, table.shape[1]))).ravel()
+    _, first, inverse = np.unique(keys, return_index=True, return_inverse=True)
+    order = np.argsort(first, kind="stable")
+    rank = np.empty(len(order), np.int64)
+    rank[order] = np.arange(len(order))
+    mapped = rank[inverse.ravel()][np.asarray(triangles, dtype=np.int64)]
+    kept = (mapped[:, 0] != mapped[:, 1]) & (mapped[:, 1] != mapped[:, 2]) \
+        & (mapped[:, 2] != mapped[:, 0])
+    rows = first[order]
+    return ({name: stream.take(rows) for name, stream in streams.items()},
+            mapped[kept].astype(np.uint32))
 
 
 def position_grid(boxes) -> tuple[np.ndarray, float]:

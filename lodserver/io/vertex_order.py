@@ -2,7 +2,7 @@
 
 :func:`optimize_order` reorders one primitive's triangles for the post-transform
 vertex cache (meshoptimizer's ``optimize_vertex_cache``, Forsyth's algorithm as
-meshoptimizer tunes it) and then its vertices in the order the triangles first
+meshoptimizer tunes it, or its strip-like variant for the smallest compressed file) and then its vertices in the order the triangles first
 use them (what ``meshopt_optimizeVertexFetchRemap`` computes; done here in numpy,
 as the PyPI wrapper declares no ctypes signature for that function). Both orders
 are also what EXT_meshopt_compression's codecs compress best.
@@ -16,7 +16,8 @@ from __future__ import annotations
 import numpy as np
 
 
-def optimize_order(triangles: np.ndarray, vertex_count: int) -> tuple[np.ndarray, np.ndarray]:
+def optimize_order(triangles: np.ndarray, vertex_count: int, *,
+                   strip: bool = False) -> tuple[np.ndarray, np.ndarray]:
     """A primitive's triangles in vertex-cache order over its vertices in fetch order.
 
     Parameters
@@ -25,6 +26,11 @@ def optimize_order(triangles: np.ndarray, vertex_count: int) -> tuple[np.ndarray
         Triangles over ``vertex_count`` vertices, every vertex used.
     vertex_count : int
         The primitive's vertices.
+    strip : bool
+        Order the triangles as strips do (``optimize_vertex_cache_strip``): a little
+        more cache missing, but consecutive triangles share edges, which
+        EXT_meshopt_compression's triangle codec stores in fewer bytes (what
+        gltfpack -cc does).
 
     Returns
     -------
@@ -40,7 +46,9 @@ def optimize_order(triangles: np.ndarray, vertex_count: int) -> tuple[np.ndarray
     if flat.size == 0:
         return triangles.astype(np.uint32), np.arange(vertex_count)
     cached = np.empty_like(flat)
-    meshoptimizer.optimize_vertex_cache(cached, flat, flat.size, vertex_count)
+    optimize = meshoptimizer.optimize_vertex_cache_strip if strip else \
+        meshoptimizer.optimize_vertex_cache
+    optimize(cached, flat, flat.size, vertex_count)
     used, first = np.unique(cached, return_index=True)
     order = used[np.argsort(first, kind="stable")].astype(np.int64)
     remap = np.empty(vertex_count, dtype=np.uint32)
