@@ -38,8 +38,9 @@ from pathlib import Path, PurePosixPath
 
 from .folders import (MANIFEST, MANIFEST_VERSION, Folder, fetch_with_references, filesystem,
                       is_url, listing)
-from .io.glb import check_compress, coverage_from_ratios, encode_lod_chain
-from .io import SUPPORTED_INPUT, encode_mesh, write_atomic
+from .io.glb import (LOD_NAMINGS, check_compress, coverage_from_ratios, encode_glb,
+                     encode_lod_chain, lod_name)
+from .io import SUPPORTED_INPUT, write_atomic
 from .mesh import Mesh, MeshError
 from .options import BuildOptions
 from .progressive.mesh import ProgressiveMesh
@@ -186,6 +187,12 @@ class ChainOptions:
         (float32, the progressive mesh's order: lossless, the library's default),
         ``"quantize"`` (the command line's default, ``io.glb.DEFAULT_COMPRESS``) or
         ``"meshopt"``.
+    naming : str
+        How one file's levels are told apart (``io.glb.LOD_NAMINGS``): ``"msft"``
+        (the ``MSFT_lod`` extension, nodes ``LOD0``...), ``"suffix"`` (nodes
+        ``STEM_LOD0``... under a root ``STEM``, all in the scene) or ``"both"``. With
+        ``separate`` each file's node is ``STEM_LODi`` whatever it says. A scene's
+        levels are linked by ``MSFT_lod`` only.
     reach : str
         ``"none"``: a level edge collapse cannot bring down to its budget stays
         at the coarsest it reaches. ``"cluster"``: such a level is made by vertex
@@ -201,10 +208,14 @@ class ChainOptions:
     separate: bool = False
     reach: str = "none"
     compress: str = "none"
+    naming: str = "msft"
 
     def __post_init__(self):
         check_reach(self.reach)
         check_compress(self.compress)
+        if self.naming not in LOD_NAMINGS:
+            raise MeshError(f"LOD naming must be one of {', '.join(LOD_NAMINGS)}, "
+                            f"got {str(self.naming)[:40]!r}")
         if self.lods is not None and self.errors is not None:
             raise MeshError("give LOD ratios or LOD errors, not both")
         if self.errors is not None:
@@ -301,9 +312,11 @@ def _write_chain(output: Path, chain: ChainOptions, meshes, coverage) -> list[Pa
     if chain.separate:
         outputs = [output.with_name(f"{output.stem}_lod{i}{output.suffix}")
                    for i in range(len(meshes))]
-        blobs = [encode_mesh(mesh, "glb", compress=chain.compress) for mesh in meshes]
+        blobs = [encode_glb(mesh, chain.compress, name=lod_name(output.stem, i))
+                 for i, mesh in enumerate(meshes)]
     else:
-        outputs, blobs = [output], [encode_lod_chain(meshes, coverage, chain.compress)]
+        outputs, blobs = [output], [encode_lod_chain(meshes, coverage, chain.compress,
+                                                     naming=chain.naming, name=output.stem)]
     output.parent.mkdir(parents=True, exist_ok=True)
     for path, blob in zip(outputs, blobs):
         write_atomic(path, blob)
@@ -346,6 +359,9 @@ def _export_scene(scene, source: Path, output: Path, chain: ChainOptions, option
     """
     from .budget import chain_levels, coverage_from_errors, scene_instances, world_errors
     from .io.scene_glb import encode_scene
+    if chain.naming != "msft":
+        raise MeshError(f"{source.name} is a glTF scene, whose levels are linked by MSFT_lod: "
+                        f"--lod-naming {chain.naming} applies to single meshes")
     if not scene.meshes and not scene.as_is:
         raise MeshError(f"cannot load {source.name}: it has no faces (no node of it places "
                         "a mesh)")
@@ -536,8 +552,11 @@ def export_folder(source, output, chain: ChainOptions | None = None, *, jobs: in
                 "separate": chain.separate, "reach": chain.reach, "build": options.model_dump()}
     if chain.errors is not None:
         recorded["errors"] = list(chain.errors)
-    if chain.compress != "none":    # (the manifests of uncompressed runs stay as they were)
+    # (recorded when not the default, so the manifests of earlier runs stay as they were)
+    if chain.compress != "none":
         recorded["compress"] = chain.compress
+    if chain.naming != "msft":
+        recorded["naming"] = chain.naming
 
     def recorded_for(relative) -> dict:
         # a glTF scene's levels depend on whether they share one budget; other

@@ -111,7 +111,8 @@ def read_gltf(path: Path, kind: str, *, root: Path | None = None,
     MeshError
         If the file is not glTF, a buffer or image it names is missing or not
         allowed, an accessor runs past its data, an image is not PNG, JPEG,
-        WebP or KTX2, it needs a compression extension, or it places no
+        WebP or KTX2, a compressed view or Draco stream cannot be decoded
+        (:mod:`.meshopt`, :mod:`.draco`), or it places no
         triangles.
     LimitError
         If what it declares exceeds ``limits``.

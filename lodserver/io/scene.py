@@ -46,8 +46,8 @@ HONOURED_REQUIRED = frozenset({
     "KHR_materials_dispersion", "KHR_materials_pbrSpecularGlossiness", "EXT_mesh_gpu_instancing",
 })
 
-# Extensions that describe geometry the output writes afresh (float32 attributes,
-# uint32 indices): dropped from extensionsUsed/Required of the output.
+# Extensions that describe geometry the output writes afresh (as its compress= says,
+# io.glb.GlbWriter): dropped from extensionsUsed/Required of the output.
 GEOMETRY_EXTENSIONS = frozenset({"KHR_mesh_quantization", "KHR_draco_mesh_compression",
                                  "EXT_meshopt_compression"})
 
@@ -116,7 +116,7 @@ def load_scene(path, *, root=None, limits: LoadLimits | None = None) -> Scene:
     ------
     MeshError
         For what :func:`load_mesh` refuses, and for an ``extensionsRequired``
-        entry lodserver cannot honour (e.g. ``KHR_draco_mesh_compression``),
+        entry lodserver cannot honour (a vendor's geometry extension),
         one sentence naming the file by its name only; and for a node tree, skin,
         morph weights or animation that cannot be evaluated
         (:func:`.animation.check_scene`: cycles, joints or channel targets that are

@@ -183,7 +183,8 @@ def test_compressed_primitives_are_in_vertex_cache_order(shared_meshes):
 
 
 @pytest.mark.parametrize("compress", ["quantize", "meshopt"])
-def test_compressed_chain_keeps_msft_lod_and_one_grid(tmp_path, compress):
+def test_compressed_chain_keeps_msft_lod_and_one_grid(tmp_path, compress,
+                                                      gltf_validator):  # noqa: F811
     mesh, _ = load_mesh(DATA / "spot.obj")
     pm = build(mesh)
     ratios = [1.0, 0.5, 0.1]
@@ -191,6 +192,7 @@ def test_compressed_chain_keeps_msft_lod_and_one_grid(tmp_path, compress):
     data = encode_lod_chain(levels, coverage_from_ratios(ratios), compress)
     document, _ = split_glb(data)
     assert document["nodes"][0]["extensions"]["MSFT_lod"]["ids"] == [1, 2]
+    assert_valid(gltf_validator, data, f"spot's chain, {compress}")
     transforms = {json.dumps({k: n.get(k) for k in ("translation", "scale")})
                   for n in document["nodes"]}
     assert len(transforms) == 1 and "null" not in transforms.pop()
