@@ -67,3 +67,21 @@ def test_compress_applies_to_glb_only(served):
     response = client.get(f"/meshes/{mesh_id}/lod", params={"ratio": 0.5, "format": "glb",
                                                              "compress": "zip"})
     assert response.status_code == 422
+
+
+def test_draco_upload_builds_and_a_bomb_is_refused(served):
+    from ..io.test_gltf_compressed_hostile import draco_glb
+
+    client, _ = served
+    created = client.post("/meshes", files={"file": ("grid.glb", draco_glb(size=8))})
+    assert created.status_code == 202, created.text
+    assert settled(client, created.json()["id"])["status"] == "ready"
+
+    def bomb(document, stream):
+        return b"DRACO\x02\x02\x01\x00\x00\x00" + b"\x80\x94\xeb\xdc\x03" * 2 + bytes(32)
+
+    # the upload is parsed before it is accepted: refused with a sentence
+    response = client.post("/meshes", files={"file": ("bomb.glb", draco_glb(edit=bomb))})
+    assert response.status_code == 422, response.text
+    message = response.json()["message"]
+    assert "Draco bitstream 1000000000 triangles" in message and "/" not in message
