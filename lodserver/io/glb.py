@@ -225,6 +225,7 @@ class GlbWriter:
         self.compress = compress
         self.grid = position_grid(boxes) if boxes and compress != "none" else None
         self.fallback = 0       # bytes of the decoded views in the fallback buffer
+        self.same = _same_materials(materials)
 
     def placed(self, node: dict) -> dict:
         """``node`` (one drawing a mesh of this writer) with the transform that undoes
@@ -339,12 +340,19 @@ class GlbWriter:
         return len(self.meshes) - 1
 
     def _add_compressed_mesh(self, mesh: Mesh) -> int:
-        """:meth:`add_mesh` when quantizing or compressing: each primitive's attributes
-        as :mod:`.quantize` stores them, vertices equal once stored merged, then in
-        vertex cache and fetch order; the primitives' streams of one kind share a
-        bufferView, their indices another."""
+        """:meth:`add_mesh` when quantizing or compressing: one primitive per distinct
+        material record, its attributes as :mod:`.quantize` stores them, vertices
+        equal once stored merged, then in vertex cache and fetch order; the
+        primitives' streams of one kind share a bufferView, their indices another."""
         octahedral = self.compress == "meshopt"
         records, shared, triangles = [], {}, []
+        if mesh.face_material is not None and self.same is not None:
+            # faces of equal materials drawn by one primitive (the duplicates stay
+            # in the materials list, unused)
+            mesh = Mesh(mesh.positions, mesh.faces, mesh.attributes,
+                        np.where(mesh.face_material >= 0,
+                                 self.same[np.maximum(mesh.face_material, 0)], -1)
+                        .astype(np.int32), mesh.materials)
         for material, vertices, attributes, indices in render_primitives(mesh):
             streams = {"POSITION": position_stream(vertices, self.grid) if self.grid is not None
                        else plain_stream(vertices.astype(np.float32))}
@@ -534,6 +542,18 @@ def level_glb(vertex_count: int, face_count: int, fill, *, copy: bool = True) ->
         out.flags.writeable = False
         return memoryview(out)
     return out.tobytes()
+
+
+def _same_materials(materials: Materials | None) -> np.ndarray | None:
+    """(k,) int32: for each material, the first one whose record is equal to it
+    (textures are named by index, so equal records draw alike); None when all differ."""
+    records = (materials.gltf.get("materials") or []) if materials is not None else []
+    first, same = {}, []
+    for index, record in enumerate(records):
+        same.append(first.setdefault(json.dumps(record, sort_keys=True), index))
+    if same == list(range(len(records))):
+        return None
+    return np.asarray(same, dtype=np.int32)
 
 
 def _element_bytes(stream) -> int:

@@ -70,7 +70,8 @@ def decode_independently(data: bytes, node: int = 0):
         width = _WIDTHS[record["type"]]
         view = document["bufferViews"][record["bufferView"]]
         stride = view.get("byteStride", dtype.itemsize * width)
-        raw = np.frombuffer(views[record["bufferView"]], np.uint8).reshape(record["count"], stride)
+        raw = np.frombuffer(views[record["bufferView"]], np.uint8, record["count"] * stride,
+                            record.get("byteOffset", 0)).reshape(record["count"], stride)
         values = np.ascontiguousarray(raw[:, :dtype.itemsize * width]).view(dtype)
         values = values.astype(np.float64)
         if record.get("normalized"):
@@ -254,3 +255,27 @@ def test_scene_export_compresses_its_levels(tmp_path):
     scene = load_scene(out)
     assert [m.face_count for m in scene.meshes.values()]
     assert "skins" in document and "animations" in document
+
+
+def test_equal_materials_share_one_primitive():
+    from lodserver.mesh import Materials, Mesh
+    mesh, _ = load_mesh(DATA / "spot.obj")
+    red = {"pbrMetallicRoughness": {"baseColorFactor": [1, 0, 0, 1]}}
+    blue = {"pbrMetallicRoughness": {"baseColorFactor": [0, 0, 1, 1]}}
+    materials = Materials({"materials": [red, dict(red), blue], "textures": [], "samplers": [],
+                           "images": []}, ())
+    face_material = (np.arange(mesh.face_count) % 3).astype(np.int32)
+    painted = Mesh(mesh.positions, mesh.faces, mesh.attributes, face_material, materials)
+    plain, _ = split_glb(encode_glb(painted))
+    assert [p["material"] for p in plain["meshes"][0]["primitives"]] == [0, 1, 2]
+    for compress in ("quantize", "meshopt"):
+        data = encode_glb(painted, compress)
+        document, _ = split_glb(data)
+        primitives = document["meshes"][0]["primitives"]
+        assert [p["material"] for p in primitives] == [0, 2]
+        assert len(document["materials"]) == 3        # the list as it was
+        # the primitives read back from their shared views (accessor byteOffsets)
+        decoded = as_mesh(decode_independently(data), painted.attributes.layout, materials)
+        assert decoded.face_count == mesh.face_count
+        errors = attribute_errors(painted, decoded, _step(painted))
+        assert errors["TEXCOORD_0"] <= 2 / 65535
