@@ -19,6 +19,7 @@ from pathlib import Path
 
 from . import __version__
 from .io import SUPPORTED_OUTPUT
+from .io.glb import COMPRESSIONS, DEFAULT_COMPRESS, LOD_NAMINGS
 from .mesh import MeshError
 from .options import METHODS, BuildOptions, Flag, describe_error, field_default_text
 
@@ -235,7 +236,8 @@ def _cmd_export(args) -> int:
     else:
         ratios, errors = parse_lods(args.lods or DEFAULT_LODS_TEXT), None
     chain = ChainOptions(lods=ratios, errors=errors, per_mesh=args.per_mesh,
-                         separate=args.separate, reach=args.reach)
+                         separate=args.separate, reach=args.reach, compress=args.compress,
+                         naming=args.lod_naming)
     options = options_from(args)
     if is_url(args.source) or Path(args.source).is_dir():
         if Path(args.output).suffix.lower() == ".glb":
@@ -510,7 +512,22 @@ def _parser() -> argparse.ArgumentParser:
                    help="the .glb file to write; for a folder source, the folder to write "
                         "into (created either way)")
     p.add_argument("--separate", action="store_true",
-                   help="write OUT_lod0.glb, OUT_lod1.glb, ... instead of one file with MSFT_lod")
+                   help="write OUT_lod0.glb, OUT_lod1.glb, ... (their nodes named OUT_LOD0, "
+                        "OUT_LOD1, ...) instead of one file")
+    p.add_argument("--lod-naming", choices=LOD_NAMINGS, default="msft",
+                   help="how one file's levels are told apart: msft (the MSFT_lod extension, "
+                        "read by Babylon.js; default), suffix (nodes OUT_LOD0, OUT_LOD1, ... "
+                        "under a root OUT, all in the scene: the convention Unity and Unreal "
+                        "import LOD groups by) or both (MSFT_lod, nodes named OUT_LODn); a "
+                        "glTF scene's levels are linked by MSFT_lod only")
+    p.add_argument("--compress", choices=COMPRESSIONS, default=DEFAULT_COMPRESS,
+                   help=f"how the GLB files store the levels: none (float32, what any glTF "
+                        f"reader opens), quantize (KHR_mesh_quantization: 14-bit positions, "
+                        f"8-bit normals, 16-bit UVs; read by three.js, Babylon.js, Unity's "
+                        f"glTFast, Godot and Blender) or meshopt (also EXT_meshopt_compression, "
+                        f"gltfpack -cc's form; the viewer needs a decoder such as three.js's "
+                        f"MeshoptDecoder); both in vertex cache and fetch order (default "
+                        f"{DEFAULT_COMPRESS})")
     p.add_argument("--reach", choices=("none", "cluster"), default="none",
                    help="levels edge collapse cannot bring down to their budget (locked, "
                         "non-manifold or separate parts): keep the coarsest it reaches (none, "

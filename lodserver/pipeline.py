@@ -38,8 +38,9 @@ from pathlib import Path, PurePosixPath
 
 from .folders import (MANIFEST, MANIFEST_VERSION, Folder, fetch_with_references, filesystem,
                       is_url, listing)
-from .io.glb import coverage_from_ratios, encode_lod_chain
-from .io import SUPPORTED_INPUT, encode_mesh, write_atomic
+from .io.glb import (LOD_NAMINGS, check_compress, coverage_from_ratios, encode_glb,
+                     encode_lod_chain, lod_name)
+from .io import SUPPORTED_INPUT, write_atomic
 from .mesh import Mesh, MeshError
 from .options import BuildOptions
 from .progressive.mesh import ProgressiveMesh
@@ -181,6 +182,17 @@ class ChainOptions:
         ``errors``.
     separate : bool
         Write ``OUT_lod0.glb``, ``OUT_lod1.glb``, ... instead of one file.
+    compress : str
+        How the GLB files store the levels (``io.glb.COMPRESSIONS``): ``"none"``
+        (float32, the progressive mesh's order: lossless, the library's default),
+        ``"quantize"`` (the command line's default, ``io.glb.DEFAULT_COMPRESS``) or
+        ``"meshopt"``.
+    naming : str
+        How one file's levels are told apart (``io.glb.LOD_NAMINGS``): ``"msft"``
+        (the ``MSFT_lod`` extension, nodes ``LOD0``...), ``"suffix"`` (nodes
+        ``STEM_LOD0``... under a root ``STEM``, all in the scene) or ``"both"``. With
+        ``separate`` each file's node is ``STEM_LODi`` whatever it says. A scene's
+        levels are linked by ``MSFT_lod`` only.
     reach : str
         ``"none"``: a level edge collapse cannot bring down to its budget stays
         at the coarsest it reaches. ``"cluster"``: such a level is made by vertex
@@ -195,9 +207,15 @@ class ChainOptions:
     per_mesh: bool = False
     separate: bool = False
     reach: str = "none"
+    compress: str = "none"
+    naming: str = "msft"
 
     def __post_init__(self):
         check_reach(self.reach)
+        check_compress(self.compress)
+        if self.naming not in LOD_NAMINGS:
+            raise MeshError(f"LOD naming must be one of {', '.join(LOD_NAMINGS)}, "
+                            f"got {str(self.naming)[:40]!r}")
         if self.lods is not None and self.errors is not None:
             raise MeshError("give LOD ratios or LOD errors, not both")
         if self.errors is not None:
@@ -284,19 +302,21 @@ def export_lods(source, output, chain: ChainOptions | None = None, *,
         (meshes, coverage), clustered = error_chain(pm, chain.errors), []
     else:
         meshes, coverage, clustered = lod_chain(pm, chain.lods, reach=chain.reach)
-    outputs = _write_chain(output, chain.separate, meshes, coverage)
+    outputs = _write_chain(output, chain, meshes, coverage)
     return Exported(source, outputs, [mesh.face_count for mesh in meshes], coverage,
                     time.perf_counter() - start, pm.faces_at_level(pm.base_vertices),
                     clustered)
 
 
-def _write_chain(output: Path, separate: bool, meshes, coverage) -> list[Path]:
-    if separate:
+def _write_chain(output: Path, chain: ChainOptions, meshes, coverage) -> list[Path]:
+    if chain.separate:
         outputs = [output.with_name(f"{output.stem}_lod{i}{output.suffix}")
                    for i in range(len(meshes))]
-        blobs = [encode_mesh(mesh, "glb") for mesh in meshes]
+        blobs = [encode_glb(mesh, chain.compress, name=lod_name(output.stem, i))
+                 for i, mesh in enumerate(meshes)]
     else:
-        outputs, blobs = [output], [encode_lod_chain(meshes, coverage)]
+        outputs, blobs = [output], [encode_lod_chain(meshes, coverage, chain.compress,
+                                                     naming=chain.naming, name=output.stem)]
     output.parent.mkdir(parents=True, exist_ok=True)
     for path, blob in zip(outputs, blobs):
         write_atomic(path, blob)
@@ -339,6 +359,9 @@ def _export_scene(scene, source: Path, output: Path, chain: ChainOptions, option
     """
     from .budget import chain_levels, coverage_from_errors, scene_instances, world_errors
     from .io.scene_glb import encode_scene
+    if chain.naming != "msft":
+        raise MeshError(f"{source.name} is a glTF scene, whose levels are linked by MSFT_lod: "
+                        f"--lod-naming {chain.naming} applies to single meshes")
     if not scene.meshes and not scene.as_is:
         raise MeshError(f"cannot load {source.name}: it has no faces (no node of it places "
                         "a mesh)")
@@ -375,9 +398,11 @@ def _export_scene(scene, source: Path, output: Path, chain: ChainOptions, option
     coverage = coverage_from_errors(worst, diagonal) if count else []
     if chain.separate:
         outputs = [output.with_name(f"{output.stem}_lod{i}{output.suffix}") for i in range(count)]
-        blobs = [encode_scene(scene, levels, coverage, level=i) for i in range(count)]
+        blobs = [encode_scene(scene, levels, coverage, level=i, compress=chain.compress)
+                 for i in range(count)]
     else:
-        outputs, blobs = [output], [encode_scene(scene, levels, coverage)]
+        outputs, blobs = [output], [encode_scene(scene, levels, coverage,
+                                                 compress=chain.compress)]
     output.parent.mkdir(parents=True, exist_ok=True)
     for path, blob in zip(outputs, blobs):
         write_atomic(path, blob)
@@ -527,6 +552,11 @@ def export_folder(source, output, chain: ChainOptions | None = None, *, jobs: in
                 "separate": chain.separate, "reach": chain.reach, "build": options.model_dump()}
     if chain.errors is not None:
         recorded["errors"] = list(chain.errors)
+    # (recorded when not the default, so the manifests of earlier runs stay as they were)
+    if chain.compress != "none":
+        recorded["compress"] = chain.compress
+    if chain.naming != "msft":
+        recorded["naming"] = chain.naming
 
     def recorded_for(relative) -> dict:
         # a glTF scene's levels depend on whether they share one budget; other

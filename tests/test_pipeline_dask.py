@@ -200,8 +200,9 @@ def test_the_cli_on_a_local_cluster_with_s3_folders(tmp_path, s3_url, capsys):
     source = _assets(tmp_path / "assets")
     export_folder(source, tmp_path / "local", lods=LODS)
     _upload(source, f"{s3_url}/assets")
+    # --compress none: what export_folder writes by default, compared below
     command = ["export", f"{s3_url}/assets", "-o", f"{s3_url}/lods", "--lods", "1,0.3",
-               "--scheduler", "local", "--jobs", "2"]
+               "--scheduler", "local", "--jobs", "2", "--compress", "none"]
     assert main(command) == 1
     err = capsys.readouterr().err
     assert "spot.obj -> spot.glb: 2 levels of 5856, " in err

@@ -23,14 +23,18 @@ per vertex and material); a file without any attributes or materials yields
 Where the arrays come from, one module each:
 
 - :mod:`.obj`: OBJ and MTL, a reader of its own (trimesh's splits seams).
-- :mod:`.gltf`: glTF/GLB, which keeps the image bytes as stored.
+- :mod:`.gltf`: glTF/GLB, which keeps the image bytes as stored; compressed
+  geometry decoded by :mod:`.meshopt` (EXT_meshopt_compression) and :mod:`.draco`
+  (KHR_draco_mesh_compression).
 - :mod:`.ply`: PLY headers (counts checked before anything is read) and
   ``tristrips`` files, which trimesh loads as point clouds.
 - :mod:`.load`: the dispatch; everything else through
   ``trimesh.load_scene(..., process=False)``, after its counts are checked.
 - :mod:`.clean`: :func:`clean_mesh` and :class:`LoadReport`.
 - :mod:`.save` and :mod:`.glb`: writing (:data:`OUTPUT_FORMATS`, the one list of
-  output formats; :func:`save_mesh`, :func:`encode_mesh`, GLB and MSFT_lod chains); :mod:`.files`: :func:`write_atomic`.
+  output formats; :func:`save_mesh`, :func:`encode_mesh`, GLB and MSFT_lod chains,
+  quantized by :mod:`.quantize` and reordered by :mod:`.vertex_order` when asked);
+  :mod:`.files`: :func:`write_atomic`.
 - :mod:`.references`, :mod:`.limits`, :mod:`.images`: what a file may refer to,
   how much it may declare, what its images are.
 

@@ -32,33 +32,84 @@ import numpy as np
 from ..mesh import Materials, Mesh, MeshError
 from .gltf import (ARRAY_BUFFER, ELEMENT_ARRAY_BUFFER, FLOAT, TRIANGLES, UINT,
                    extension_names)
-from .gltf_attributes import perpendicular
+from .meshopt import EXTENSION as MESHOPT, encode_view
+from .quantize import (EXTENSION as QUANTIZATION, attribute_stream, grid_transform,
+                       merge_vertices, plain_stream, position_grid, position_stream)
+from .vertex_order import optimize_order
+# re-exported: the scene writer and tests import them from this module
+from .render_vertices import (render_attributes, render_primitives,  # noqa: F401
+                              skin_influences, unit_tangents)
+
+# How a GLB's meshes may be stored (GlbWriter): the CLI's --compress and the server's
+# compress= take these. "none": float32 in the progressive mesh's order, what every
+# glTF reader opens; "quantize": KHR_mesh_quantization, which the mainstream engines
+# read (three.js, Babylon.js, Unity's glTFast, Godot 4, Blender); "meshopt": also
+# EXT_meshopt_compression, which needs a decoder in the viewer (three.js's
+# MeshoptDecoder, glTFast, Babylon.js): gltfpack -cc's form.
+COMPRESSIONS = ("none", "quantize", "meshopt")
+# What `lodserver export` writes unless told: quantized, as gltfpack writes by default
+# (its compression is opt-in, -c/-cc, and so is ours): a level takes about half the
+# bytes, and every mainstream engine reads it without a decoder.
+DEFAULT_COMPRESS = "quantize"
+
+# How a chain's levels are told apart (encode_lod_chain): the MSFT_lod extension
+# (Babylon.js reads it; three.js, Godot and glTFast do not), the _LODn name suffix
+# engines import LOD groups by (Unity, Unreal), or both.
+LOD_NAMINGS = ("msft", "suffix", "both")
 
 
 # numpy dtype -> glTF componentType of the accessors written, and back
 _COMPONENTS = {"<f4": FLOAT, "<u4": UINT, "|u1": 5121, "<u2": 5123}
-_DTYPES = {FLOAT: "<f4", UINT: "<u4", 5121: "<u1", 5123: "<u2"}
+_DTYPES = {FLOAT: "<f4", UINT: "<u4", 5121: "<u1", 5123: "<u2", 5120: "<i1", 5122: "<i2"}
 
 _TARGET = re.compile(r"TARGET(\d+)_(POSITION|NORMAL|TANGENT)")
 
 
-def encode_glb(mesh: Mesh) -> bytes:
+def encode_glb(mesh: Mesh, compress: str = "none", *, name: str | None = None) -> bytes:
     """A binary glTF 2.0 file of one mesh, with its attributes and materials.
 
     One node, one mesh, one primitive per material used (faces without a
     material in a primitive of their own); every image, texture and material of
     ``mesh.materials`` is written, used or not. A mesh with neither attributes
-    nor materials is written by the positions-only fast path.
+    nor materials is written by the positions-only fast path, uncompressed.
+    ``compress`` is one of :data:`COMPRESSIONS` (see :class:`GlbWriter`); ``name``
+    names the node (``chair_LOD1``: one level of a chain written file by file).
     """
-    if mesh.attributes is None and mesh.face_material is None and mesh.materials is None:
+    check_compress(compress)
+    if compress == "none" and mesh.attributes is None and mesh.face_material is None \
+            and mesh.materials is None and name is None:
         return geometry_glb(mesh.positions, mesh.faces)
-    writer = GlbWriter(mesh.materials)
+    writer = GlbWriter(mesh.materials, compress, boxes=[_box(mesh)])
     writer.add_mesh(mesh)
-    return writer.finish([{"mesh": 0}], scene_nodes=[0])
+    node = {"mesh": 0} if name is None else {"name": name, "mesh": 0}
+    return writer.finish([writer.placed(node)], scene_nodes=[0])
 
 
-def encode_lod_chain(meshes: list[Mesh], screen_coverage: list[float]) -> bytes:
-    """One GLB holding levels of detail, finest first, linked by the ``MSFT_lod`` extension.
+def check_compress(compress: str) -> None:
+    """MeshError unless ``compress`` is one of :data:`COMPRESSIONS`."""
+    if compress not in COMPRESSIONS:
+        raise MeshError(f"compress must be one of {', '.join(COMPRESSIONS)}, "
+                        f"got {str(compress)[:40]!r}")
+
+
+def _box(mesh: Mesh) -> tuple[np.ndarray, np.ndarray]:
+    """(lo (3,), hi (3,)) of a mesh's positions (zeros for a mesh without any)."""
+    if not len(mesh.positions):
+        return np.zeros(3), np.zeros(3)
+    return mesh.positions.min(axis=0), mesh.positions.max(axis=0)
+
+
+def lod_name(name: str, level: int) -> str:
+    """The node name of level ``level`` of asset ``name`` by the suffix convention
+    engines import LOD groups by (Unity's and Unreal's ``_LOD0``, ``_LOD1``, ...)."""
+    return f"{name}_LOD{level}"
+
+
+def encode_lod_chain(meshes: list[Mesh], screen_coverage: list[float],
+                     compress: str = "none", *, naming: str = "msft",
+                     name: str = "lods") -> bytes:
+    """One GLB holding levels of detail, finest first, linked by the ``MSFT_lod`` extension
+    or named by the ``_LODn`` suffix convention (``naming``, :data:`LOD_NAMINGS`).
 
     Parameters
     ----------
@@ -70,14 +121,24 @@ def encode_lod_chain(meshes: list[Mesh], screen_coverage: list[float]) -> bytes:
         drawn while the object covers at least ``screen_coverage[i]`` of the
         screen (and less than ``screen_coverage[i - 1]``); see
         :func:`coverage_from_ratios`.
+    compress : str
+        One of :data:`COMPRESSIONS`: how the levels are stored (:class:`GlbWriter`).
+    naming : str
+        ``"msft"``: node i (named ``LOD{i}``) draws mesh i; node 0, the only one in
+        the scene (so a viewer without the extension shows the finest level),
+        carries ``extensions.MSFT_lod.ids = [1, ..., n - 1]`` and
+        ``extras.MSFT_screencoverage``. ``"suffix"``: a root node ``name`` (with the
+        coverage in its extras) whose children ``name_LOD0`` ... ``name_LODn``
+        draw the levels, all in the scene, no extension (engines that import LOD
+        groups by name pick them; a plain viewer draws them all, on top of each
+        other). ``"both"``: MSFT_lod as ``"msft"``, the nodes named ``name_LODi``.
+    name : str
+        The asset's name for the suffix convention (the output file's stem).
 
     Returns
     -------
     bytes
-        Node i draws mesh i; node 0, the only one in the scene (so a viewer
-        without the extension shows the finest level), carries
-        ``extensions.MSFT_lod.ids = [1, ..., n - 1]`` and
-        ``extras.MSFT_screencoverage``.
+        The GLB file.
     """
     if not meshes:
         raise MeshError("a LOD chain needs at least one mesh")
@@ -89,9 +150,14 @@ def encode_lod_chain(meshes: list[Mesh], screen_coverage: list[float]) -> bytes:
             later > earlier for earlier, later in itertools.pairwise(coverage)):
         raise MeshError(f"screen coverage values must lie in [0, 1] and not increase, "
                         f"got {coverage}")
+    check_compress(compress)
+    if naming not in LOD_NAMINGS:
+        raise MeshError(f"LOD naming must be one of {', '.join(LOD_NAMINGS)}, "
+                        f"got {str(naming)[:40]!r}")
     materials = meshes[0].materials
     count = materials.count if materials is not None else 0
-    writer = GlbWriter(materials)
+    # one position grid for every level, so that every LOD node has the same transform
+    writer = GlbWriter(materials, compress, boxes=[_box(mesh) for mesh in meshes])
     nodes = []
     for level, mesh in enumerate(meshes):
         used = mesh.face_material
@@ -99,7 +165,12 @@ def encode_lod_chain(meshes: list[Mesh], screen_coverage: list[float]) -> bytes:
             raise MeshError(f"level {level} uses material {int(used.max())}, "
                             f"but the first level has {count} materials")
         writer.add_mesh(mesh)
-        nodes.append({"name": f"LOD{level}", "mesh": level})
+        label = f"LOD{level}" if naming == "msft" else lod_name(name, level)
+        nodes.append(writer.placed({"name": label, "mesh": level}))
+    if naming == "suffix":
+        root = {"name": name, "children": list(range(len(meshes))),
+                "extras": {"MSFT_screencoverage": coverage}}
+        return writer.finish([*nodes, root], scene_nodes=[len(meshes)])
     extensions = []
     if len(meshes) > 1:
         nodes[0]["extensions"] = {"MSFT_lod": {"ids": list(range(1, len(meshes)))}}
@@ -131,12 +202,84 @@ def coverage_from_ratios(ratios) -> list[float]:
 
 
 class GlbWriter:
-    """Accumulates the binary chunk, bufferViews, accessors and meshes of one GLB."""
+    """Accumulates the binary chunk, bufferViews, accessors and meshes of one GLB.
 
-    def __init__(self, materials: Materials | None):
+    ``compress`` (one of :data:`COMPRESSIONS`) chooses how meshes are stored:
+    ``"none"`` float32 attributes and uint32 indices in the mesh's face order;
+    ``"quantize"`` KHR_mesh_quantization (:mod:`.quantize`: int8 normals and
+    tangents, uint16 UVs and colours, and, when ``boxes`` is given, 14-bit positions
+    on one grid whose transform :meth:`placed` puts on every node drawing a mesh)
+    with each primitive in vertex cache and fetch order (:mod:`.vertex_order`);
+    ``"meshopt"`` the same (triangles in the strip-like cache order, which the codec
+    compresses best), every vertex and index bufferView compressed by
+    EXT_meshopt_compression (normals and tangents by its octahedral filter), the
+    compressed bytes in the GLB's buffer and the decoded layout in a uri-less
+    fallback buffer (so the extension is required).
+    """
+
+    def __init__(self, materials: Materials | None, compress: str = "none", *, boxes=None):
+        check_compress(compress)
         self.blobs, self.size = [], 0
         self.views, self.accessors, self.meshes = [], [], []
         self.materials = materials
+        self.compress = compress
+        self.grid = position_grid(boxes) if boxes and compress != "none" else None
+        self.fallback = 0       # bytes of the decoded views in the fallback buffer
+        self.same = _same_materials(materials)
+
+    def placed(self, node: dict) -> dict:
+        """``node`` (one drawing a mesh of this writer) with the transform that undoes
+        the position grid, when positions are quantized on one."""
+        return {**node, **grid_transform(self.grid)} if self.grid is not None else node
+
+    def add_streams(self, streams: list, kind: str, *, bounds: bool = False) -> list[int]:
+        """One accessor over each of ``streams`` (:class:`.quantize.Stream` of one
+        type and stride), their rows back to back in one bufferView (meshopt
+        compressed when the writer compresses): one view for a mesh's primitives,
+        as the codec's fixed cost and the JSON are per view. Their indices."""
+        rows = np.concatenate([stream.rows for stream in streams])
+        stride = rows.shape[1]
+        if self.compress == "meshopt" and len(rows):
+            view = self.add_compressed_view(rows, "ATTRIBUTES", streams[0].filter, ARRAY_BUFFER)
+        else:
+            view = self.add_view(rows.tobytes(), ARRAY_BUFFER)
+        if stride != _element_bytes(streams[0]):
+            self.views[view]["byteStride"] = stride     # rows padded to 4 bytes
+        found, start = [], 0
+        for stream in streams:
+            accessor = {"bufferView": view, "componentType": stream.component,
+                        "count": len(stream.rows), "type": kind}
+            if start:
+                accessor["byteOffset"] = start * stride
+            if stream.normalized:
+                accessor["normalized"] = True
+            if bounds:
+                accessor["min"], accessor["max"] = _bounds(stream.values)
+            self.accessors.append(accessor)
+            found.append(len(self.accessors) - 1)
+            start += len(stream.rows)
+        return found
+
+    def add_compressed_view(self, elements: np.ndarray, mode: str, kind: str = "NONE",
+                            target: int | None = None) -> int:
+        """A bufferView of ``elements`` (:func:`.meshopt.encode_view`'s input) stored
+        by EXT_meshopt_compression; its index."""
+        data, extension = encode_view(elements, mode, kind)
+        padding = -self.size % 4
+        if padding:
+            self.blobs.append(b"\0" * padding)
+            self.size += padding
+        extension.update(buffer=0, byteOffset=self.size)
+        self.blobs.append(data)
+        self.size += len(data)
+        length = extension["count"] * extension["byteStride"]
+        view = {"buffer": 1, "byteOffset": self.fallback, "byteLength": length,
+                "extensions": {MESHOPT: extension}}
+        if target is not None:
+            view["target"] = target
+        self.fallback += length + (-length % 4)
+        self.views.append(view)
+        return len(self.views) - 1
 
     def add_view(self, data: bytes, target: int | None = None) -> int:
         padding = -self.size % 4  # every bufferView starts 4-byte aligned
@@ -166,6 +309,8 @@ class GlbWriter:
 
     def add_mesh(self, mesh: Mesh) -> int:
         """A glTF mesh of ``mesh``'s primitives; its index."""
+        if self.compress != "none":
+            return self._add_compressed_mesh(mesh)
         primitives = []
         for material, vertices, attributes, indices in render_primitives(mesh):
             # glTF requires POSITION bounds, taken from the float32 values written
@@ -193,6 +338,86 @@ class GlbWriter:
             primitives.append(record)
         self.meshes.append({"primitives": primitives})
         return len(self.meshes) - 1
+
+    def _add_compressed_mesh(self, mesh: Mesh) -> int:
+        """:meth:`add_mesh` when quantizing or compressing: one primitive per distinct
+        material record, its attributes as :mod:`.quantize` stores them, vertices
+        equal once stored merged, then in vertex cache and fetch order; the
+        primitives' streams of one kind share a bufferView, their indices another."""
+        octahedral = self.compress == "meshopt"
+        records, shared, triangles = [], {}, []
+        if mesh.face_material is not None and self.same is not None:
+            # faces of equal materials drawn by one primitive (the duplicates stay
+            # in the materials list, unused)
+            mesh = Mesh(mesh.positions, mesh.faces, mesh.attributes,
+                        np.where(mesh.face_material >= 0,
+                                 self.same[np.maximum(mesh.face_material, 0)], -1)
+                        .astype(np.int32), mesh.materials)
+        for material, vertices, attributes, indices in render_primitives(mesh):
+            streams = {"POSITION": position_stream(vertices, self.grid) if self.grid is not None
+                       else plain_stream(vertices.astype(np.float32))}
+            for name, values in attributes.items():
+                streams[name] = plain_stream(values) if _TARGET.fullmatch(name) else \
+                    attribute_stream(name, values, octahedral=octahedral)
+            merged, kept = merge_vertices(streams, indices)
+            if len(kept):   # (a primitive smaller than the grid's step is kept as it is)
+                streams, indices = merged, kept
+            indices, order = optimize_order(indices, len(streams["POSITION"].rows),
+                                            strip=octahedral)
+            record = {"attributes": {}, "mode": TRIANGLES}
+            if material >= 0:
+                record["material"] = material
+            for name, stream in streams.items():
+                stream = stream.take(order)
+                key = (name, stream.component, stream.width, stream.rows.shape[1],
+                       stream.normalized, stream.filter)
+                shared.setdefault(key, []).append((len(records), stream))
+            records.append(record)
+            triangles.append(indices)
+        targets = [{} for _ in records]
+        for (name, _, width, *_), members in shared.items():
+            kind = "SCALAR" if width == 1 else f"VEC{width}"
+            morph = _TARGET.fullmatch(name)
+            # POSITION and a morph target's POSITION need min and max
+            found = self.add_streams([stream for _, stream in members], kind,
+                                     bounds=name == "POSITION" or bool(morph)
+                                     and morph[2] == "POSITION")
+            for (number, _), index in zip(members, found):
+                if morph:
+                    targets[number].setdefault(int(morph[1]), {})[morph[2]] = index
+                else:
+                    records[number]["attributes"][name] = index
+        for record, found, indices in zip(records, targets, triangles):
+            if found:
+                count = self.accessors[record["attributes"]["POSITION"]]["count"]
+                record["targets"] = [found.get(t) or {"POSITION": self.add_streams(
+                    [plain_stream(np.zeros((count, 3), np.float32))], "VEC3", bounds=True)[0]}
+                    for t in range(max(found) + 1)]
+        for record, index in zip(records, self._add_indices(triangles)):
+            record["indices"] = index
+        self.meshes.append({"primitives": records})
+        return len(self.meshes) - 1
+
+    def _add_indices(self, triangles: list) -> list[int]:
+        """The index accessors of a mesh's primitives ((f, 3) triangles each), back to
+        back in one bufferView: uint16 when every primitive's vertices allow."""
+        wide = any(len(t) and int(t.max()) > 0xFFFF for t in triangles)
+        dtype = "<u4" if wide else "<u2"
+        flat = np.concatenate([np.ravel(t) for t in triangles]).astype(dtype)
+        if self.compress == "meshopt" and flat.size:
+            view = self.add_compressed_view(flat, "TRIANGLES", target=ELEMENT_ARRAY_BUFFER)
+        else:
+            view = self.add_view(flat.tobytes(), ELEMENT_ARRAY_BUFFER)
+        found, start = [], 0
+        for t in triangles:
+            accessor = {"bufferView": view, "componentType": UINT if wide else 5123,
+                        "count": int(t.size), "type": "SCALAR"}
+            if start:
+                accessor["byteOffset"] = start * np.dtype(dtype).itemsize
+            self.accessors.append(accessor)
+            found.append(len(self.accessors) - 1)
+            start += t.size
+        return found
 
     def finish(self, nodes: list, *, scene_nodes: list, extensions=()) -> bytes:
         document = {"asset": {"version": "2.0", "generator": "lodserver"}, "scene": 0,
@@ -224,174 +449,22 @@ class GlbWriter:
             document.pop("extensionsRequired", None)
             if required:
                 document["extensionsRequired"] = list(required)
-        document.update(accessors=self.accessors, bufferViews=self.views,
-                        buffers=[{"byteLength": self.size + (-self.size % 4)}])
+        buffers = [{"byteLength": self.size + (-self.size % 4)}]
+        if self.compress != "none":
+            # what this writer's own meshes need to be read at all
+            needed = [QUANTIZATION] + ([MESHOPT] if self.fallback else [])
+            used += [name for name in needed if name not in used]
+            document["extensionsRequired"] = [*document.get("extensionsRequired", ()),
+                                              *(name for name in needed if name not in
+                                                document.get("extensionsRequired", ()))]
+        if self.fallback:
+            buffers.append({"byteLength": self.fallback,
+                            "extensions": {MESHOPT: {"fallback": True}}})
+        document.update(accessors=self.accessors, bufferViews=self.views, buffers=buffers)
         if used:
             document["extensionsUsed"] = used
         self.blobs.append(b"\0" * (-self.size % 4))
         return _pack_glb(document, *self.blobs)
-
-
-def render_primitives(mesh: Mesh):
-    """Per material, the arrays a renderer draws: one vertex per wedge used.
-
-    Yields
-    ------
-    material : int
-        Index into ``mesh.materials``, -1 for faces without one.
-    positions : (r, 3) float64
-        The render vertices' positions, ``positions[wedge vertex]``.
-    attributes : dict of str to (r, k) array
-        Every layout column, as written (:func:`render_attributes`): float32 but
-        JOINTS_n (uint8, or uint16 when a joint is 256 or more); ``TARGET{t}_*``
-        are morph target t's deltas (the writer puts them in ``targets``).
-    indices : (f, 3) uint32
-        The primitive's triangles over its render vertices, in mesh face order.
-    """
-    faces = mesh.faces
-    # without attributes a render vertex is a mesh vertex; with them, a wedge
-    keys = mesh.attributes.corners if mesh.attributes is not None else faces
-    owner = mesh.wedge_vertices() if mesh.attributes is not None else None
-    if mesh.face_material is None:
-        groups = [(-1, np.arange(len(faces)))]
-    else:
-        order = np.argsort(mesh.face_material, kind="stable")  # keeps face order within a group
-        materials, starts = np.unique(mesh.face_material[order], return_index=True)
-        groups = zip(materials.tolist(), np.split(order, starts[1:]))
-    for material, rows in groups:
-        used, local = np.unique(keys[rows], return_inverse=True)
-        indices = local.reshape(-1, 3).astype(np.uint32)
-        vertices = used if owner is None else owner[used]
-        attributes = {}
-        if mesh.attributes is not None:
-            attributes = render_attributes(mesh.attributes.layout, mesh.attributes.values[used],
-                                           mesh.positions[vertices], indices)
-        yield material, mesh.positions[vertices], attributes, indices
-
-
-def render_attributes(layout, values: np.ndarray, positions: np.ndarray,
-                      triangles: np.ndarray) -> dict:
-    """The glTF vertex attributes of render vertices: ``values`` (r, d) in ``layout``,
-    ``positions`` (r, 3), ``triangles`` (f, 3) over them; name -> (r, k) array.
-
-    Each column made valid as glTF requires, whatever interpolation left:
-    NORMAL unit (:func:`_unit_normals`); COLOR_n clipped to [0, 1]; TANGENT xyz
-    unit (a zero one perpendicular to the normal) and w exactly +-1 (0 -> +1);
-    JOINTS_n rounded to uint8 (uint16 when a joint is 256 or more) and WEIGHTS_n
-    float32 (:func:`skin_influences`); TEXCOORD_n, morph deltas and custom
-    ``_NAME`` columns float32 as they are.
-    """
-    columns = {}
-    start = 0
-    for name, width in layout:
-        columns[name] = values[:, start:start + width]
-        start += width
-    out = {}
-    for name, _ in layout:
-        column = columns[name]
-        if name == "NORMAL":
-            column = _unit_normals(column, positions, triangles)
-        elif name.startswith("COLOR_"):
-            column = np.clip(column, 0.0, 1.0)  # glTF colours are in [0, 1]
-        elif name == "TANGENT":
-            # a zero tangent is replaced in the plane of the normal (or of the faces)
-            normal = columns.get("NORMAL", np.zeros((len(column), 3)))
-            column = unit_tangents(column, _unit_normals(normal, positions, triangles))
-        elif name.startswith(("JOINTS_", "WEIGHTS_")):
-            continue        # all sets at once, below
-        out[name] = column.astype(np.float32)
-    sets = sorted(int(name[8:]) for name, _ in layout if name.startswith("WEIGHTS_")
-                  and f"JOINTS_{name[8:]}" in columns)
-    if sets:
-        joints, weights = skin_influences(
-            np.hstack([columns[f"JOINTS_{n}"] for n in sets]),
-            np.hstack([columns[f"WEIGHTS_{n}"] for n in sets]))
-        for k, n in enumerate(sets):
-            out[f"JOINTS_{n}"] = joints[:, 4 * k:4 * k + 4]
-            out[f"WEIGHTS_{n}"] = weights[:, 4 * k:4 * k + 4]
-    for name, _ in layout:      # a JOINTS_n or WEIGHTS_n set without its partner
-        if name.startswith(("JOINTS_", "WEIGHTS_")) and name not in out:
-            out[name] = (columns[name].astype(np.float32) if name.startswith("W")
-                         else _joint_array(columns[name]))
-    return {name: out[name] for name, _ in layout}      # in layout order
-
-
-def unit_tangents(tangents: np.ndarray, normals: np.ndarray) -> np.ndarray:
-    """(r, 4) float64 tangents made valid: xyz unit length (a zero or non-finite one
-    replaced by a unit vector perpendicular to ``normals`` (r, 3)), w exactly +-1
-    by its sign (0 counts as +1)."""
-    xyz = np.array(tangents[:, :3], dtype=np.float64)
-    length = np.linalg.norm(xyz, axis=1)
-    bad = ~(length > 1e-12)
-    xyz[bad] = perpendicular(normals[bad])
-    length[bad] = 1.0
-    w = np.where(tangents[:, 3] < 0, -1.0, 1.0)
-    return np.column_stack([xyz / length[:, None], w])
-
-
-def skin_influences(joints: np.ndarray, weights: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Joints (r, 4s) and weights (r, 4s) of s influence sets made valid for glTF.
-
-    Weights below 0 become 0; a joint named twice in a vertex keeps one slot with
-    the sum of its weights; a slot of weight 0 gets joint 0 (the validator warns of
-    a joint used with weight 0); each vertex's weights are renormalised to sum to 1
-    over all sets, in float32 (the largest absorbs the rounding), and a vertex whose
-    weights sum to 0 gets joint 0 with weight 1.
-
-    Returns
-    -------
-    joints : (r, 4s) uint8, or uint16 when a joint is 256 or more
-    weights : (r, 4s) float32
-    """
-    joints = np.rint(np.asarray(joints, dtype=np.float64)).astype(np.int64)
-    weights = np.maximum(np.asarray(weights, dtype=np.float64), 0.0)
-    slots = joints.shape[1]
-    # merge repeated joints: a slot whose joint an earlier slot of the vertex holds
-    for b in range(1, slots):
-        for a in range(b):
-            same = (joints[:, a] == joints[:, b]) & (weights[:, b] > 0)
-            weights[same, a] += weights[same, b]
-            weights[same, b] = 0.0
-    total = weights.sum(axis=1)
-    empty = ~(total > 0)
-    weights[empty] = 0.0
-    weights[empty, 0] = 1.0
-    joints[empty] = 0       # joint 0 exists in every skin
-    total[empty] = 1.0
-    weights /= total[:, None]
-    joints[weights == 0] = 0
-    single = weights.astype(np.float32)
-    # the float32 sum off by a few ulps: the largest weight takes the difference
-    largest = np.argmax(single, axis=1)
-    rows = np.arange(len(single))
-    rest = single.astype(np.float64).sum(axis=1) - single[rows, largest]
-    single[rows, largest] = np.float32(1.0) - rest.astype(np.float32)
-    return _joint_array(joints), single
-
-
-def _joint_array(joints) -> np.ndarray:
-    """Joint indices rounded, as uint8 (uint16 when one is 256 or more)."""
-    joints = np.rint(np.asarray(joints, dtype=np.float64))
-    return joints.astype(np.uint16 if joints.size and joints.max() >= 256 else np.uint8)
-
-
-def _unit_normals(normals: np.ndarray, positions: np.ndarray, triangles: np.ndarray) -> np.ndarray:
-    """Normals (r, 3) scaled to unit length, as glTF requires.
-
-    A zero normal (from a zero-area face in the source, say) has no direction to
-    keep: it takes the area-weighted normal of the triangles around its render
-    vertex, or +Z if those have no area either.
-    """
-    normals = np.array(normals, dtype=np.float64)
-    zero = np.linalg.norm(normals, axis=1) < 1e-12
-    if zero.any():
-        corners = positions[triangles]
-        weighted = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
-        around = np.zeros_like(normals)
-        np.add.at(around, triangles.ravel(), np.repeat(weighted, 3, axis=0))
-        normals[zero] = around[zero]
-        normals[np.linalg.norm(normals, axis=1) == 0] = (0.0, 0.0, 1.0)
-    return normals / np.linalg.norm(normals, axis=1, keepdims=True)
 
 
 def geometry_glb(positions, faces) -> bytes:
@@ -469,6 +542,23 @@ def level_glb(vertex_count: int, face_count: int, fill, *, copy: bool = True) ->
         out.flags.writeable = False
         return memoryview(out)
     return out.tobytes()
+
+
+def _same_materials(materials: Materials | None) -> np.ndarray | None:
+    """(k,) int32: for each material, the first one whose record is equal to it
+    (textures are named by index, so equal records draw alike); None when all differ."""
+    records = (materials.gltf.get("materials") or []) if materials is not None else []
+    first, same = {}, []
+    for index, record in enumerate(records):
+        same.append(first.setdefault(json.dumps(record, sort_keys=True), index))
+    if same == list(range(len(records))):
+        return None
+    return np.asarray(same, dtype=np.int32)
+
+
+def _element_bytes(stream) -> int:
+    """Bytes of one element of a :class:`.quantize.Stream`'s accessor, unpadded."""
+    return np.dtype(_DTYPES[stream.component]).itemsize * stream.width
 
 
 def _bounds(values: np.ndarray) -> tuple[list, list]:

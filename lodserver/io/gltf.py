@@ -25,7 +25,11 @@ from trimesh's by the float32 rounding of the stored matrices (4e-8 relative on
 once flattened (JOINTS_n, WEIGHTS_n, morph targets) and what no rule knows
 (matrix-typed custom attributes) is listed in ``dropped_attributes``;
 :func:`read_gltf_meshes` keeps every attribute, the skin and the targets too.
-Points and lines are skipped; mesh compression is refused.
+Points and lines are skipped. Compressed and quantized geometry is decoded:
+``EXT_meshopt_compression`` bufferViews (:mod:`.meshopt`),
+``KHR_draco_mesh_compression`` primitives (:mod:`.draco`) and
+``KHR_mesh_quantization``'s integer attributes (normalized ones mapped as §3.11
+says, integer positions placed by the node transform that dequantizes them).
 
 Everything the file declares is checked before it is read: accessor counts
 and byte ranges against their bufferViews and buffers, primitive, instance,
@@ -59,6 +63,8 @@ from .images import image_type
 from .gltf_document import (TRIANGLE_FAN as _TRIANGLE_FAN, TRIANGLE_STRIP as _TRIANGLE_STRIP,
                             TRIANGLES, accessor_identity, check_declared, natural,
                             parse_container, record)
+from . import meshopt
+from .draco import DracoAccessors
 from .limits import LoadLimits
 from .references import read_reference, resolve_reference
 
@@ -73,11 +79,6 @@ FLOAT, UINT = 5126, 5125
 
 
 ARRAY_BUFFER, ELEMENT_ARRAY_BUFFER = 34962, 34963
-
-
-# Geometry compressed by these has no plain accessor data to fall back on.
-_UNDECODABLE = ("KHR_draco_mesh_compression", "EXT_meshopt_compression")
-
 
 
 def read_gltf(path: Path, kind: str, *, root: Path | None = None,
@@ -110,21 +111,22 @@ def read_gltf(path: Path, kind: str, *, root: Path | None = None,
     MeshError
         If the file is not glTF, a buffer or image it names is missing or not
         allowed, an accessor runs past its data, an image is not PNG, JPEG,
-        WebP or KTX2, it needs a compression extension, or it places no
+        WebP or KTX2, a compressed view or Draco stream cannot be decoded
+        (:mod:`.meshopt`, :mod:`.draco`), or it places no
         triangles.
     LimitError
         If what it declares exceeds ``limits``.
     """
-    def refuse(required):
-        raise MeshError(f"it requires the glTF extension {required}, which lodserver "
-                        "cannot decode (export it without mesh compression)")
-
-    return _read(path, kind, root, limits, lambda name: name in _UNDECODABLE, refuse,
-                 lambda document, views, files: _flatten_scene(document, views, files))
+    # every required extension either decodes (quantization, meshopt, Draco) or
+    # concerns what a flattened mesh keeps as it is (materials, lights)
+    return _read(path, kind, root, limits, lambda name: False, None,
+                 lambda document, views, files, accessor: _flatten_scene(
+                     document, views, files, accessor=accessor))
 
 
 def _read(path, kind, root, limits, refused, refuse, then):
-    """``then(document, views, files)`` of a glTF file read and checked: the one preamble
+    """``then(document, views, files, accessor)`` of a glTF file read and checked
+    (``accessor(index)``, :func:`_accessor_reader`, decodes Draco primitives): the one preamble
     of both readers. ``refuse(name)`` raises for the first ``extensionsRequired``
     entry that ``refused(name)``; a malformed document is a MeshError."""
     limits = limits or LoadLimits.unbounded()
@@ -139,7 +141,8 @@ def _read(path, kind, root, limits, refused, refuse, then):
         buffers = _load_buffers(document, binary, files)
         views = [_view_bytes(buffers, view, i)
                  for i, view in enumerate(document.get("bufferViews", ()))]
-        return then(document, views, files)
+        decoded = DracoAccessors(document, views)
+        return then(document, views, files, _accessor_reader(document, views, decoded))
     except MeshError:
         raise
     except (KeyError, IndexError, TypeError, ValueError, OverflowError, struct.error) as exc:
@@ -195,7 +198,11 @@ def _data_uri_bytes(uri: str, what: str) -> bytes:
         raise MeshError(f"its {what} has a malformed data: URI ({exc})") from exc
 
 
-def _load_buffers(document: dict, binary: bytes | None, files: _ReferencedFiles) -> list[bytes]:
+def _load_buffers(document: dict, binary: bytes | None,
+                  files: _ReferencedFiles) -> list[bytes | int]:
+    """Each buffer's bytes; the byteLength alone of one without data (no uri, not the
+    GLB's BIN chunk): the placeholder of ``EXT_meshopt_compression``, whose
+    bufferViews are decoded from another buffer (:func:`_view_bytes`)."""
     buffers = []
     for i, buffer in enumerate(document.get("buffers", ())):
         if not isinstance(buffer, dict):
@@ -207,7 +214,8 @@ def _load_buffers(document: dict, binary: bytes | None, files: _ReferencedFiles)
         elif i == 0 and binary is not None:
             data = binary  # the GLB's own BIN chunk
         else:
-            raise MeshError(f"its buffer {i} has no uri and there is no GLB BIN chunk")
+            buffers.append(length)
+            continue
         if len(data) < length:
             raise MeshError(f"its buffer {i} holds {len(data)} bytes, "
                             f"fewer than its byteLength {length}")
@@ -215,18 +223,39 @@ def _load_buffers(document: dict, binary: bytes | None, files: _ReferencedFiles)
     return buffers
 
 
-def _view_bytes(buffers: list[bytes], view: dict, index: int) -> memoryview:
+def _view_bytes(buffers: list, view: dict, index: int) -> memoryview:
+    """bufferView ``index``'s bytes: its range of its buffer, or decoded from the
+    range its ``EXT_meshopt_compression`` names (:mod:`.meshopt`)."""
     if not isinstance(view, dict):
         raise MeshError(f"its bufferView {index} is not an object")
     start = natural(view.get("byteOffset", 0), f"bufferView {index} byteOffset")
-    end = start + natural(view.get("byteLength"), f"bufferView {index} byteLength")
-    buffer = view.get("buffer")
+    length = natural(view.get("byteLength"), f"bufferView {index} byteLength")
+    data = _buffer_of(buffers, view.get("buffer"), f"bufferView {index}")
+    # a placeholder buffer is its byteLength: the decoded views must fit in it all the same
+    if start + length > (data if isinstance(data, int) else len(data)):
+        raise MeshError(f"its bufferView {index} runs past the end of buffer {view['buffer']}")
+    compressed = (view.get("extensions") or {}).get(meshopt.EXTENSION) \
+        if isinstance(view.get("extensions"), dict) else None
+    if compressed is not None:
+        label = f"bufferView {index}"
+        source = _buffer_of(buffers, compressed.get("buffer") if isinstance(compressed, dict)
+                            else None, f"{label} {meshopt.EXTENSION}")
+        at = natural(compressed.get("byteOffset", 0), f"{label} {meshopt.EXTENSION} byteOffset")
+        size = natural(compressed.get("byteLength"), f"{label} {meshopt.EXTENSION} byteLength")
+        if isinstance(source, int) or at + size > len(source):
+            raise MeshError(f"its {label} has compressed bytes past the end of their buffer")
+        return memoryview(meshopt.decode_view(compressed, memoryview(source)[at:at + size],
+                                              length, label))
+    if isinstance(data, int):
+        raise MeshError(f"its buffer {view['buffer']} has no uri and there is no GLB BIN chunk")
+    return memoryview(data)[start:start + length]
+
+
+def _buffer_of(buffers: list, buffer, what: str):
+    """``buffers[buffer]`` for a valid index, else a MeshError naming ``what``."""
     if isinstance(buffer, bool) or not isinstance(buffer, int) or not 0 <= buffer < len(buffers):
-        raise MeshError(f"its bufferView {index} refers to buffer {buffer!r}, which does not exist")
-    data = buffers[buffer]
-    if end > len(data):
-        raise MeshError(f"its bufferView {index} runs past the end of buffer {buffer}")
-    return memoryview(data)[start:end]
+        raise MeshError(f"its {what} refers to buffer {buffer!r}, which does not exist")
+    return buffers[buffer]
 
 
 def _read_accessor(document: dict, views: list, index: int) -> np.ndarray:
@@ -276,13 +305,17 @@ def _read_accessor(document: dict, views: list, index: int) -> np.ndarray:
     return values
 
 
-def _accessor_reader(document: dict, views: list):
+def _accessor_reader(document: dict, views: list, decoded: dict | None = None):
     """``accessor(index)``: accessor ``index``'s values (:func:`_read_accessor`), each
     read once, and accessors aliasing one byte range (:func:`.gltf_document.accessor_identity`)
-    given the one array, so a thousand records naming the same bytes cost one copy."""
+    given the one array, so a thousand records naming the same bytes cost one copy.
+    ``decoded`` gives the values of accessors a Draco primitive holds
+    (:class:`.draco.DracoAccessors`)."""
     cache, by_identity = {}, {}
 
     def accessor(index):
+        if decoded is not None and index in decoded:
+            return decoded.get(index)
         if index not in cache:
             key = accessor_identity(record(document, "accessors", index, "primitive"))
             if key is None or key not in by_identity:
@@ -389,10 +422,9 @@ def read_gltf_meshes(path: Path, kind: str, *, root: Path | None = None,
         raise MeshError(f"it requires the glTF extension {required}, which lodserver "
                         "cannot honour")
 
-    def meshes(document, views, files):
+    def meshes(document, views, files, accessor):
         if check is not None:
             check(document)
-        accessor = _accessor_reader(document, views)
 
         materials = _read_materials(document, views, files)
         used = sorted({node["mesh"] for node in document.get("nodes", ())

@@ -12,6 +12,11 @@ relative), and vertices closer than that would be welded on reload. OBJ and OFF
 are text written with 17 decimals, exact for any coordinate of magnitude 0.1 or
 more and within 5e-18 otherwise.
 
+GLB may be written quantized (KHR_mesh_quantization) or meshopt-compressed
+(EXT_meshopt_compression), its primitives in vertex cache and fetch order
+(``compress=``, :class:`lodserver.io.glb.GlbWriter`); positions then come back
+within half a step of a 14-bit grid over the mesh's largest side.
+
 What each output format keeps: GLB everything (every attribute column of the
 layout, materials, images; :func:`lodserver.io.glb.render_attributes`); OBJ
 positions plus ``vt``/``vn`` per wedge from TEXCOORD_0 and NORMAL (no ``.mtl``:
@@ -32,7 +37,7 @@ import trimesh
 
 from ..mesh import Mesh, MeshError
 from .files import write_atomic
-from .glb import encode_glb
+from .glb import COMPRESSIONS, encode_glb
 from .load import file_kind
 
 
@@ -52,7 +57,8 @@ _EXPORT_OPTIONS = {
 }
 
 
-def save_mesh(mesh: Mesh, path, *, file_type: str | None = None) -> None:
+def save_mesh(mesh: Mesh, path, *, file_type: str | None = None,
+              compress: str = "none") -> None:
     """Write a mesh to a file, atomically (see :func:`encode_mesh` for what each format keeps).
 
     The file is written under a temporary name in the same directory and then
@@ -66,6 +72,8 @@ def save_mesh(mesh: Mesh, path, *, file_type: str | None = None) -> None:
         Destination; its extension picks the format unless ``file_type`` is given.
     file_type : str, optional
         One of :data:`SUPPORTED_OUTPUT`, overriding the extension.
+    compress : str
+        One of the format's ``compressions`` (:func:`encode_mesh`).
 
     Raises
     ------
@@ -76,21 +84,27 @@ def save_mesh(mesh: Mesh, path, *, file_type: str | None = None) -> None:
     """
     path = Path(path)
     kind = file_kind(path, file_type, SUPPORTED_OUTPUT, "save")
-    write_atomic(path, encode_mesh(mesh, kind))
+    write_atomic(path, encode_mesh(mesh, kind, compress=compress))
 
 
-def encode_mesh(mesh: Mesh, file_type: str) -> bytes:
+def encode_mesh(mesh: Mesh, file_type: str, *, compress: str = "none") -> bytes:
     """The bytes of ``mesh`` as a file of ``file_type`` (one of :data:`SUPPORTED_OUTPUT`).
 
     GLB is packed by :func:`lodserver.io.glb.encode_glb`, straight from the
     arrays: attributes and materials when the mesh has them, else one float32
     POSITION and one uint32 index accessor. OBJ gets ``vt``/``vn`` lines per
     wedge when the mesh has TEXCOORD_0 or NORMAL. PLY, OFF and STL (and OBJ
-    without those) hold positions and triangles only.
+    without those) hold positions and triangles only. ``compress`` is one of the
+    format's ``compressions``: for GLB ``"quantize"`` or ``"meshopt"``
+    (:data:`lodserver.io.glb.COMPRESSIONS`), ``"none"`` for every format.
     """
     if file_type not in SUPPORTED_OUTPUT:
         raise MeshError(f"cannot write {file_type!r}: supported are {', '.join(SUPPORTED_OUTPUT)}")
-    return OUTPUT_FORMATS[file_type].writer(mesh)
+    output = OUTPUT_FORMATS[file_type]
+    if compress not in output.compressions:
+        raise MeshError(f"{file_type} cannot be written with compress={str(compress)[:40]!r}: "
+                        f"it takes {', '.join(output.compressions)}")
+    return output.writer(mesh) if compress == "none" else output.writer(mesh, compress)
 
 
 def _obj_bytes(mesh: Mesh) -> bytes:
@@ -170,6 +184,9 @@ class OutputFormat:
         level, which ``service/levels.py`` writes (it needs the packets' grids).
     served : bool
         Whether the server answers levels in it (``GET /meshes/{id}/lod?format=``).
+    compressions : tuple of str
+        How it may be compressed (``compress=``, ``--compress``): ``writer(mesh,
+        compress)`` for any but ``"none"``.
     """
 
     name: str
@@ -179,13 +196,14 @@ class OutputFormat:
     attributes: str
     writer: Callable[[Mesh], bytes] | None
     served: bool
+    compressions: tuple[str, ...] = ("none",)
 
 
 # Every output format once. The order is the order the server's formats are
 # listed in (its 422 messages and its OpenAPI document name them in this order).
 OUTPUT_FORMATS = {f.name: f for f in (
     OutputFormat("glb", ".glb", "model/gltf-binary", materials=True, attributes="all",
-                 writer=encode_glb, served=True),
+                 writer=encode_glb, served=True, compressions=COMPRESSIONS),
     OutputFormat("obj", ".obj", "model/obj", materials=False, attributes="TEXCOORD_0, NORMAL",
                  writer=_obj_writer, served=True),
     OutputFormat("ply", ".ply", "application/octet-stream", materials=False, attributes="none",

@@ -35,8 +35,9 @@ from .limits import LoadLimits
 from .load import file_errors
 
 # Extensions a document may require: carried as they are (materials, textures,
-# lights, metadata) or decoded by the reader (quantized attributes).
+# lights, metadata) or decoded by the reader (quantized and compressed geometry).
 HONOURED_REQUIRED = frozenset({
+    "KHR_draco_mesh_compression", "EXT_meshopt_compression",
     "KHR_texture_transform", "KHR_texture_basisu", "EXT_texture_webp", "KHR_lights_punctual",
     "KHR_mesh_quantization", "KHR_xmp_json_ld", "KHR_materials_emissive_strength",
     "KHR_materials_unlit", "KHR_materials_clearcoat", "KHR_materials_transmission",
@@ -45,8 +46,8 @@ HONOURED_REQUIRED = frozenset({
     "KHR_materials_dispersion", "KHR_materials_pbrSpecularGlossiness", "EXT_mesh_gpu_instancing",
 })
 
-# Extensions that describe geometry the output writes afresh (float32 attributes,
-# uint32 indices): dropped from extensionsUsed/Required of the output.
+# Extensions that describe geometry the output writes afresh (as its compress= says,
+# io.glb.GlbWriter): dropped from extensionsUsed/Required of the output.
 GEOMETRY_EXTENSIONS = frozenset({"KHR_mesh_quantization", "KHR_draco_mesh_compression",
                                  "EXT_meshopt_compression"})
 
@@ -115,7 +116,7 @@ def load_scene(path, *, root=None, limits: LoadLimits | None = None) -> Scene:
     ------
     MeshError
         For what :func:`load_mesh` refuses, and for an ``extensionsRequired``
-        entry lodserver cannot honour (e.g. ``KHR_draco_mesh_compression``),
+        entry lodserver cannot honour (a vendor's geometry extension),
         one sentence naming the file by its name only; and for a node tree, skin,
         morph weights or animation that cannot be evaluated
         (:func:`.animation.check_scene`: cycles, joints or channel targets that are
@@ -274,7 +275,9 @@ def _scene(parts: dict) -> Scene:
         if index in scene.as_is:
             continue
         primitives = mesh.get("primitives", ())
-        if any("extras" in p or "extensions" in p for p in primitives):
+        # compression is decoded, not lost: only other extensions count
+        if any("extras" in p or set(p.get("extensions") or ()) - GEOMETRY_EXTENSIONS
+               for p in primitives):
             scene.notes.append(f"mesh {index}: its primitives' extras and extensions are not "
                                "kept (the levels have one primitive per material)")
         if any(p.get("mode", 4) not in (4, 5, 6) for p in primitives):

@@ -49,7 +49,7 @@ _LOD_KEYS = ("matrix", "translation", "rotation", "scale", "skin", "weights")
 
 
 def encode_scene(scene: Scene, levels: dict, coverage: list[float], *,
-                 level: int | None = None) -> bytes:
+                 level: int | None = None, compress: str = "none") -> bytes:
     """The GLB of ``scene`` with every mesh replaced by its levels.
 
     Parameters
@@ -63,6 +63,10 @@ def encode_scene(scene: Scene, levels: dict, coverage: list[float], *,
         ``MSFT_screencoverage`` per level (``glb.coverage_from_ratios``).
     level : int, optional
         Write only this level in place of each mesh (no ``MSFT_lod``).
+    compress : str
+        :data:`.glb.COMPRESSIONS`: the levels' attributes quantized and compressed
+        as :class:`.glb.GlbWriter` does, their positions float32 (the nodes keep
+        their transforms; skins and instances depend on them).
 
     Returns
     -------
@@ -79,7 +83,7 @@ def encode_scene(scene: Scene, levels: dict, coverage: list[float], *,
                 if key not in _REBUILT}
     document["asset"] = {**document.get("asset", {}), "version": "2.0",
                          "generator": "lodserver"}
-    writer = GlbWriter(scene.materials)
+    writer = GlbWriter(scene.materials, compress)
     accessors = _carry_accessors(writer, scene.carried)
     for animation in document.get("animations", ()):
         for sampler in animation.get("samplers", ()):

@@ -29,7 +29,7 @@ import numpy as np
 import orjson
 
 from ..io.glb import level_glb
-from ..io import SERVED_FORMATS, encode_mesh
+from ..io import OUTPUT_FORMATS, SERVED_FORMATS, encode_mesh
 from ..mesh import MeshError
 from ..packets import MAX_BITS, check_bits, default_bits, grid_of, quantized_level
 from ..progressive.mesh import ProgressiveMesh
@@ -67,7 +67,7 @@ def checked_bits(bits: int | None) -> int | None:
 
 def encode_level(pm: ProgressiveMesh, level: int, *, file_type: str,
                  bits: int | None = None, materials_href: str | None = None,
-                 copy: bool = True) -> bytes | memoryview:
+                 copy: bool = True, compress: str = "none") -> bytes | memoryview:
     """The bytes of ``level`` in ``file_type`` (one of :data:`lodserver.io.SERVED_FORMATS`).
 
     ``copy=False`` allows a read-only memoryview in place of bytes where that
@@ -76,6 +76,9 @@ def encode_level(pm: ProgressiveMesh, level: int, *, file_type: str,
     ``bits`` sets the grid of the ``json`` form (default ``packets.default_bits``)
     and must match the packets the client applies to it. ``materials_href`` is
     where the ``json`` form says the mesh's materials are (when it has some).
+    ``compress`` is one of the format's ``compressions`` (``io.OUTPUT_FORMATS``):
+    a quantized or meshopt GLB, in vertex cache order (the json form and the
+    packets keep the progressive mesh's order).
     """
     level = check_level(pm, level)
     if file_type not in SERVED_FORMATS:
@@ -103,6 +106,11 @@ def encode_level(pm: ProgressiveMesh, level: int, *, file_type: str,
         # orjson writes numpy arrays directly: the same bytes as json.dumps of
         # their lists, without a Python object per number.
         return json_in_slices(document, copy=copy)
+    if compress not in OUTPUT_FORMATS[file_type].compressions:
+        raise LevelError(f"compress={str(compress)[:40]} applies to format=glb only "
+                         f"({', '.join(OUTPUT_FORMATS['glb'].compressions)})")
+    if compress != "none":
+        return encode_mesh(pm.at(level), file_type, compress=compress)
     if file_type == "glb" and not pm.has_attributes and pm.face_material is None \
             and pm.materials is None:
         # the server's hot path: the level is written straight into the file

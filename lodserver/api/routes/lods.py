@@ -17,7 +17,7 @@ from typing import Annotated, Literal
 from fastapi import APIRouter, Query, Request, Response
 
 from ...io import SERVED_FORMATS
-from ...io.glb import coverage_from_ratios, encode_lod_chain
+from ...io.glb import COMPRESSIONS, coverage_from_ratios, encode_lod_chain
 from ...packets import MAX_BITS, MIN_BITS, packet_between, prepare_records, records_ready
 from ...pipeline import DEFAULT_LODS, lod_chain, parse_lods
 from ...service.levels import (
@@ -48,6 +48,9 @@ Bits = Annotated[int | None, Query(ge=MIN_BITS, le=MAX_BITS, description="Quanti
                                    "A client must use the same value for both.")]
 # The formats a level is served in: those of the output-format registry (io/save.py).
 LevelFormat = Literal[tuple(SERVED_FORMATS)]
+Compress = Annotated[Literal[tuple(COMPRESSIONS)], Query(description=(
+    "How a GLB stores the level: none (float32), quantize (KHR_mesh_quantization) or meshopt "
+    "(also EXT_meshopt_compression); quantize and meshopt in vertex cache order."))]
 _GLB = SERVED_FORMATS["glb"]
 
 
@@ -60,7 +63,8 @@ def get_lod(mesh_id: MeshId, store: StoreDep, bodies: BodiesDep, request: Reques
             ratio: Annotated[float | None, Query(gt=0, le=1)] = None,
             error: Annotated[float | None, Query(ge=0)] = None,
             format: LevelFormat = "json",
-            bits: Bits = None, v: VersionQuery = None) -> Response:
+            bits: Bits = None, compress: Compress = "none",
+            v: VersionQuery = None) -> Response:
     """One level, chosen by exactly one of vertices, faces, ratio or error.
 
     ``format=json`` is the quantized form packets start from and end in
@@ -74,17 +78,25 @@ def get_lod(mesh_id: MeshId, store: StoreDep, bodies: BodiesDep, request: Reques
     """
     artefact, digest, policy = load_versioned(store, mesh_id, v)
     if isinstance(artefact, SceneAsset):
+        _uncompressed_scene(compress)
         return _scene_lod(artefact, digest, policy, request, bodies, mesh_id=mesh_id,
                           vertices=vertices, faces=faces, ratio=ratio, error=error,
                           format=format)
     return level_response(artefact, digest, policy, request, bodies, mesh_id=mesh_id,
                           criterion={"vertices": vertices, "faces": faces, "ratio": ratio,
-                                     "error": error}, format=format, bits=bits, v=v)
+                                     "error": error}, format=format, bits=bits, v=v,
+                          compress=compress)
+
+
+def _uncompressed_scene(compress: str) -> None:
+    if compress != "none":
+        raise LevelError("a scene's GLB is served uncompressed; compress= applies to a "
+                         "mesh's levels and chains")
 
 
 def level_response(pm, digest: str, policy: str, request: Request, bodies, *, mesh_id: str,
                    criterion: dict, format: str, bits: int | None, v: str | None,
-                   part: int | None = None) -> Response:
+                   part: int | None = None, compress: str = "none") -> Response:
     """The response of one level of ``pm`` (a mesh, or part ``part`` of a scene:
     None for a single mesh, whose part 0 is then the mesh's own level, ETag too)."""
     level = resolve_level(pm, **criterion)
@@ -95,11 +107,15 @@ def level_response(pm, digest: str, policy: str, request: Request, bodies, *, me
     # when it was, else by id; so its ETag tells the two bodies apart
     linked = format == "json" and v is not None
     scope = () if part is None else ("part", part)
-    etag = etag_for(digest, *scope, "lod", level, format, bits, *(["v"] if linked else []))
+    if compress != "none" and format != "glb":
+        raise LevelError(f"compress={compress} applies to format=glb only")
+    etag = etag_for(digest, *scope, "lod", level, format, bits, *(["v"] if linked else []),
+                    *([compress] if compress != "none" else []))
     href = f"/meshes/{mesh_id}/materials" + (f"?v={version_of(digest)}" if linked else "")
     return bodies.cached(
         request, etag, policy, lambda: encode_level(pm, level, file_type=format, bits=bits,
-                                                    materials_href=href, copy=False),
+                                                    materials_href=href, copy=False,
+                                                    compress=compress),
         media_type=SERVED_FORMATS[format],
         filename=None if format == "json" else
         f"{mesh_id}-{'' if part is None else f'part{part}-'}{level}.{format}",
@@ -160,7 +176,7 @@ def get_chain(mesh_id: MeshId, store: StoreDep, bodies: BodiesDep, request: Requ
               reach: Annotated[Literal["none", "cluster"], Query(description=(
                   "cluster: levels edge collapse cannot bring down to their budget are made "
                   "by vertex clustering (positions only)."))] = "none",
-              v: VersionQuery = None) -> Response:
+              compress: Compress = "none", v: VersionQuery = None) -> Response:
     """A chain of levels of detail in one GLB, as ``lodserver export`` writes it:
     node 0 the finest level, ``MSFT_lod`` naming the others, with
     ``MSFT_screencoverage`` hints.
@@ -177,6 +193,7 @@ def get_chain(mesh_id: MeshId, store: StoreDep, bodies: BodiesDep, request: Requ
     if len(ratios) > MAX_CHAIN_LEVELS:
         raise LevelError(f"a chain holds at most {MAX_CHAIN_LEVELS} levels, got {len(ratios)}")
     if isinstance(pm, SceneAsset):
+        _uncompressed_scene(compress)
         return _scene_chain(pm, digest, policy, request, bodies, mesh_id=mesh_id, ratios=ratios,
                             reach=reach)
     levels = [pm.level_for(ratio=ratio) for ratio in ratios]
@@ -185,10 +202,12 @@ def get_chain(mesh_id: MeshId, store: StoreDep, bodies: BodiesDep, request: Requ
     if faces > MAX_CHAIN_FACES * full:
         raise LevelError(f"a chain's levels hold at most {MAX_CHAIN_FACES} times the mesh's "
                          f"faces; these ratios add up to {faces / full:.2f} times")
-    etag = etag_for(digest, "chain", ",".join(map(repr, ratios)), reach)
+    etag = etag_for(digest, "chain", ",".join(map(repr, ratios)), reach,
+                    *([compress] if compress != "none" else []))
     # clustering (reach) works on the full mesh: it takes every slot
     return bodies.cached(
-        request, etag, policy, lambda: encode_lod_chain(*lod_chain(pm, ratios, reach=reach)[:2]),
+        request, etag, policy,
+        lambda: encode_lod_chain(*lod_chain(pm, ratios, reach=reach)[:2], compress),
         media_type=_GLB, filename=f"{mesh_id}-lods.glb",
         estimate=lambda: chain_bytes(pm, levels) if reach == "none" else bodies.heavy.budget)
 
