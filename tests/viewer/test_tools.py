@@ -60,6 +60,8 @@ PROJECTED_BOX_JS = """async () => {
   }
   return { left: Math.min(...xs), right: Math.max(...xs), top: Math.min(...ys), bottom: Math.max(...ys) };
 }"""
+STATS_JS = """() => Object.fromEntries([...document.querySelectorAll('#stats tr')]
+    .map((row) => [row.cells[0].textContent, row.cells[1].textContent]))"""
 CAMERA_JS = """() => {
   const { camera } = window.lodViewer.scene.three;
   return { position: camera.position.toArray(), up: camera.up.toArray() };
@@ -130,7 +132,12 @@ def test_the_first_level_is_chosen_for_the_view_and_the_base_never_drawn(chromiu
         level = int(packets[0].split("to=")[1].split("&")[0])
         assert mesh["base_vertices"] < level < mesh["vertices"], level
         assert page.evaluate("window.framedLevels[0]") == level
-        assert page.evaluate("lodViewer.status()")["level"] == mesh["vertices"]
+        # the page stops at what the screen shows: the level of the 1 px budget,
+        # no packet past it, and the panel says so
+        settled = page.evaluate("lodViewer.status()")["level"]
+        assert settled == level < mesh["vertices"], (settled, level)
+        assert all(int(url.split("to=")[1].split("&")[0]) <= level for url in packets), packets
+        assert page.evaluate(STATS_JS)["detail"] == "1 px"
         # how many pixels a unit covers at the nearest point of the box's sphere
         # (centre 0, radius sqrt 3), seen from where the page framed it
         per_unit = page.evaluate("""() => {
@@ -239,7 +246,8 @@ def test_reset_wireframe_shading_and_render_stats(chromium, server, meshes):
         assert np.allclose(page.evaluate(CAMERA_JS)["position"], framed, rtol=1e-6)
 
         stats = page.text_content("#render-stats")
-        assert "1 draw call" in stats and f"{mesh['faces']:,} triangles" in stats, stats
+        faces = page.evaluate("lodViewer.status()")["faces"]     # the level's: the 1 px stop
+        assert "1 draw call" in stats and f"{faces:,} triangles" in stats, stats
         assert "fps" in stats
 
         pixels = "Array.from(lodViewer.scene.pixels().data.filter((_, i) => i % 16 === 0))"
