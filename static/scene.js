@@ -6,20 +6,8 @@
 // frame showing a mesh is drawn and the stream rests, or at once if the stream
 // has a long way to go (it costs GPU time; a hemisphere light stands in until then).
 //
-// The buffers are allocated at full detail once per mesh. A level is a prefix
-// of the vertices and of the faces (the prefix layout), so showing one is a
-// draw range, and a packet re-uploads only the ranges it changed. The index
-// buffer *is* the decoder's face array; positions are decoded from the grid
-// (origin + q * step: the origin goes into the mesh's transform, so the floats
-// stay small).
-//
-// A mesh with attributes is drawn with one vertex per wedge (a UV seam or a
-// hard edge has a vertex per side): its position is its vertex's, its normal,
-// UVs and colour its own, and the index buffer is the decoder's wedge-per-corner
-// array. Normals come from the stream when it has them, else they are computed
-// per vertex and shared by the vertex's wedges. Faces are drawn in one group
-// per material, each group a prefix of a range of the index buffer (a level's
-// faces of one material are a prefix of that material's faces, in slot order).
+// The mesh itself, its buffers following the stream's level, is a LevelMesh
+// (levelmesh.js).
 //
 // Signals in: 'mesh', 'level', 'settings', 'reset-view', 'camera-set'.
 // Out: 'view' (pixels per mesh unit at the mesh's nearest point, for choosing
@@ -28,10 +16,9 @@
 
 import * as THREE from 'three';
 import { OrbitControls } from 'three/addons/controls/OrbitControls.js';
-import { dequantize } from './vsplit.js';
-import { configureRenderer, createEnvironment, defaultMaterial, LOOK, makeMaterial,
-         TextureSet } from './materials.js';
+import { configureRenderer, createEnvironment, LOOK } from './materials.js';
 import { fitBox, freeArea, pixelsPerUnit } from './framing.js';
+import { LevelMesh } from './levelmesh.js';
 
 // The longest the environment waits for the stream to come to rest (see createScene).
 const ENVIRONMENT_WAIT_MS = 5000;
@@ -40,10 +27,6 @@ const ENVIRONMENT_WAIT_MS = 5000;
 // software GL) then overlaps the download rather than delaying the
 // full-detail frame after it.
 const ENVIRONMENT_AHEAD_MS = 1500;
-
-// three.js attribute names of glTF's.
-const ATTRIBUTE_NAMES = { NORMAL: 'normal', TANGENT: 'tangent', TEXCOORD_0: 'uv',
-                          TEXCOORD_1: 'uv1', COLOR_0: 'color' };
 
 // panel: the element whose box the framing keeps the mesh clear of (or null).
 export function createScene(viewer, container, panel = null) {
@@ -83,14 +66,11 @@ export function createScene(viewer, container, panel = null) {
   scene.add(camera);
   let controls = makeControls(), controlsUp = 'Y';
 
-  const fallback = defaultMaterial();
-  let mesh = null, state = null, info = null, textures = null;
+  let drawn = null;               // the LevelMesh shown
+  let mesh = null, state = null, info = null;
   // A loaded glTF scene (animated.js) drawn instead of a streamed mesh, and its box.
   let object = null, objectBox = null;
   const showing = () => mesh !== null || object !== null;
-  let materials = [fallback];     // per draw group: the mesh's materials, then the default
-  let groups = null;              // per-material index ranges, when there are several
-  let vertexNormals = null;       // computed normals per vertex (wedge meshes without NORMAL)
   let bounds = null;              // { center (world, THREE.Vector3), radius }
   let userMoved = false;          // until the user moves the camera, the view follows the mesh
   let frame = null;               // the pending animation frame's promise
@@ -239,175 +219,29 @@ export function createScene(viewer, container, panel = null) {
   function disposeMesh() {
     if (object) scene.remove(object);
     object = objectBox = null;
-    if (!mesh) return;
-    scene.remove(mesh);
-    mesh.geometry.dispose();
-    for (const old of materials) if (old !== fallback) old.dispose();
-    textures?.dispose();
-    textures = null;
+    drawn?.dispose();
+    drawn = mesh = null;
   }
 
   function showMesh({ state: opened, appearance, info: summary }) {
     disposeMesh();
     state = opened;
     info = summary || null;
-    const geometry = new THREE.BufferGeometry();
-    const dynamic = (array, size) => new THREE.BufferAttribute(array, size)
-      .setUsage(THREE.DynamicDrawUsage);
-    const wedged = state.attributes.length > 0;
-    const capacity = wedged ? state.wedgeCapacity : state.vertexCapacity;
-    geometry.setAttribute('position', dynamic(new Float32Array(3 * capacity), 3));
-    geometry.setAttribute('normal', dynamic(new Float32Array(3 * capacity), 3));
-    for (const a of state.attributes) {
-      if (a.name === 'NORMAL' || !ATTRIBUTE_NAMES[a.name]) continue;
-      geometry.setAttribute(ATTRIBUTE_NAMES[a.name],
-                            dynamic(new Float32Array(a.width * capacity), a.width));
-    }
-    vertexNormals = wedged && !state.attributes.some((a) => a.name === 'NORMAL')
-      ? new Float32Array(3 * state.vertexCapacity) : null;
-    materials = [fallback];
-    groups = null;
-    let drawn = fallback;
-    if (appearance?.materials) {
-      const { document, url } = appearance.materials;
-      textures = new TextureSet(document, url, () => {
-        viewer.emit('textures', textures?.textureBytes ?? 0);
-        render();
-      });
-      const has = (name) => state.attributes.some((a) => a.name === name);
-      const options = { textures, vertexColors: has('COLOR_0'), tangents: has('TANGENT') };
-      materials = [...document.materials.map((record) => makeMaterial(record, options)), fallback];
-      // one group per material that has faces (the last: faces without a material)
-      const counts = appearance.materialFaces || [];
-      const used = counts.map((n, g) => (n > 0 ? g : -1)).filter((g) => g >= 0);
-      if (used.length === 1) drawn = materials[used[0]];
-      else if (used.length > 1) groups = makeGroups(counts);
-    }
-    applyLook();
-    const index = groups ? groups.index : wedged ? state.corners : state.faces;
-    geometry.setIndex(dynamic(index, 1));
-    mesh = new THREE.Mesh(geometry, groups ? materials : drawn);
-    mesh.position.set(...state.grid.origin);
-    // The bounding sphere would count the unused slots of the buffers.
-    mesh.frustumCulled = false;
+    drawn = new LevelMesh(state, appearance, { onTexture: () => {
+      viewer.emit('textures', drawn?.textures?.textureBytes ?? 0);
+      render();
+    } });
+    drawn.setLook(settings);
+    mesh = drawn.mesh;
     scene.add(mesh);
     userMoved = false;
     bounds = null;
     if (info?.bounds) frameMesh();
   }
 
-  // Index ranges per material: material g's faces in slot order fill
-  // [start[g], start[g] + count[g]) of the faces of the index buffer.
-  function makeGroups(counts) {
-    const start = new Int32Array(counts.length);
-    for (let g = 1; g < counts.length; g++) start[g] = start[g - 1] + counts[g - 1];
-    return { start, filled: new Int32Array(counts.length), faces: 0,
-             slot: new Int32Array(state.faceCapacity),       // face -> place in the index
-             index: new Uint32Array(3 * state.faceCapacity) };
-  }
-
-  // Follows the level's faces (their wedges, or vertices without attributes)
-  // into the per-material ranges and sets the draw groups.
-  function updateGroups(dirty) {
-    const { faceMaterial, faceCount } = state;
-    const corners = state.attributes.length ? state.corners : state.faces;
-    const { start, filled, slot, index } = groups;
-    const group = (f) => (faceMaterial[f] >= 0 ? faceMaterial[f] : start.length - 1);
-    for (; groups.faces > faceCount; groups.faces--) filled[group(groups.faces - 1)]--;
-    for (; groups.faces < faceCount; groups.faces++) {
-      const g = group(groups.faces);
-      slot[groups.faces] = start[g] + filled[g]++;
-    }
-    const first = Math.floor(dirty.cornerStart / 3), last = Math.ceil(dirty.cornerEnd / 3);
-    for (let f = first; f < Math.min(last, faceCount); f++) {
-      const at = 3 * slot[f];
-      index[at] = corners[3 * f];
-      index[at + 1] = corners[3 * f + 1];
-      index[at + 2] = corners[3 * f + 2];
-    }
-    const { geometry } = mesh;
-    geometry.clearGroups();
-    for (let g = 0; g < start.length; g++) {
-      if (filled[g] > 0) geometry.addGroup(3 * start[g], 3 * filled[g], g);
-    }
-    if (last > first) geometry.index.needsUpdate = true;
-  }
-
-  // The wedge buffers after a packet: the positions of the touched vertices'
-  // wedges, the attributes of the touched wedges.
-  function showWedges(dirty) {
-    const { geometry } = mesh;
-    const position = geometry.getAttribute('position');
-    const { positions, head, next, corners, wedgeVertex, wedges, components } = state;
-    const { step } = state.grid;
-    const p = position.array;
-    let low = Infinity, high = -1;
-    for (const v of dirty.vertices) {
-      const x = positions[3 * v] * step, y = positions[3 * v + 1] * step;
-      const z = positions[3 * v + 2] * step;
-      for (let c = head[v]; c !== -1; c = next[c]) {
-        const w = corners[c];
-        p[3 * w] = x;
-        p[3 * w + 1] = y;
-        p[3 * w + 2] = z;
-        if (w < low) low = w;
-        if (w > high) high = w;
-      }
-    }
-    const streamed = state.attributes.filter((a) => ATTRIBUTE_NAMES[a.name]);
-    const buffers = streamed.map((a) => geometry.getAttribute(ATTRIBUTE_NAMES[a.name]));
-    for (const w of dirty.wedges) {
-      const v = wedgeVertex[w];
-      p[3 * w] = positions[3 * v] * step;
-      p[3 * w + 1] = positions[3 * v + 1] * step;
-      p[3 * w + 2] = positions[3 * v + 2] * step;
-      streamed.forEach((a, i) => {
-        dequantize(a, wedges, components * w + a.offset, buffers[i].array, a.width * w);
-      });
-      if (w < low) low = w;
-      if (w > high) high = w;
-    }
-    if (high >= low) {
-      position.addUpdateRange(3 * low, 3 * (high - low + 1));
-      position.needsUpdate = true;
-      streamed.forEach((a, i) => {
-        buffers[i].addUpdateRange(a.width * low, a.width * (high - low + 1));
-        buffers[i].needsUpdate = true;
-      });
-    }
-    const { cornerStart, cornerEnd } = dirty;
-    if (groups) updateGroups(dirty);
-    else if (cornerEnd > cornerStart) {
-      geometry.index.addUpdateRange(cornerStart, cornerEnd - cornerStart);
-      geometry.index.needsUpdate = true;
-    }
-  }
-
-  function showVertices(dirty) {
-    const { geometry } = mesh;
-    const position = geometry.getAttribute('position');
-    const { vertexStart, vertexEnd, cornerStart, cornerEnd } = dirty;
-    if (groups) updateGroups(dirty);
-    if (vertexEnd > vertexStart) {
-      const { step } = state.grid;
-      for (let i = 3 * vertexStart; i < 3 * vertexEnd; i++) {
-        position.array[i] = state.positions[i] * step;
-      }
-      position.addUpdateRange(3 * vertexStart, 3 * (vertexEnd - vertexStart));
-      position.needsUpdate = true;
-    }
-    if (!groups && cornerEnd > cornerStart) {
-      geometry.index.addUpdateRange(cornerStart, cornerEnd - cornerStart);
-      geometry.index.needsUpdate = true;
-    }
-  }
-
   function showLevel({ dirty }) {
     if (!mesh) return;
-    if (state.attributes.length) showWedges(dirty);
-    else showVertices(dirty);
-    if (settings.shading === 'smooth') updateNormals();
-    mesh.geometry.setDrawRange(0, groups ? Infinity : 3 * state.faceCount);
+    drawn.update(dirty);
     // Without the mesh's box the view follows the level's, until the user moves
     // it; in auto mode the camera distance picks the level: framing would feed back.
     if (!bounds || (!info?.bounds && !userMoved && !settings.autoByDistance)) frameMesh();
@@ -415,57 +249,9 @@ export function createScene(viewer, container, panel = null) {
     render();
   }
 
-  // Area-weighted vertex normals of the current level (every vertex of a
-  // level lies on one of its faces). Computed on grid coordinates: the same
-  // directions, without reading the floats back.
-  function updateNormals() {
-    if (state.attributes.length && !vertexNormals) return;    // normals from the stream
-    const normal = mesh.geometry.getAttribute('normal');
-    const n = vertexNormals || normal.array, q = state.positions, faces = state.faces;
-    n.fill(0, 0, 3 * state.vertexCount);
-    for (let c = 0; c < 3 * state.faceCount; c += 3) {
-      const a = 3 * faces[c], b = 3 * faces[c + 1], d = 3 * faces[c + 2];
-      const ux = q[b] - q[a], uy = q[b + 1] - q[a + 1], uz = q[b + 2] - q[a + 2];
-      const vx = q[d] - q[a], vy = q[d + 1] - q[a + 1], vz = q[d + 2] - q[a + 2];
-      const x = uy * vz - uz * vy, y = uz * vx - ux * vz, z = ux * vy - uy * vx;
-      n[a] += x; n[a + 1] += y; n[a + 2] += z;
-      n[b] += x; n[b + 1] += y; n[b + 2] += z;
-      n[d] += x; n[d + 1] += y; n[d + 2] += z;
-    }
-    for (let i = 0; i < 3 * state.vertexCount; i += 3) {
-      const length = Math.hypot(n[i], n[i + 1], n[i + 2]) || 1;
-      n[i] /= length;
-      n[i + 1] /= length;
-      n[i + 2] /= length;
-    }
-    let count = state.vertexCount;
-    if (vertexNormals) {       // each wedge takes its vertex's normal
-      const out = normal.array, { wedgeVertex } = state;
-      count = state.wedgeCount;
-      for (let w = 0; w < count; w++) {
-        const v = 3 * wedgeVertex[w];
-        out[3 * w] = n[v];
-        out[3 * w + 1] = n[v + 1];
-        out[3 * w + 2] = n[v + 2];
-      }
-    }
-    normal.addUpdateRange(0, 3 * count);
-    normal.needsUpdate = true;
-  }
-
-  // Shading and wireframe on every material of the mesh.
-  function applyLook() {
-    for (const each of materials) {
-      each.flatShading = settings.shading === 'flat';
-      each.wireframe = settings.wireframe;
-      each.needsUpdate = true;
-    }
-  }
-
   function applySettings(key) {
     if ((key === 'shading' || key === 'wireframe') && mesh) {
-      applyLook();
-      if (settings.shading === 'smooth') updateNormals();
+      drawn.setLook(settings);
       render();
     } else if (key === 'up' && showing()) {
       userMoved = false;
@@ -534,15 +320,15 @@ export function createScene(viewer, container, panel = null) {
       render();
     },
     // Resolves once every texture asked for so far has arrived.
-    texturesReady: () => textures?.ready ?? Promise.resolve(),
-    get textureBytes() { return textures?.textureBytes ?? 0; },
+    texturesReady: () => drawn?.textures?.ready ?? Promise.resolve(),
+    get textureBytes() { return drawn?.textures?.textureBytes ?? 0; },
     // How many frames of the view were drawn.
     get draws() { return draws; },
     // For tests: the three.js objects, and the canvas pixels drawn now
     // (RGBA, bottom row first; read in the same task as the draw, so the
     // drawing buffer still holds them).
     three: { THREE, renderer, scene, camera, get mesh() { return mesh; },
-             get materials() { return materials; } },
+             get materials() { return drawn?.materials ?? []; } },
     pixels() {
       draw();
       const gl = renderer.getContext();

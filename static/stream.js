@@ -55,9 +55,12 @@
 // Signals in: 'open' (a mesh id, or { id, level }: see open()), 'goto' (a level).
 
 import { ErrorCurve } from './curve.js';
+import { FetchError, routeUrl, ServerSource, sleep } from './source.js';
 import { LodState, PacketError } from './vsplit.js';
 
-const POLL_MS = 500;
+// (tools.js and animated.js take a route's URL from here, where they take the stream)
+export { routeUrl };
+
 const MAX_SPLITS = 1 << 18;        // the largest packet asked for (records)
 const MAX_AHEAD = 32;              // the most packets requested ahead (see packetsAhead)
 const LINK_BODIES = 8;             // packets the link's rate is measured over (see linkOf)
@@ -66,24 +69,6 @@ const RETRY_MAX_MS = 8000;
 // Defaults of the settings this module reads (main.js may set them).
 const DEFAULTS = { chunkSplits: 4096, packetsAhead: 2, frameBudgetMs: 12, packetPaceMs: 250,
                    retries: 6, reportGap: 3, initialRatio: 1 };
-
-// An HTTP failure: `transient` when asking again may help.
-class FetchError extends Error {
-  constructor(message, transient) {
-    super(message);
-    this.transient = transient;
-  }
-}
-
-function sleep(ms, signal) {
-  return new Promise((resolve, reject) => {
-    const timer = setTimeout(resolve, ms);
-    signal?.addEventListener('abort', () => {
-      clearTimeout(timer);
-      reject(signal.reason);
-    }, { once: true });
-  });
-}
 
 // Yields to the event loop (so a due frame is drawn), without the >= 4 ms
 // clamp of nested setTimeout.
@@ -95,39 +80,11 @@ function yieldTask() {
   });
 }
 
-// The URL of a route of a mesh ('lod', 'splits', 'materials') with
-// `params`: at the mesh's version when its summary hands out versioned URLs
-// (GET /meshes/{id}: urls, `?v=`; the server marks such responses immutable,
-// so any cache keeps them for a year), else unversioned (cached a minute).
-// The summary's URLs are rooted at the API, which serves the viewer at
-// viewer/: they resolve against the page's parent, so a path prefix added by
-// a proxy is kept.
-// A scene's part (GET /meshes/{id}: parts[p].urls) is opened as a mesh whose
-// summary has such urls; a URL that is a template ({from}, {to}, ...) has
-// its named parameters filled in rather than added.
-export function routeUrl(summary, route, params = {}) {
-  const root = new URL('../', window.location.href);
-  let versioned = summary.urls?.[route];
-  const rest = { ...params };
-  if (versioned) {
-    versioned = versioned.replace(/\{(\w+)\}/g, (whole, key) => {
-      if (!(key in rest)) return '';
-      const value = encodeURIComponent(rest[key]);
-      delete rest[key];
-      return value;
-    });
-  }
-  const url = versioned
-    ? new URL(versioned.replace(/^\/+/, ''), root)
-    : new URL(`meshes/${encodeURIComponent(summary.id)}/${route}`, root);
-  for (const [key, value] of Object.entries(rest)) url.searchParams.set(key, value);
-  return url.href;
-}
-
 export function createStream(viewer) {
   const { settings } = viewer;
   const option = (key) => settings[key] ?? DEFAULTS[key];
   let info = null;            // GET /meshes/{id}
+  let source = null;          // where the records come from (source.js)
   let state = null;           // the level held
   let target = null;
   let bytes = 0;              // geometry bytes received: the first level and packets
@@ -162,40 +119,21 @@ export function createStream(viewer) {
     viewer.emit('stream', { state: name, level: state?.level ?? null, target, size, ...extra });
   }
 
-  async function fetchOk(url, options) {
-    let response;
-    try {
-      response = await fetch(url, options);
-    } catch (error) {
-      if (error.name === 'AbortError') throw error;
-      throw new FetchError(`the request failed (${error.message})`, true);
-    }
-    if (!response.ok) {
-      const body = await response.json().catch(() => ({}));
-      const status = response.status;
-      throw new FetchError(body.message || `the server answered ${status}`,
-                           status >= 500 || status === 408 || status === 429);
-    }
-    return response;
-  }
-
-  async function fetchGeometry(url, ticket) {
-    const buffer = await (await fetchOk(url)).arrayBuffer();
+  async function fetchBase(level, ticket) {
+    const buffer = await source.base(level);
     if (ticket === opened) bytes += buffer.byteLength;
     return buffer;
   }
 
-  // The summary of a mesh once it is built, reporting the build's progress.
-  async function waitUntilReady(id, ticket) {
-    for (;;) {
-      const summary = await (await fetchOk(`../meshes/${encodeURIComponent(id)}`)).json();
-      if (ticket !== opened) return null;
-      if (summary.status === 'ready') return summary;
-      if (summary.status === 'failed') throw new Error(`the build failed: ${summary.failure}`);
+  // The source of a mesh once it is built, reporting the build's progress;
+  // null once another mesh is opened.
+  function waitUntilReady(id, ticket) {
+    return ServerSource.open(id, { onProgress(summary) {
+      if (ticket !== opened) return false;
       const percent = Math.round(100 * summary.progress);
       viewer.emit('status', `${summary.name}: ${summary.status} ${percent}%`);
-      await sleep(POLL_MS);
-    }
+      return true;
+    } });
   }
 
 
@@ -214,7 +152,10 @@ export function createStream(viewer) {
   // opening one stream per part with open(id, { summary: the part's, ... }):
   // a summary given is not fetched (nor is it checked for a scene), and
   // `materials: false` leaves the part's materials to the caller.
-  async function open(id, { level, summary: given = null, materials: withMaterials = true } = {}) {
+  // A source given (source.js: a ServerSource, a file) is read instead of the
+  // page's server, its summary as a given one.
+  async function open(id, { level, summary: givenSummary = null, source: givenSource = null,
+                            materials: withMaterials = true } = {}) {
     const ticket = ++opened;
     stopMoving();
     [info, state, target, bytes, failed, stalled, shown] = [null, null, null, 0, null, null, null];
@@ -222,9 +163,13 @@ export function createStream(viewer) {
     rate = 0;
     bodies = [];
     [lastLink, receivedBytes, receivedRecords] = [null, 0, 0];
+    const given = givenSource?.summary ?? givenSummary;
     try {
-      const summary = given ?? await waitUntilReady(id, ticket);
-      if (!summary) return;
+      const found = givenSource ?? (givenSummary ? new ServerSource(givenSummary)
+        : await waitUntilReady(id, ticket));
+      if (!found || ticket !== opened) return;
+      source = found;
+      const { summary } = source;
       let first = typeof level === 'function' ? await level(summary) : level;
       if (ticket !== opened) return;
       if (!given && summary.scene === true) {
@@ -236,8 +181,7 @@ export function createStream(viewer) {
       first = Number.isFinite(first)
         ? Math.min(summary.vertices, Math.max(base, Math.round(first))) : base;
       viewer.emit('status', `${summary.name}: loading level ${first}`);
-      const baseLevel = fetchGeometry(routeUrl(summary, 'lod', { vertices: base, format: 'json' }),
-                                      ticket);
+      const baseLevel = fetchBase(base, ticket);
       // (retried as any packet; not aborted: a new open() drops it by its ticket)
       const packet = first > base
         ? fetchPacket(summary, base, first, new AbortController().signal, ticket)
@@ -248,9 +192,7 @@ export function createStream(viewer) {
       const appearance = { materialFaces: document.material_faces, materials: null };
       const materials = document.materials && withMaterials
         // the glTF records; their image uris are relative to this document
-        ? fetchOk(routeUrl(summary, 'materials')).then(async (response) => (
-          { document: await response.json(), url: response.url }))
-        : null;
+        ? source.materials() : null;
       const held = LodState.fromJson(document, { vertexCapacity: summary.vertices,
                                                  faceCapacity: summary.faces });
       // a first packet that fails (after its retries) leaves the base shown,
@@ -329,17 +271,10 @@ export function createStream(viewer) {
 
   // One packet of mesh `summary`, retried with backoff while the failure is transient.
   async function fetchPacket(summary, from, to, signal, ticket) {
-    const url = routeUrl(summary, 'splits', { from, to });
+    const records = source;         // this mesh's, whatever is opened meanwhile
     for (let attempt = 0; ; attempt++) {
       try {
-        const response = await fetchOk(url, { signal });
-        let buffer;
-        try {
-          buffer = await response.arrayBuffer();
-        } catch (error) {
-          if (error.name === 'AbortError') throw error;
-          throw new FetchError(`the packet was cut short (${error.message})`, true);
-        }
+        const { buffer, url } = await records.packet(from, to, { signal });
         const packet = await LodState.readPacket(buffer);
         return { packet, bytes: buffer.byteLength, url };
       } catch (error) {
@@ -452,7 +387,8 @@ export function createStream(viewer) {
     const entries = performance.getEntriesByName(new URL(url, window.location.href).href,
                                                  'resource');
     const entry = entries[entries.length - 1];
-    if (!entry || !(entry.responseEnd > 0)) return null;
+    // (another origin's timings are zero unless it sends Timing-Allow-Origin)
+    if (!entry || !(entry.responseEnd > 0) || !(entry.responseStart > 0)) return null;
     const latencyMs = Math.max(0, entry.responseStart - entry.requestStart);
     bodies.push([entry.responseStart, entry.responseEnd, bytes]);
     if (bodies.length > LINK_BODIES) bodies.shift();
@@ -657,7 +593,7 @@ export function createStream(viewer) {
     close() {
       opened++;
       stopMoving();
-      [info, state, target, opening] = [null, null, null, null];
+      [info, state, target, opening, source] = [null, null, null, null, null];
     },
     // The geomorph (geomorph.js) that coarsening waits for.
     attachGeomorph(morph) {
