@@ -9,32 +9,12 @@
 // Fast streaming:
 // * Pipelined: settings.packetsAhead packets are requested ahead along the
 //   way to the target (more where frames block the main thread for long:
-//   packetsAhead()), each fetched and inflated as it arrives, and applied
-//   strictly in order. A packet that no longer leads to the target (the
-//   target moved back) is aborted.
-// * Adaptive packets: a packet is `size` records, cut at multiples of `size`
-//   (so moving back and forth asks for the same packets again, which the
-//   browser cache answers: the server marks them immutable). `size` starts at
-//   settings.chunkSplits; after each packet it is set to the largest size
-//   that both decodes+applies within settings.frameBudgetMs (or half a drawn
-//   frame's cost, when that is longer) at the rate lately measured, and crosses the link within settings.packetPaceMs (latency plus
-//   bytes over the bandwidth, both from the packet's Resource Timing entry,
-//   which main-thread stalls do not distort), growing at most 4x a packet.
-//   Sizes are powers of two times chunkSplits (up to MAX_SPLITS), so the cuts
-//   of every size line up.
-// * At most one 'level' signal per animation frame: packets applied between
-//   two reports are reported together (their dirty ranges merged by the
-//   state), so the scene updates its buffers and draws once. Reports are also
-//   spaced by settings.reportGap times what a frame costs the main thread
-//   (measured: from the frame's first callback to a task posted from it).
-//   Under software GL (headless Chromium) a frame blocks the main thread for
-//   a long while (the canvas is read back for the compositor), so
-//   drawing every packet's level would leave the decoder a fraction of the
-//   time; spaced, at least reportGap / (reportGap + 1) of it goes to
-//   streaming. The work between two yields is cut at frameBudgetMs. No
-//   packet is applied between a report and the frame drawing it: three.js
-//   uploads the reported ranges at the draw, from the arrays the decoder
-//   changes, so a packet applied meanwhile would show half-uploaded.
+//   packetsAhead()), applied strictly in order (packetqueue.js).
+// * Adaptive packets: the packets' size follows the rate they are applied at
+//   and the link they come over (packetsizer.js).
+// * At most one 'level' signal per animation frame, spaced by what frames
+//   cost, and no packet applied between a report and the frame drawing it
+//   (reportpacer.js).
 // * Retries: a failed request (network error, 408, 429, 5xx, a body cut
 //   short) is retried with exponential backoff (RETRY_BASE_MS doubling, up to
 //   RETRY_MAX_MS, settings.retries times), the status saying so. When the
@@ -55,15 +35,16 @@
 // Signals in: 'open' (a mesh id, or { id, level }: see open()), 'goto' (a level).
 
 import { ErrorCurve } from './curve.js';
+import { PacketQueue } from './packetqueue.js';
+import { PacketSizer } from './packetsizer.js';
+import { ReportPacer } from './reportpacer.js';
 import { FetchError, routeUrl, ServerSource, sleep } from './source.js';
 import { LodState, PacketError } from './vsplit.js';
 
 // (tools.js and animated.js take a route's URL from here, where they take the stream)
 export { routeUrl };
 
-const MAX_SPLITS = 1 << 18;        // the largest packet asked for (records)
 const MAX_AHEAD = 32;              // the most packets requested ahead (see packetsAhead)
-const LINK_BODIES = 8;             // packets the link's rate is measured over (see linkOf)
 const RETRY_BASE_MS = 250;
 const RETRY_MAX_MS = 8000;
 // Defaults of the settings this module reads (main.js may set them).
@@ -93,30 +74,18 @@ export function createStream(viewer) {
   let moving = null;          // the running move() of this mesh: { ticket, done }
   let failed = null;          // the error that stopped the mesh, if any
   let stalled = null;         // the transient error the retries ran out on, if any
-  let size = option('chunkSplits');
-  let queue = [];             // packets requested ahead, in order: see request()
-  let planned = null;         // the level the last queued packet ends at
+  const sizer = new PacketSizer(option);   // the packets' size, from the link and the rate
+  // packets requested ahead, in order (of the mesh open when each was asked for)
+  const queue = new PacketQueue((from, to, signal) => fetchPacket(info, from, to, signal, opened));
   let shown = null;           // the level last reported by 'level'
-  let pending = null;         // applied, not yet reported: { records, applyMs }
-  let frame = 0;              // a requestAnimationFrame since the last report, pending
-  let timer = 0;              // the timeout of a report waiting for its gap
-  let framed = true;          // an animation frame has run since the last report
-  let reportedAt = -Infinity; // performance.now() of the last report
-  let frameCostMs = 16;       // what a drawn frame costs the main thread (moving average)
-  let rate = 0;               // records applied per ms (see adapt)
-  let lastLink = null;        // the link's figures at the last packet (linkOf)
-  let receivedBytes = 0, receivedRecords = 0;   // packets' bytes and records so far (this mesh)
-  let holdUntil = null;       // a report held for the rest arriving, until then (restInHand)
-  let holdTimer = 0;
-  let bodies = [];            // [responseStart, responseEnd, bytes] of the last packets (linkOf)
-  // The next packet waits for the last report's frame: three.js uploads the
-  // reported ranges when it draws, from the very arrays the decoder changes.
-  const waiting = [];
+  // when the applied packets are reported ('level')
+  const pacer = new ReportPacer(option, { emit: emitLevel, rest: restOfTheWay });
   let geomorph = null;
-  const stats = { packets: 0, retries: 0, aborted: 0, largest: 0 };
+  const stats = { packets: 0, retries: 0, largest: 0 };
 
   function emitStream(name, extra = {}) {
-    viewer.emit('stream', { state: name, level: state?.level ?? null, target, size, ...extra });
+    viewer.emit('stream', { state: name, level: state?.level ?? null, target, size: sizer.size,
+                            ...extra });
   }
 
   async function fetchBase(level, ticket) {
@@ -159,10 +128,7 @@ export function createStream(viewer) {
     const ticket = ++opened;
     stopMoving();
     [info, state, target, bytes, failed, stalled, shown] = [null, null, null, 0, null, null, null];
-    size = option('chunkSplits');
-    rate = 0;
-    bodies = [];
-    [lastLink, receivedBytes, receivedRecords] = [null, 0, 0];
+    sizer.reset();
     const given = givenSource?.summary ?? givenSummary;
     try {
       const found = givenSource ?? (givenSummary ? new ServerSource(givenSummary)
@@ -212,7 +178,7 @@ export function createStream(viewer) {
       if (ticket !== opened) return;
       info = summary;
       state = held;
-      target = planned = shown = state.level;
+      target = queue.planned = shown = state.level;
       viewer.emit('mesh', { info, state, appearance,
                             curve: new ErrorCurve(info, document.error) });
       viewer.emit('level', { state, bytes, dirty: state.takeDirty() });
@@ -225,7 +191,7 @@ export function createStream(viewer) {
 
   function stop(error) {
     failed = error;
-    abortQueue(0);
+    queue.abort(0, state?.level ?? null);
     viewer.emit('status', `error: ${error.message}`);
     emitStream('failed', { error: error.message });
   }
@@ -236,10 +202,10 @@ export function createStream(viewer) {
     viewer.emit('target', target);
     if (stalled) {
       stalled = null;           // a move of the level retries a stalled stream
-      planned = state.level;
+      queue.planned = state.level;
     }
-    trimQueue();
-    refill(opened);
+    queue.trim(state.level, target);
+    refill();
     if (!moving || moving.ticket !== opened) {
       const run = { ticket: opened, opening: first };
       run.done = move(run).finally(() => { if (moving === run) moving = null; });
@@ -248,26 +214,6 @@ export function createStream(viewer) {
   }
 
   // ---- packets ahead ---------------------------------------------------------------
-
-  // The next level on the way from `from` to `to`: the nearest multiple of the
-  // packet size.
-  function nextStop(from, to) {
-    return to > from ? Math.min(to, (Math.floor(from / size) + 1) * size)
-                     : Math.max(to, (Math.ceil(from / size) - 1) * size);
-  }
-
-  // Request the packet from -> to: { from, to, controller, ready, result (a
-  // promise of { packet, bytes, url }) }.
-  function request(from, to, ticket) {
-    const controller = new AbortController();
-    const entry = { from, to, controller, ready: false };
-    entry.result = fetchPacket(info, from, to, controller.signal, ticket).then((value) => {
-      entry.ready = true;
-      return value;
-    });
-    entry.result.catch(() => {});    // awaited (or dropped) by move()
-    return entry;
-  }
 
   // One packet of mesh `summary`, retried with backoff while the failure is transient.
   async function fetchPacket(summary, from, to, signal, ticket) {
@@ -293,28 +239,6 @@ export function createStream(viewer) {
     }
   }
 
-  // Drops the queued packets from index `keep` on.
-  function abortQueue(keep) {
-    for (const entry of queue.splice(keep)) {
-      stats.aborted++;
-      entry.controller.abort();
-    }
-    planned = queue.length ? queue[queue.length - 1].to : state?.level ?? null;
-  }
-
-  // Keeps the queued packets that still lead from the state toward the target.
-  function trimQueue() {
-    if (!state) return;
-    const forward = target > state.level;
-    let keep = 0;
-    for (const { from, to } of queue) {
-      const toward = forward ? to > from && to <= target : to < from && to >= target;
-      if (!toward || target === state.level) break;
-      keep++;
-    }
-    abortQueue(keep);
-  }
-
   // Packets in flight: settings.packetsAhead, or, where a drawn frame blocks
   // the main thread for long (software GL: seconds at a million triangles),
   // enough to keep the link busy through a frame and its gap (reportGap frames)
@@ -322,140 +246,34 @@ export function createStream(viewer) {
   // blocked, and two packets ahead would leave the link idle for most of each
   // frame (bench/viewer measures it on a throttled large mesh). At most MAX_AHEAD.
   function packetsAhead() {
-    const covered = frameCostMs * (option('reportGap') + 1) / option('packetPaceMs');
+    const covered = pacer.frameCostMs * (option('reportGap') + 1) / option('packetPaceMs');
     return Math.max(1, option('packetsAhead'), Math.min(MAX_AHEAD, Math.ceil(covered)));
   }
 
-  function refill(ticket) {
+  function refill() {
     if (!state || failed || stalled) return;
-    const ahead = packetsAhead();
-    while (queue.length < ahead && planned !== target) {
-      const to = nextStop(planned, target);
-      queue.push(request(planned, to, ticket));
-      planned = to;
-    }
+    queue.refill(target, packetsAhead(), (from, to) => sizer.nextStop(from, to));
   }
 
   // ---- applying ----------------------------------------------------------------------
 
-  // Reports the packets applied since the last report, now.
-  function report() {
-    if (timer) clearTimeout(timer);
-    timer = 0;
-    if (!pending || !state) return;
-    const { records, applyMs, morph = false } = pending;
-    pending = null;
-    holdUntil = null;
+  // Reports the packets applied since the last one (ReportPacer decides when).
+  function emitLevel({ records, applyMs, morph = false }) {
+    if (!state) return;
     shown = state.level;
-    reportedAt = performance.now();
-    framed = false;
-    // The next frame draws this level; a message posted from its first
-    // callback runs once the frame is done: the delay is what it cost.
-    if (!frame) frame = requestAnimationFrame(() => {
-      const drawn = performance.now();
-      const channel = new MessageChannel();
-      channel.port1.onmessage = () => {
-        frame = 0;
-        frameCostMs = 0.5 * frameCostMs + 0.5 * (performance.now() - drawn);
-        framed = true;
-        for (const resolve of waiting.splice(0)) resolve();
-        reportSoon();
-      };
-      channel.port2.postMessage(null);
-    });
     viewer.emit('level', { state, bytes, records, applyMs, morph, dirty: state.takeDirty() });
   }
 
-  // Reports once a frame has run since the last report and the gap has passed.
-  function reportSoon() {
-    if (!pending || timer || !framed || restInHand()) return;
-    const wait = reportedAt + option('reportGap') * frameCostMs - performance.now();
-    if (wait <= 0) report();
-    else timer = setTimeout(() => {
-      timer = 0;
-      reportSoon();
-    }, wait);
-  }
-
-  // The link's figures for a fetched URL: { latencyMs, bytesPerMs } from its
-  // Resource Timing entry (null when there is none, e.g. the buffer is full).
-  // Packets in flight together share the link, so one body's bytes over its own
-  // time would be a share of the link's rate (and shrink packets the more are
-  // ahead): the rate is the bytes of the last few bodies over the time any of
-  // them was arriving (the union of their intervals).
-  function linkOf(url, bytes) {
-    const entries = performance.getEntriesByName(new URL(url, window.location.href).href,
-                                                 'resource');
-    const entry = entries[entries.length - 1];
-    // (another origin's timings are zero unless it sends Timing-Allow-Origin)
-    if (!entry || !(entry.responseEnd > 0) || !(entry.responseStart > 0)) return null;
-    const latencyMs = Math.max(0, entry.responseStart - entry.requestStart);
-    bodies.push([entry.responseStart, entry.responseEnd, bytes]);
-    if (bodies.length > LINK_BODIES) bodies.shift();
-    const sorted = [...bodies].sort((a, b) => a[0] - b[0]);
-    let busyMs = 0, until = -Infinity, total = 0;
-    for (const [start, end, size] of sorted) {
-      busyMs += Math.max(0, end - Math.max(start, until));
-      until = Math.max(until, end);
-      total += size;
-    }
-    return { latencyMs, bytesPerMs: total / Math.max(0.1, busyMs) };
-  }
-
-  // The packet size after a packet of `records` records, `bytes` bytes,
-  // applied in applyMs, over `link` (see linkOf).
-  function adapt(records, bytes, applyMs, link) {
-    const chunk = option('chunkSplits');
-    // records per ms: the fastest lately (a cold JIT or a GC pause makes one
-    // packet slow; the rate decays so a lasting slowdown still shrinks packets)
-    rate = Math.max(records / Math.max(applyMs, 0.05), 0.7 * rate);
-    // where a drawn frame blocks the main thread longer than the budget (software
-    // GL), a packet as long as half a frame costs no responsiveness
-    const budget = Math.max(option('frameBudgetMs'), 0.5 * frameCostMs);
-    let want = budget * rate;
-    if (link) {
-      const pace = option('packetPaceMs') - link.latencyMs;
-      want = Math.min(want, Math.max(0, pace) * link.bytesPerMs * records / Math.max(bytes, 1));
-    }
-    want = Math.min(want, 4 * size, MAX_SPLITS);
-    let next = chunk;
-    while (next * 2 <= want) next *= 2;
-    size = next;
-  }
-
-  // Whether the rest of the way to the target has arrived and applying it should
-  // take less than a drawn frame costs: then a frame of the level between is
-  // not worth its cost (under software GL a frame of a million triangles blocks
-  // the main thread for seconds) and the report waits for the target.
-  // Also while the rest is still arriving, if it should arrive (at the link's
-  // rate, bytesPerRecord of the packets so far) and be applied within a drawn
-  // frame's cost: a frame drawn meanwhile would only delay the full level
-  // (on a throttled large mesh, by seconds after its last byte). Held at most
-  // twice as long as estimated (holdUntil), so a stalling link still shows
-  // what has arrived.
-  function restInHand() {
-    if (planned !== target || !(rate > 0)) return false;
-    let records = 0, missing = 0;
-    for (const entry of queue) {
-      const count = Math.abs(entry.to - entry.from);
-      records += count;
-      if (!entry.ready) missing += count;
-    }
-    if (missing === 0) return records / rate < frameCostMs;
-    if (!lastLink || !(receivedRecords > 0)) return false;
-    const arriveMs = lastLink.latencyMs
-      + missing * (receivedBytes / receivedRecords) / lastLink.bytesPerMs;
-    const restMs = arriveMs + records / rate;
-    const now = performance.now();
-    if (restMs >= frameCostMs) return false;
-    if (holdUntil === null) holdUntil = now + 2 * restMs;
-    if (now < holdUntil) {
-      // look again then, in case no packet arrives to trigger a report
-      if (!holdTimer) holdTimer = setTimeout(() => { holdTimer = 0; reportSoon(); },
-                                             holdUntil - now + 1);
-      return true;
-    }
-    return false;
+  // The rest of the way to the target, for ReportPacer.holding(): { ms: its
+  // time to arrive and be applied, arriving: whether some is still on the
+  // link }, or null (more packets to ask for, nothing measured yet).
+  function restOfTheWay() {
+    const { rate } = sizer;
+    if (queue.planned !== target || !(rate > 0)) return null;
+    const { all: records, missing } = queue.records();
+    if (missing === 0) return { ms: records / rate, arriving: false };
+    const arriveMs = sizer.linkMs(missing, 1);
+    return arriveMs === null ? null : { ms: arriveMs + records / rate, arriving: true };
   }
 
   // How long the rest of the way to the target should take to cross the link,
@@ -465,9 +283,8 @@ export function createStream(viewer) {
   // cores under software GL): scene.js makes the environment at once when
   // this is long enough to hide its GPU work.
   function restEstimateMs() {
-    if (!state || target === null || !(receivedRecords > 0) || !lastLink) return null;
-    const records = Math.abs(target - state.level);
-    return records * (receivedBytes / receivedRecords) / lastLink.bytesPerMs;
+    if (!state || target === null) return null;
+    return sizer.linkMs(Math.abs(target - state.level));
   }
 
   // Follows `target` (which may change meanwhile), the queued packets in order.
@@ -476,8 +293,8 @@ export function createStream(viewer) {
     let sliceStart = performance.now();
     try {
       while (ticket === opened && !failed && !stalled) {
-        refill(ticket);
-        const head = queue[0];
+        refill();
+        const { head } = queue;
         if (!head) break;
         const verb = head.to > head.from ? 'refining' : 'coarsening';
         viewer.emit('status', `${info.name}: ${verb} to ${target}`);
@@ -491,11 +308,11 @@ export function createStream(viewer) {
           throw error;
         }
         if (ticket !== opened) return;
-        if (queue[0] !== head) continue;                    // dropped while arriving
-        if (!framed) {
-          await new Promise((resolve) => waiting.push(resolve));
+        if (queue.head !== head) continue;                  // dropped while arriving
+        if (!pacer.framed) {
+          await pacer.afterFrame();
           if (ticket !== opened) return;
-          if (queue[0] !== head) continue;
+          if (queue.head !== head) continue;
         }
         queue.shift();
         const started = performance.now();
@@ -504,24 +321,21 @@ export function createStream(viewer) {
         bytes += got.bytes;
         stats.packets++;
         stats.largest = Math.max(stats.largest, records);
-        pending = { records: (pending?.records ?? 0) + records,
-                    applyMs: (pending?.applyMs ?? 0) + applyMs, morph: pending?.morph ?? false };
-        lastLink = linkOf(got.url, got.bytes) ?? lastLink;
-        receivedBytes += got.bytes;
-        receivedRecords += records;
-        adapt(records, got.bytes, applyMs, lastLink);
+        pacer.add(records, applyMs);
+        sizer.measure(got.url, got.bytes, records, applyMs, pacer.frameCostMs);
         const backward = head.to < head.from;
         const morphing = geomorph && !run.opening && geomorph.enabled();
         if (backward && morphing) {
           // apply what has already arrived in the same direction, then glide
           // the vanishing vertices into their parents, then drop them
-          if (queue[0]?.ready && queue[0].to < queue[0].from) continue;
+          const next = queue.head;
+          if (next?.ready && next.to < next.from) continue;
           await geomorph.coarsen(state, shown);
           if (ticket !== opened) return;
-          report();
+          pacer.now();
         } else {
-          pending.morph = morphing;             // the geomorph glides the new vertices out
-          if (!restInHand()) reportSoon();
+          pacer.pending.morph = morphing;       // the geomorph glides the new vertices out
+          if (!pacer.holding()) pacer.soon();
         }
         if (performance.now() - sliceStart > option('frameBudgetMs')) {
           await yieldTask();
@@ -529,14 +343,14 @@ export function createStream(viewer) {
         }
       }
       if (ticket !== opened) return;
-      report();
+      pacer.now();
       if (!failed && !stalled) {
         viewer.emit('status', `${info.name}`);
-        emitStream('idle', { ...stats });
+        emitStream('idle', { ...stats, aborted: queue.aborted });
       }
     } catch (error) {
       if (ticket !== opened) return;
-      report();
+      pacer.now();
       fail(error);
     }
   }
@@ -546,7 +360,7 @@ export function createStream(viewer) {
   function fail(error) {
     if (error instanceof FetchError && error.transient) {
       stalled = error;
-      abortQueue(0);
+      queue.abort(0, state?.level ?? null);
       viewer.emit('status', `error: ${error.message} (move the level to try again)`);
       emitStream('stalled', { error: error.message });
     } else {
@@ -556,15 +370,8 @@ export function createStream(viewer) {
   }
 
   function stopMoving() {
-    for (const entry of queue) entry.controller.abort();
-    queue = [];
-    pending = null;
-    if (timer) clearTimeout(timer);
-    timer = 0;
-    if (holdTimer) clearTimeout(holdTimer);
-    [holdTimer, holdUntil] = [0, null];
-    framed = true;
-    for (const resolve of waiting.splice(0)) resolve();
+    queue.clear();
+    pacer.reset();
   }
 
   viewer.on('open', (detail) => {
@@ -581,8 +388,8 @@ export function createStream(viewer) {
     get busy() { return moving !== null; },
     get failed() { return failed; },
     get stalled() { return stalled; },
-    get packetSize() { return size; },
-    get stats() { return { ...stats }; },
+    get packetSize() { return sizer.size; },
+    get stats() { return { ...stats, aborted: queue.aborted }; },
     // Opens a mesh at a first level: open(id, { level }) (see open() above).
     open(id, options = {}) {
       opening = open(id, options);
