@@ -24,6 +24,29 @@ import { defaultMaterial, makeMaterial, TextureSet } from './materials.js';
 const ATTRIBUTE_NAMES = { NORMAL: 'normal', TANGENT: 'tangent', TEXCOORD_0: 'uv',
                           TEXCOORD_1: 'uv1', COLOR_0: 'color' };
 
+// Area-weighted unit vertex normals of the state's level into out[3v ..]
+// (every vertex of a level lies on one of its faces). Computed on grid
+// coordinates: the same directions, without reading the floats back.
+export function levelNormals(state, out) {
+  const q = state.positions, faces = state.faces;
+  out.fill(0, 0, 3 * state.vertexCount);
+  for (let c = 0; c < 3 * state.faceCount; c += 3) {
+    const a = 3 * faces[c], b = 3 * faces[c + 1], d = 3 * faces[c + 2];
+    const ux = q[b] - q[a], uy = q[b + 1] - q[a + 1], uz = q[b + 2] - q[a + 2];
+    const vx = q[d] - q[a], vy = q[d + 1] - q[a + 1], vz = q[d + 2] - q[a + 2];
+    const x = uy * vz - uz * vy, y = uz * vx - ux * vz, z = ux * vy - uy * vx;
+    out[a] += x; out[a + 1] += y; out[a + 2] += z;
+    out[b] += x; out[b + 1] += y; out[b + 2] += z;
+    out[d] += x; out[d + 1] += y; out[d + 2] += z;
+  }
+  for (let i = 0; i < 3 * state.vertexCount; i += 3) {
+    const length = Math.hypot(out[i], out[i + 1], out[i + 2]) || 1;
+    out[i] /= length;
+    out[i + 1] /= length;
+    out[i + 2] /= length;
+  }
+}
+
 export class LevelMesh {
   // state: the LodState drawn (its arrays are read at each update());
   // appearance: { materialFaces, materials: { document, url } | null } (stream.js);
@@ -209,30 +232,13 @@ export class LevelMesh {
     }
   }
 
-  // Area-weighted vertex normals of the current level (every vertex of a
-  // level lies on one of its faces). Computed on grid coordinates: the same
-  // directions, without reading the floats back.
+  // Area-weighted vertex normals of the current level (levelNormals).
   updateNormals() {
     const { state, vertexNormals } = this;
     if (state.attributes.length && !vertexNormals) return;    // normals from the stream
     const normal = this.mesh.geometry.getAttribute('normal');
-    const n = vertexNormals || normal.array, q = state.positions, faces = state.faces;
-    n.fill(0, 0, 3 * state.vertexCount);
-    for (let c = 0; c < 3 * state.faceCount; c += 3) {
-      const a = 3 * faces[c], b = 3 * faces[c + 1], d = 3 * faces[c + 2];
-      const ux = q[b] - q[a], uy = q[b + 1] - q[a + 1], uz = q[b + 2] - q[a + 2];
-      const vx = q[d] - q[a], vy = q[d + 1] - q[a + 1], vz = q[d + 2] - q[a + 2];
-      const x = uy * vz - uz * vy, y = uz * vx - ux * vz, z = ux * vy - uy * vx;
-      n[a] += x; n[a + 1] += y; n[a + 2] += z;
-      n[b] += x; n[b + 1] += y; n[b + 2] += z;
-      n[d] += x; n[d + 1] += y; n[d + 2] += z;
-    }
-    for (let i = 0; i < 3 * state.vertexCount; i += 3) {
-      const length = Math.hypot(n[i], n[i + 1], n[i + 2]) || 1;
-      n[i] /= length;
-      n[i + 1] /= length;
-      n[i + 2] /= length;
-    }
+    const n = vertexNormals || normal.array;
+    levelNormals(state, n);
     let count = state.vertexCount;
     if (vertexNormals) {       // each wedge takes its vertex's normal
       const out = normal.array, { wedgeVertex } = state;

@@ -61,50 +61,74 @@ function yieldTask() {
   });
 }
 
-export function createStream(viewer) {
-  const { settings } = viewer;
-  const option = (key) => settings[key] ?? DEFAULTS[key];
-  let info = null;            // GET /meshes/{id}
-  let source = null;          // where the records come from (source.js)
-  let state = null;           // the level held
-  let target = null;
-  let bytes = 0;              // geometry bytes received: the first level and packets
-  let opened = 0;             // counts opens, so work for a mesh closed meanwhile stops
-  let opening = null;         // the running open(), if any
-  let moving = null;          // the running move() of this mesh: { ticket, done }
-  let failed = null;          // the error that stopped the mesh, if any
-  let stalled = null;         // the transient error the retries ran out on, if any
-  const sizer = new PacketSizer(option);   // the packets' size, from the link and the rate
-  // packets requested ahead, in order (of the mesh open when each was asked for)
-  const queue = new PacketQueue((from, to, signal) => fetchPacket(info, from, to, signal, opened));
-  let shown = null;           // the level last reported by 'level'
-  // when the applied packets are reported ('level')
-  const pacer = new ReportPacer(option, { emit: emitLevel, rest: restOfTheWay });
-  let geomorph = null;
-  const stats = { packets: 0, retries: 0, largest: 0 };
-
-  function emitStream(name, extra = {}) {
-    viewer.emit('stream', { state: name, level: state?.level ?? null, target, size: sizer.size,
-                            ...extra });
+// One mesh's stream (a scene streams each part with its own). The viewer's
+// bus `viewer` carries its settings (DEFAULTS' keys) and its signals (see the top).
+export class PacketStream {
+  constructor(viewer) {
+    this.viewer = viewer;
+    this.info = null;           // GET /meshes/{id}
+    this.source = null;         // where the records come from (source.js)
+    this.state = null;          // the level held
+    this.target = null;
+    this.bytes = 0;             // geometry bytes received: the first level and packets
+    this.opened = 0;            // counts opens, so work for a mesh closed meanwhile stops
+    this.opening = null;        // the running open(), if any
+    this.moving = null;         // the running move() of this mesh: { ticket, done }
+    this.failed = null;         // the error that stopped the mesh, if any
+    this.stalled = null;        // the transient error the retries ran out on, if any
+    this.shown = null;          // the level last reported by 'level'
+    this.geomorph = null;       // the geomorph (geomorph.js) coarsening waits for
+    this.counts = { packets: 0, retries: 0, largest: 0 };
+    const option = (key) => this.option(key);
+    this.sizer = new PacketSizer(option);   // the packets' size, from the link and the rate
+    // packets requested ahead, in order (of the mesh open when each was asked for)
+    this.queue = new PacketQueue((from, to, signal) => this.fetchPacket(
+      this.info, from, to, signal, this.opened));
+    // when the applied packets are reported ('level')
+    this.pacer = new ReportPacer(option, { emit: (pending) => this.emitLevel(pending),
+                                           rest: () => this.restOfTheWay() });
+    viewer.on('open', (detail) => {
+      const { id, ...options } = typeof detail === 'object' && detail ? detail : { id: detail };
+      this.open(id, options);
+    });
+    viewer.on('goto', (level) => this.goto(level));
   }
 
-  async function fetchBase(level, ticket) {
-    const buffer = await source.base(level);
-    if (ticket === opened) bytes += buffer.byteLength;
+  option(key) {
+    return this.viewer.settings[key] ?? DEFAULTS[key];
+  }
+
+  get busy() { return this.moving !== null; }
+  get packetSize() { return this.sizer.size; }
+  get stats() { return { ...this.counts, aborted: this.queue.aborted }; }
+
+  emitStream(name, extra = {}) {
+    this.viewer.emit('stream', { state: name, level: this.state?.level ?? null,
+                                 target: this.target, size: this.sizer.size, ...extra });
+  }
+
+  async fetchBase(level, ticket) {
+    const buffer = await this.source.base(level);
+    if (ticket === this.opened) this.bytes += buffer.byteLength;
     return buffer;
   }
 
   // The source of a mesh once it is built, reporting the build's progress;
   // null once another mesh is opened.
-  function waitUntilReady(id, ticket) {
-    return ServerSource.open(id, { onProgress(summary) {
-      if (ticket !== opened) return false;
+  waitUntilReady(id, ticket) {
+    return ServerSource.open(id, { onProgress: (summary) => {
+      if (ticket !== this.opened) return false;
       const percent = Math.round(100 * summary.progress);
-      viewer.emit('status', `${summary.name}: ${summary.status} ${percent}%`);
+      this.viewer.emit('status', `${summary.name}: ${summary.status} ${percent}%`);
       return true;
     } });
   }
 
+  // Opens mesh `id` at a first level (see openMesh); resolves once it is open.
+  open(id, options = {}) {
+    this.opening = this.openMesh(id, options);
+    return this.opening;
+  }
 
   // Opens mesh `id` at `level`: a number of vertices, or a function of the
   // mesh's summary returning one (or a promise of one), e.g. the level a
@@ -123,42 +147,43 @@ export function createStream(viewer) {
   // `materials: false` leaves the part's materials to the caller.
   // A source given (source.js: a ServerSource, a file) is read instead of the
   // page's server, its summary as a given one.
-  async function open(id, { level, summary: givenSummary = null, source: givenSource = null,
-                            materials: withMaterials = true } = {}) {
-    const ticket = ++opened;
-    stopMoving();
-    [info, state, target, bytes, failed, stalled, shown] = [null, null, null, 0, null, null, null];
-    sizer.reset();
+  async openMesh(id, { level, summary: givenSummary = null, source: givenSource = null,
+                       materials: withMaterials = true } = {}) {
+    const ticket = ++this.opened;
+    this.stopMoving();
+    [this.info, this.state, this.target, this.bytes] = [null, null, null, 0];
+    [this.failed, this.stalled, this.shown] = [null, null, null];
+    this.sizer.reset();
     const given = givenSource?.summary ?? givenSummary;
     try {
       const found = givenSource ?? (givenSummary ? new ServerSource(givenSummary)
-        : await waitUntilReady(id, ticket));
-      if (!found || ticket !== opened) return;
-      source = found;
-      const { summary } = source;
+        : await this.waitUntilReady(id, ticket));
+      if (!found || ticket !== this.opened) return;
+      this.source = found;
+      const { summary } = this.source;
       let first = typeof level === 'function' ? await level(summary) : level;
-      if (ticket !== opened) return;
+      if (ticket !== this.opened) return;
       if (!given && summary.scene === true) {
-        info = summary;
-        viewer.emit('scene', { info: summary, level: first });
+        this.info = summary;
+        this.viewer.emit('scene', { info: summary, level: first });
         return;
       }
       const base = summary.base_vertices;
       first = Number.isFinite(first)
         ? Math.min(summary.vertices, Math.max(base, Math.round(first))) : base;
-      viewer.emit('status', `${summary.name}: loading level ${first}`);
-      const baseLevel = fetchBase(base, ticket);
+      this.viewer.emit('status', `${summary.name}: loading level ${first}`);
+      const baseLevel = this.fetchBase(base, ticket);
       // (retried as any packet; not aborted: a new open() drops it by its ticket)
       const packet = first > base
-        ? fetchPacket(summary, base, first, new AbortController().signal, ticket)
+        ? this.fetchPacket(summary, base, first, new AbortController().signal, ticket)
         : null;
       packet?.catch(() => {});          // awaited below, after the base level
       const document = JSON.parse(new TextDecoder().decode(await baseLevel));
-      if (ticket !== opened) return;
+      if (ticket !== this.opened) return;
       const appearance = { materialFaces: document.material_faces, materials: null };
       const materials = document.materials && withMaterials
         // the glTF records; their image uris are relative to this document
-        ? source.materials() : null;
+        ? this.source.materials() : null;
       const held = LodState.fromJson(document, { vertexCapacity: summary.vertices,
                                                  faceCapacity: summary.faces });
       // a first packet that fails (after its retries) leaves the base shown,
@@ -167,73 +192,77 @@ export function createStream(viewer) {
       if (packet) {
         try {
           const got = await packet;
-          if (ticket !== opened) return;
+          if (ticket !== this.opened) return;
           held.apply(got.packet);
-          bytes += got.bytes;
+          this.bytes += got.bytes;
         } catch (error) {
           refused = error;
         }
       }
       if (materials) appearance.materials = await materials;
-      if (ticket !== opened) return;
-      info = summary;
-      state = held;
-      target = queue.planned = shown = state.level;
-      viewer.emit('mesh', { info, state, appearance,
-                            curve: new ErrorCurve(info, document.error) });
-      viewer.emit('level', { state, bytes, dirty: state.takeDirty() });
-      if (refused) fail(refused);
-      else goto(Math.round(option('initialRatio') * info.vertices), { opening: true });
+      if (ticket !== this.opened) return;
+      this.info = summary;
+      this.state = held;
+      this.target = this.queue.planned = this.shown = this.state.level;
+      this.viewer.emit('mesh', { info: this.info, state: this.state, appearance,
+                            curve: new ErrorCurve(this.info, document.error) });
+      this.viewer.emit('level', { state: this.state, bytes: this.bytes,
+                                  dirty: this.state.takeDirty() });
+      if (refused) this.fail(refused);
+      else this.goto(Math.round(this.option('initialRatio') * this.info.vertices),
+                     { opening: true });
     } catch (error) {
-      if (ticket === opened) stop(error);
+      if (ticket === this.opened) this.stop(error);
     }
   }
 
-  function stop(error) {
-    failed = error;
-    queue.abort(0, state?.level ?? null);
-    viewer.emit('status', `error: ${error.message}`);
-    emitStream('failed', { error: error.message });
+  stop(error) {
+    this.failed = error;
+    this.queue.abort(0, this.state?.level ?? null);
+    this.viewer.emit('status', `error: ${error.message}`);
+    this.emitStream('failed', { error: error.message });
   }
 
-  function goto(level, { opening: first = false } = {}) {
-    if (!state || failed || !Number.isFinite(level)) return;
-    target = Math.min(info.vertices, Math.max(info.base_vertices, Math.round(level)));
-    viewer.emit('target', target);
-    if (stalled) {
-      stalled = null;           // a move of the level retries a stalled stream
-      queue.planned = state.level;
+  goto(level, { opening: first = false } = {}) {
+    if (!this.state || this.failed || !Number.isFinite(level)) return;
+    const { vertices, base_vertices: base } = this.info;
+    this.target = Math.min(vertices, Math.max(base, Math.round(level)));
+    this.viewer.emit('target', this.target);
+    if (this.stalled) {
+      this.stalled = null;           // a move of the level retries a stalled stream
+      this.queue.planned = this.state.level;
     }
-    queue.trim(state.level, target);
-    refill();
-    if (!moving || moving.ticket !== opened) {
-      const run = { ticket: opened, opening: first };
-      run.done = move(run).finally(() => { if (moving === run) moving = null; });
-      moving = run;
-    } else if (!first) moving.opening = false;
+    this.queue.trim(this.state.level, this.target);
+    this.refill();
+    if (!this.moving || this.moving.ticket !== this.opened) {
+      const run = { ticket: this.opened, opening: first };
+      run.done = this.move(run).finally(() => { if (this.moving === run) this.moving = null; });
+      this.moving = run;
+    } else if (!first) this.moving.opening = false;
   }
 
   // ---- packets ahead ---------------------------------------------------------------
 
   // One packet of mesh `summary`, retried with backoff while the failure is transient.
-  async function fetchPacket(summary, from, to, signal, ticket) {
-    const records = source;         // this mesh's, whatever is opened meanwhile
+  async fetchPacket(summary, from, to, signal, ticket) {
+    const records = this.source;         // this mesh's, whatever is opened meanwhile
     for (let attempt = 0; ; attempt++) {
       try {
         const { buffer, url } = await records.packet(from, to, { signal });
         const packet = await LodState.readPacket(buffer);
         return { packet, bytes: buffer.byteLength, url };
       } catch (error) {
-        if (signal.aborted || ticket !== opened) throw error;
-        if (!(error instanceof FetchError && error.transient) || attempt >= option('retries')) {
+        if (signal.aborted || ticket !== this.opened) throw error;
+        const transient = error instanceof FetchError && error.transient;
+        if (!transient || attempt >= this.option('retries')) {
           throw error;
         }
         const delay = Math.min(RETRY_MAX_MS, RETRY_BASE_MS * 2 ** attempt);
-        stats.retries++;
-        viewer.emit('status', `${summary.name}: a packet failed (${error.message}); retrying in ` +
-                    `${(delay / 1000).toFixed(1)} s (attempt ${attempt + 2} of ` +
-                    `${option('retries') + 1})`);
-        emitStream('retrying', { attempt: attempt + 1, delayMs: delay, error: error.message });
+        this.counts.retries++;
+        this.viewer.emit('status', `${summary.name}: a packet failed (${error.message}); ` +
+                         `retrying in ${(delay / 1000).toFixed(1)} s (attempt ${attempt + 2} ` +
+                         `of ${this.option('retries') + 1})`);
+        this.emitStream('retrying', { attempt: attempt + 1, delayMs: delay, error: error.message });
         await sleep(delay, signal);
       }
     }
@@ -245,34 +274,37 @@ export function createStream(viewer) {
   // at packetPaceMs a packet: no packet is requested while the thread is
   // blocked, and two packets ahead would leave the link idle for most of each
   // frame (bench/viewer measures it on a throttled large mesh). At most MAX_AHEAD.
-  function packetsAhead() {
-    const covered = pacer.frameCostMs * (option('reportGap') + 1) / option('packetPaceMs');
-    return Math.max(1, option('packetsAhead'), Math.min(MAX_AHEAD, Math.ceil(covered)));
+  packetsAhead() {
+    const gap = this.option('reportGap') + 1;
+    const covered = this.pacer.frameCostMs * gap / this.option('packetPaceMs');
+    return Math.max(1, this.option('packetsAhead'), Math.min(MAX_AHEAD, Math.ceil(covered)));
   }
 
-  function refill() {
-    if (!state || failed || stalled) return;
-    queue.refill(target, packetsAhead(), (from, to) => sizer.nextStop(from, to));
+  refill() {
+    if (!this.state || this.failed || this.stalled) return;
+    const cut = (from, to) => this.sizer.nextStop(from, to);
+    this.queue.refill(this.target, this.packetsAhead(), cut);
   }
 
   // ---- applying ----------------------------------------------------------------------
 
   // Reports the packets applied since the last one (ReportPacer decides when).
-  function emitLevel({ records, applyMs, morph = false }) {
-    if (!state) return;
-    shown = state.level;
-    viewer.emit('level', { state, bytes, records, applyMs, morph, dirty: state.takeDirty() });
+  emitLevel({ records, applyMs, morph = false }) {
+    if (!this.state) return;
+    this.shown = this.state.level;
+    this.viewer.emit('level', { state: this.state, bytes: this.bytes, records, applyMs, morph,
+                                dirty: this.state.takeDirty() });
   }
 
   // The rest of the way to the target, for ReportPacer.holding(): { ms: its
   // time to arrive and be applied, arriving: whether some is still on the
   // link }, or null (more packets to ask for, nothing measured yet).
-  function restOfTheWay() {
-    const { rate } = sizer;
-    if (queue.planned !== target || !(rate > 0)) return null;
-    const { all: records, missing } = queue.records();
+  restOfTheWay() {
+    const { rate } = this.sizer;
+    if (this.queue.planned !== this.target || !(rate > 0)) return null;
+    const { all: records, missing } = this.queue.records();
     if (missing === 0) return { ms: records / rate, arriving: false };
-    const arriveMs = sizer.linkMs(missing, 1);
+    const arriveMs = this.sizer.linkMs(missing, 1);
     return arriveMs === null ? null : { ms: arriveMs + records / rate, arriving: true };
   }
 
@@ -282,136 +314,122 @@ export function createStream(viewer) {
   // the link, not on its own work (decoding competes with the GPU's for the
   // cores under software GL): scene.js makes the environment at once when
   // this is long enough to hide its GPU work.
-  function restEstimateMs() {
-    if (!state || target === null) return null;
-    return sizer.linkMs(Math.abs(target - state.level));
+  restEstimateMs() {
+    if (!this.state || this.target === null) return null;
+    return this.sizer.linkMs(Math.abs(this.target - this.state.level));
   }
 
   // Follows `target` (which may change meanwhile), the queued packets in order.
-  async function move(run) {
+  async move(run) {
     const { ticket } = run;
     let sliceStart = performance.now();
     try {
-      while (ticket === opened && !failed && !stalled) {
-        refill();
-        const { head } = queue;
+      while (ticket === this.opened && !this.failed && !this.stalled) {
+        this.refill();
+        const { head } = this.queue;
         if (!head) break;
         const verb = head.to > head.from ? 'refining' : 'coarsening';
-        viewer.emit('status', `${info.name}: ${verb} to ${target}`);
-        emitStream('moving', { restMs: restEstimateMs() });
+        this.viewer.emit('status', `${this.info.name}: ${verb} to ${this.target}`);
+        this.emitStream('moving', { restMs: this.restEstimateMs() });
         let got;
         try {
           got = await head.result;
         } catch (error) {
-          if (ticket !== opened) return;
+          if (ticket !== this.opened) return;
           if (head.controller.signal.aborted) continue;     // dropped by a new target
           throw error;
         }
-        if (ticket !== opened) return;
-        if (queue.head !== head) continue;                  // dropped while arriving
-        if (!pacer.framed) {
-          await pacer.afterFrame();
-          if (ticket !== opened) return;
-          if (queue.head !== head) continue;
+        if (ticket !== this.opened) return;
+        if (this.queue.head !== head) continue;                  // dropped while arriving
+        if (!this.pacer.framed) {
+          await this.pacer.afterFrame();
+          if (ticket !== this.opened) return;
+          if (this.queue.head !== head) continue;
         }
-        queue.shift();
+        this.queue.shift();
         const started = performance.now();
-        const records = state.apply(got.packet);
+        const records = this.state.apply(got.packet);
         const applyMs = performance.now() - started;
-        bytes += got.bytes;
-        stats.packets++;
-        stats.largest = Math.max(stats.largest, records);
-        pacer.add(records, applyMs);
-        sizer.measure(got.url, got.bytes, records, applyMs, pacer.frameCostMs);
+        this.bytes += got.bytes;
+        this.counts.packets++;
+        this.counts.largest = Math.max(this.counts.largest, records);
+        this.pacer.add(records, applyMs);
+        this.sizer.measure(got.url, got.bytes, records, applyMs, this.pacer.frameCostMs);
         const backward = head.to < head.from;
-        const morphing = geomorph && !run.opening && geomorph.enabled();
+        const morphing = this.geomorph && !run.opening && this.geomorph.enabled();
         if (backward && morphing) {
           // apply what has already arrived in the same direction, then glide
           // the vanishing vertices into their parents, then drop them
-          const next = queue.head;
+          const next = this.queue.head;
           if (next?.ready && next.to < next.from) continue;
-          await geomorph.coarsen(state, shown);
-          if (ticket !== opened) return;
-          pacer.now();
+          await this.geomorph.coarsen(this.state, this.shown);
+          if (ticket !== this.opened) return;
+          this.pacer.now();
         } else {
-          pacer.pending.morph = morphing;       // the geomorph glides the new vertices out
-          if (!pacer.holding()) pacer.soon();
+          this.pacer.pending.morph = morphing;       // the geomorph glides the new vertices out
+          if (!this.pacer.holding()) this.pacer.soon();
         }
-        if (performance.now() - sliceStart > option('frameBudgetMs')) {
+        if (performance.now() - sliceStart > this.option('frameBudgetMs')) {
           await yieldTask();
           sliceStart = performance.now();
         }
       }
-      if (ticket !== opened) return;
-      pacer.now();
-      if (!failed && !stalled) {
-        viewer.emit('status', `${info.name}`);
-        emitStream('idle', { ...stats, aborted: queue.aborted });
+      if (ticket !== this.opened) return;
+      this.pacer.now();
+      if (!this.failed && !this.stalled) {
+        this.viewer.emit('status', `${this.info.name}`);
+        this.emitStream('idle', { ...this.stats });
       }
     } catch (error) {
-      if (ticket !== opened) return;
-      pacer.now();
-      fail(error);
+      if (ticket !== this.opened) return;
+      this.pacer.now();
+      this.fail(error);
     }
   }
 
   // A packet failed: a transient failure the retries ran out on stalls the
   // stream (the next move of the level tries again); any other stops the mesh.
-  function fail(error) {
+  fail(error) {
     if (error instanceof FetchError && error.transient) {
-      stalled = error;
-      queue.abort(0, state?.level ?? null);
-      viewer.emit('status', `error: ${error.message} (move the level to try again)`);
-      emitStream('stalled', { error: error.message });
+      this.stalled = error;
+      this.queue.abort(0, this.state?.level ?? null);
+      this.viewer.emit('status', `error: ${error.message} (move the level to try again)`);
+      this.emitStream('stalled', { error: error.message });
     } else {
-      stop(error instanceof PacketError || error instanceof FetchError ? error
+      this.stop(error instanceof PacketError || error instanceof FetchError ? error
         : new Error(`the packet could not be applied (${error.message})`));
     }
   }
 
-  function stopMoving() {
-    queue.clear();
-    pacer.reset();
+  stopMoving() {
+    this.queue.clear();
+    this.pacer.reset();
   }
 
-  viewer.on('open', (detail) => {
-    const { id, ...options } = typeof detail === 'object' && detail ? detail : { id: detail };
-    opening = open(id, options);
-  });
-  viewer.on('goto', (level) => goto(level));
+  // Stops streaming (a scene's part when the scene is closed): nothing more
+  // is fetched or reported.
+  close() {
+    this.opened++;
+    this.stopMoving();
+    [this.info, this.state, this.target] = [null, null, null];
+    [this.opening, this.source] = [null, null];
+  }
 
-  return {
-    get info() { return info; },
-    get state() { return state; },
-    get target() { return target; },
-    get bytes() { return bytes; },
-    get busy() { return moving !== null; },
-    get failed() { return failed; },
-    get stalled() { return stalled; },
-    get packetSize() { return sizer.size; },
-    get stats() { return { ...stats, aborted: queue.aborted }; },
-    // Opens a mesh at a first level: open(id, { level }) (see open() above).
-    open(id, options = {}) {
-      opening = open(id, options);
-      return opening;
-    },
-    // Stops streaming (a scene's part when the scene is closed): nothing more
-    // is fetched or reported.
-    close() {
-      opened++;
-      stopMoving();
-      [info, state, target, opening, source] = [null, null, null, null, null];
-    },
-    // The geomorph (geomorph.js) that coarsening waits for.
-    attachGeomorph(morph) {
-      geomorph = morph;
-    },
-    // Resolves once the mesh is open, its level reached the target, nothing is
-    // in flight and no geomorph is running.
-    async settled() {
-      await opening;
-      while (moving) await moving.done;
-      await geomorph?.idle();
-    },
-  };
+  // The geomorph (geomorph.js) that coarsening waits for.
+  attachGeomorph(morph) {
+    this.geomorph = morph;
+  }
+
+  // Resolves once the mesh is open, its level reached the target, nothing is
+  // in flight and no geomorph is running.
+  async settled() {
+    await this.opening;
+    while (this.moving) await this.moving.done;
+    await this.geomorph?.idle();
+  }
+}
+
+// The stream of the viewer's bus `viewer` (main.js, animated.js).
+export function createStream(viewer) {
+  return new PacketStream(viewer);
 }

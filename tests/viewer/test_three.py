@@ -6,7 +6,8 @@ frame), served by a plain HTTP server of its own, imports the module from a
 real ``lodserver serve`` (another origin, allowed by ``LODSERVER_CORS_ORIGINS``
 as a CDN would pass it) and streams a mesh from it: it stops at the level
 whose error projects within 1 CSS pixel, refines when the camera comes
-closer, goes to full detail on ``setLevel`` with exactly the server's json
+closer, keeps its level when it moves back a little (the hysteresis) and
+coarsens when it moves far, goes to full detail on ``setLevel`` with exactly the server's json
 level, and fetches nothing after ``dispose()``; a skinned, animated scene
 (Fox.glb) plays its clip while its part does the same.
 """
@@ -84,6 +85,11 @@ SETTLED_JS = """async () => {
     if (now.error || (now.target === now.level && last?.level === now.level)) return now;
     last = now;
   }
+}"""
+# Moves the camera away from the object's centre (or closer, below 1) by a factor.
+MOVE_BACK_JS = """(factor) => {
+  const center = window.object.boundingSphere.center;
+  window.camera.position.sub(center).multiplyScalar(factor).add(center);
 }"""
 # The SHA-256 of a LodState as the viewer's main.js hashes it (tests/viewer/test_viewer.py
 # _expected hashes the server's json level the same way).
@@ -196,11 +202,22 @@ def test_a_page_of_another_origin_stops_at_one_pixel_refines_and_reaches_full_de
             "faces": faces, "hash": digest}
 
         # closer: the budget asks for more
-        page.evaluate("window.camera.position.multiplyScalar(0.6)")
+        page.evaluate(MOVE_BACK_JS, 0.6)
         page.wait_for_function(f"() => window.object.target > {level}")
         closer = page.evaluate(SETTLED_JS)
         assert closer["level"] > level and closer["error"] is None, closer
         assert _error_px(server, sphere["id"], closer["level"], _per_unit(page, sphere["bounds"])) <= 1.5
+
+        # a little farther: no coarsening (the hysteresis) however many frames pass;
+        # far away: coarser
+        page.evaluate(MOVE_BACK_JS, 1.15)
+        frames = page.evaluate("window.frames")
+        page.wait_for_function(f"() => window.frames > {frames + 30}")
+        assert page.evaluate("window.object.target") == closer["level"]
+        page.evaluate(MOVE_BACK_JS, 4)
+        page.wait_for_function(f"() => window.object.target < {closer['level']}")
+        farther = page.evaluate(SETTLED_JS)
+        assert farther["level"] < closer["level"] and farther["error"] is None, farther
 
         # full detail pinned: exactly the server's full level
         page.evaluate(f"window.object.setLevel({sphere['vertices']})")
