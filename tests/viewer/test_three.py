@@ -9,7 +9,8 @@ whose error projects within 1 CSS pixel, refines when the camera comes
 closer, keeps its level when it moves back a little (the hysteresis) and
 coarsens when it moves far, goes to full detail on ``setLevel`` with exactly the server's json
 level, and fetches nothing after ``dispose()``; a skinned, animated scene
-(Fox.glb) plays its clip while its part does the same.
+(Fox.glb) plays its clip while its part does the same; a URL naming no mesh
+is refused with the reason.
 """
 
 from __future__ import annotations
@@ -307,3 +308,26 @@ def _expected_part(client, mesh_id, part, level):
         def get(self, route, params):
             return client.get(route.replace("/lod", f"/parts/{part}/lod"), params=params)
     return _expected(Parted(), mesh_id, level)
+
+
+def test_a_url_that_names_no_mesh_is_refused_with_its_reason(chromium, app_origin, server, sphere):
+    page = _open(chromium, app_origin, server, sphere)
+    try:
+        refusals = page.evaluate("""async (base) => {
+            const { ProgressiveMeshLoader } = await import('lodserver-three');
+            const reasons = [];
+            for (const url of [`${base}/healthz`, `${base}/meshes/no-such-mesh`, 'not a url']) {
+              try {
+                await new ProgressiveMeshLoader().load(url);
+                reasons.push(null);
+              } catch (error) {
+                reasons.push(error.message);
+              }
+            }
+            return reasons;
+        }""", str(server.base_url))
+        assert refusals[0].startswith("not a lodserver mesh URL"), refusals
+        assert refusals[1] == "no mesh has the id 'no-such-mesh'", refusals     # the server's 404
+        assert refusals[2].startswith("not a lodserver mesh URL"), refusals
+    finally:
+        page.close()
