@@ -88,7 +88,7 @@ SKIN_JS = """() => {
 def _assert_skin_is_the_levels(page, document, part):
     """With JOINTS_0/WEIGHTS_0 in the part's layout, the drawn skin is the streamed
     level's, wedge for wedge (the json level's grid values, dequantized); without,
-    it was kept from the GLB (animated.js: transfer)."""
+    it was kept from the GLB (partgeometry.js: transfer)."""
     names = [name for name, _ in document.get("layout", [])]
     if "JOINTS_0" not in names:
         assert set(part["attributes"]["kept"]) >= {"skinIndex", "skinWeight"}, part
