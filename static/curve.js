@@ -57,4 +57,19 @@ export class ErrorCurve {
     }
     return this.full;
   }
+
+  // The level to move to from `level` (held or being moved to) for a view
+  // that allows an error of `allowed` mesh units (the budget in pixels over
+  // the pixels a unit covers), or null to stay: finer as soon as the view
+  // needs more; coarser only once the level's error is under allowed /
+  // hysteresis, and then to the level of allowed / sqrt(hysteresis), so a view
+  // moving back and forth across one distance neither refines nor coarsens at
+  // every step.
+  follow(level, allowed, hysteresis = 2) {
+    const needed = this.levelFor(allowed);
+    if (needed > level) return needed;
+    if (this.errorAt(level) >= allowed / hysteresis) return null;
+    const coarser = Math.max(needed, this.levelFor(allowed / Math.sqrt(hysteresis)));
+    return coarser < level ? coarser : null;
+  }
 }

@@ -7,7 +7,7 @@
 // the level: by hand or in auto mode.
 //
 // What is glided are the GPU's position floats (mesh units relative to the
-// grid origin: q * step, as scene.js writes them); the decoder's state is
+// grid origin: q * step, as levelmesh.js writes them); the decoder's state is
 // always the exact level. A glide takes settings.geomorphMs (0: off) with a
 // smoothstep ease; a change moving more than settings.geomorphMaxVertices
 // vertices is shown at once (the first stream to full detail is never
@@ -21,37 +21,17 @@
 // drawn per wedge, each GPU vertex w takes the glide of its vertex
 // wedgeVertex[w].
 //
-// Signals in: 'mesh', 'level' (after scene.js: the scene writes the exact
-// positions, then this overwrites the gliding ones before the frame is drawn).
+// Signals in: 'mesh', 'level' (after the LevelMesh drawing the level, in
+// scene.js or progressivemesh.js: it writes the exact positions, then this
+// overwrites the gliding ones before the frame is drawn).
 // Used by stream.js: coarsen(state) before reporting a collapse batch.
 
+import { levelNormals } from './levelmesh.js';
 import { dequantize } from './packet.js';
 
 const DEFAULTS = { geomorphMs: 250, geomorphMaxVertices: 200000 };
 // A normal that moved less than this (per component) is not glided.
 const NORMAL_EPSILON = 1e-3;
-
-// Area-weighted unit vertex normals of the state's level into out[3v ..]
-// (as scene.js computes them, on grid coordinates: the same directions).
-export function levelNormals(state, out) {
-  const q = state.positions, faces = state.faces;
-  out.fill(0, 0, 3 * state.vertexCount);
-  for (let c = 0; c < 3 * state.faceCount; c += 3) {
-    const a = 3 * faces[c], b = 3 * faces[c + 1], d = 3 * faces[c + 2];
-    const ux = q[b] - q[a], uy = q[b + 1] - q[a + 1], uz = q[b + 2] - q[a + 2];
-    const vx = q[d] - q[a], vy = q[d + 1] - q[a + 1], vz = q[d + 2] - q[a + 2];
-    const x = uy * vz - uz * vy, y = uz * vx - ux * vz, z = ux * vy - uy * vx;
-    out[a] += x; out[a + 1] += y; out[a + 2] += z;
-    out[b] += x; out[b + 1] += y; out[b + 2] += z;
-    out[d] += x; out[d + 1] += y; out[d + 2] += z;
-  }
-  for (let i = 0; i < 3 * state.vertexCount; i += 3) {
-    const length = Math.hypot(out[i], out[i + 1], out[i + 2]) || 1;
-    out[i] /= length;
-    out[i + 1] /= length;
-    out[i + 2] /= length;
-  }
-}
 
 // Smoothstep: zero speed at both ends, so neither end shows a jolt.
 export function ease(x) {
@@ -310,8 +290,9 @@ export function createGeomorph(viewer, scene) {
     }
   }
 
-  // After scene.js showed a level: glide the new vertices out of their
-  // ancestors (refinement asked for by the stream), else take the level as shown.
+  // After the LevelMesh (levelmesh.js) showed a level: glide the new vertices
+  // out of their ancestors (refinement asked for by the stream), else take the
+  // level as shown.
   function onLevel({ dirty, morph }) {
     if (!state) return;
     const to = state.level, from = level;

@@ -16,8 +16,11 @@ import { createUpload } from './upload.js';
 const settings = {
   chunkSplits: 4096,          // records per packet request: detail arrives in steps this big
   initialRatio: 1,            // the level to stream to after the base, as a fraction of vertices
-  autoByDistance: false,      // choose the level from the camera distance ...
-  errorBudgetPx: 1,           // ... so that the error covers at most this many CSS pixels
+  // Stop at what the screen shows: the level follows the view so that its
+  // error covers at most errorBudgetPx CSS pixels (off: the level set by hand,
+  // full detail by default).
+  autoByDistance: true,
+  errorBudgetPx: 1,
   shading: 'smooth',          // 'smooth' (vertex normals) or 'flat' (face normals)
   wireframe: false,
   up: 'Y',                    // the up axis: 'Y' or 'Z' (per mesh: tools.js, framing.js)
@@ -33,22 +36,36 @@ function createViewer() {
   return createBus(settings);
 }
 
-// Auto mode: the coarsest level whose error projects to at most the budget.
+// Auto mode: the coarsest level whose error projects to at most the budget,
+// refined as soon as the view needs more (a zoom, a larger window), coarsened
+// only past a hysteresis when it needs less (ErrorCurve.follow).
 function followDistance(viewer) {
-  let curve = null, pixelsPerUnit = null;
-  const update = () => {
+  let curve = null, pixelsPerUnit = null, target = null;
+  const update = (force = false) => {
     const allowed = settings.autoByDistance && curve && pixelsPerUnit
       ? settings.errorBudgetPx / pixelsPerUnit : null;
     viewer.emit('budget', allowed);
-    if (allowed !== null) viewer.emit('goto', curve.levelFor(allowed));
+    // (before the stream's first target the opening level is on its way)
+    if (allowed === null || target === null) return;
+    const level = force ? curve.levelFor(allowed) : curve.follow(target, allowed);
+    if (level !== null) viewer.emit('goto', level);
   };
-  viewer.on('mesh', (detail) => { curve = detail.curve; });
+  viewer.on('mesh', (detail) => {
+    curve = detail.curve;
+    target = null;
+  });
+  viewer.on('target', (value) => {
+    const first = target === null;
+    target = value;
+    // after the stream's own goto has told every listener its target
+    if (first) queueMicrotask(() => update());
+  });
   viewer.on('view', (value) => {
     pixelsPerUnit = value;
     if (settings.autoByDistance) update();
   });
   viewer.on('settings', (key) => {
-    if (key === 'autoByDistance' || key === 'errorBudgetPx') update();
+    if (key === 'autoByDistance' || key === 'errorBudgetPx') update(true);
   });
 }
 
@@ -91,23 +108,28 @@ followDistance(viewer);
 
 // The view the page was opened with (?level=&camera=&auto=), for its first mesh.
 let linked = readUrl();
+// a level the URL names is kept (full detail on demand), unless it says auto=1
 if (linked.auto !== null) settings.autoByDistance = linked.auto;
+else if (linked.level !== null) settings.autoByDistance = false;
 
 // The level to fetch first, as the stream opens a mesh (summary: GET /meshes/{id}):
 // the coarsest whose error covers at most the pixel budget at the initial
 // framing (the auto mode's rule), so the first frame is no shard of the base;
-// a level the URL names, if coarser; at most firstLevelMaxVertices. The up axis is chosen here too, before
+// a level the URL names, if coarser; at most firstLevelMaxVertices. The
+// stream then refines to that budget's level in auto mode (the level the URL
+// names, else full detail, otherwise). The up axis is chosen here too, before
 // the framing: the one kept for this mesh, else a guess from its box.
 function chooseFirstLevel(summary) {
   settings.up = storedUp(summary.id) ?? guessUpAxis(summary);
+  const wanted = linked.mesh === summary.id ? linked : null;
   if (summary.scene && !(summary.error_curve?.length && summary.bounds)) {
+    settings.initialRatio = wanted?.level ? Math.min(1, wanted.level / summary.vertices) : 1;
     return Math.min(summary.vertices, settings.firstLevelMaxVertices);
   }
   const view = scene ? scene.view() : { fov: settings.fov, width: innerWidth, height: innerHeight };
   let level = firstLevel(summary, { ...view, up: settings.up }, settings.errorBudgetPx);
-  const wanted = linked.mesh === summary.id ? linked : null;
-  // the stream then refines to initialRatio of the vertices: the URL's level instead
-  settings.initialRatio = wanted?.level ? Math.min(1, wanted.level / summary.vertices) : 1;
+  const stop = wanted?.level ?? (settings.autoByDistance ? level : summary.vertices);
+  settings.initialRatio = Math.min(1, stop / summary.vertices);
   if (wanted?.level) level = Math.min(level, wanted.level);
   return Math.min(level, settings.firstLevelMaxVertices);   // the stream keeps it >= the base
 }

@@ -9,32 +9,12 @@
 // Fast streaming:
 // * Pipelined: settings.packetsAhead packets are requested ahead along the
 //   way to the target (more where frames block the main thread for long:
-//   packetsAhead()), each fetched and inflated as it arrives, and applied
-//   strictly in order. A packet that no longer leads to the target (the
-//   target moved back) is aborted.
-// * Adaptive packets: a packet is `size` records, cut at multiples of `size`
-//   (so moving back and forth asks for the same packets again, which the
-//   browser cache answers: the server marks them immutable). `size` starts at
-//   settings.chunkSplits; after each packet it is set to the largest size
-//   that both decodes+applies within settings.frameBudgetMs (or half a drawn
-//   frame's cost, when that is longer) at the rate lately measured, and crosses the link within settings.packetPaceMs (latency plus
-//   bytes over the bandwidth, both from the packet's Resource Timing entry,
-//   which main-thread stalls do not distort), growing at most 4x a packet.
-//   Sizes are powers of two times chunkSplits (up to MAX_SPLITS), so the cuts
-//   of every size line up.
-// * At most one 'level' signal per animation frame: packets applied between
-//   two reports are reported together (their dirty ranges merged by the
-//   state), so the scene updates its buffers and draws once. Reports are also
-//   spaced by settings.reportGap times what a frame costs the main thread
-//   (measured: from the frame's first callback to a task posted from it).
-//   Under software GL (headless Chromium) a frame blocks the main thread for
-//   a long while (the canvas is read back for the compositor), so
-//   drawing every packet's level would leave the decoder a fraction of the
-//   time; spaced, at least reportGap / (reportGap + 1) of it goes to
-//   streaming. The work between two yields is cut at frameBudgetMs. No
-//   packet is applied between a report and the frame drawing it: three.js
-//   uploads the reported ranges at the draw, from the arrays the decoder
-//   changes, so a packet applied meanwhile would show half-uploaded.
+//   packetsAhead()), applied strictly in order (packetqueue.js).
+// * Adaptive packets: the packets' size follows the rate they are applied at
+//   and the link they come over (packetsizer.js).
+// * At most one 'level' signal per animation frame, spaced by what frames
+//   cost, and no packet applied between a report and the frame drawing it
+//   (reportpacer.js).
 // * Retries: a failed request (network error, 408, 429, 5xx, a body cut
 //   short) is retried with exponential backoff (RETRY_BASE_MS doubling, up to
 //   RETRY_MAX_MS, settings.retries times), the status saying so. When the
@@ -55,35 +35,21 @@
 // Signals in: 'open' (a mesh id, or { id, level }: see open()), 'goto' (a level).
 
 import { ErrorCurve } from './curve.js';
+import { PacketQueue } from './packetqueue.js';
+import { PacketSizer } from './packetsizer.js';
+import { ReportPacer } from './reportpacer.js';
+import { FetchError, routeUrl, ServerSource, sleep } from './source.js';
 import { LodState, PacketError } from './vsplit.js';
 
-const POLL_MS = 500;
-const MAX_SPLITS = 1 << 18;        // the largest packet asked for (records)
+// (tools.js and animated.js take a route's URL from here, where they take the stream)
+export { routeUrl };
+
 const MAX_AHEAD = 32;              // the most packets requested ahead (see packetsAhead)
-const LINK_BODIES = 8;             // packets the link's rate is measured over (see linkOf)
 const RETRY_BASE_MS = 250;
 const RETRY_MAX_MS = 8000;
 // Defaults of the settings this module reads (main.js may set them).
 const DEFAULTS = { chunkSplits: 4096, packetsAhead: 2, frameBudgetMs: 12, packetPaceMs: 250,
                    retries: 6, reportGap: 3, initialRatio: 1 };
-
-// An HTTP failure: `transient` when asking again may help.
-class FetchError extends Error {
-  constructor(message, transient) {
-    super(message);
-    this.transient = transient;
-  }
-}
-
-function sleep(ms, signal) {
-  return new Promise((resolve, reject) => {
-    const timer = setTimeout(resolve, ms);
-    signal?.addEventListener('abort', () => {
-      clearTimeout(timer);
-      reject(signal.reason);
-    }, { once: true });
-  });
-}
 
 // Yields to the event loop (so a due frame is drawn), without the >= 4 ms
 // clamp of nested setTimeout.
@@ -95,109 +61,74 @@ function yieldTask() {
   });
 }
 
-// The URL of a route of a mesh ('lod', 'splits', 'materials') with
-// `params`: at the mesh's version when its summary hands out versioned URLs
-// (GET /meshes/{id}: urls, `?v=`; the server marks such responses immutable,
-// so any cache keeps them for a year), else unversioned (cached a minute).
-// The summary's URLs are rooted at the API, which serves the viewer at
-// viewer/: they resolve against the page's parent, so a path prefix added by
-// a proxy is kept.
-// A scene's part (GET /meshes/{id}: parts[p].urls) is opened as a mesh whose
-// summary has such urls; a URL that is a template ({from}, {to}, ...) has
-// its named parameters filled in rather than added.
-export function routeUrl(summary, route, params = {}) {
-  const root = new URL('../', window.location.href);
-  let versioned = summary.urls?.[route];
-  const rest = { ...params };
-  if (versioned) {
-    versioned = versioned.replace(/\{(\w+)\}/g, (whole, key) => {
-      if (!(key in rest)) return '';
-      const value = encodeURIComponent(rest[key]);
-      delete rest[key];
-      return value;
+// One mesh's stream (a scene streams each part with its own). The viewer's
+// bus `viewer` carries its settings (DEFAULTS' keys) and its signals (see the top).
+export class PacketStream {
+  constructor(viewer) {
+    this.viewer = viewer;
+    this.info = null;           // GET /meshes/{id}
+    this.source = null;         // where the records come from (source.js)
+    this.state = null;          // the level held
+    this.target = null;
+    this.bytes = 0;             // geometry bytes received: the first level and packets
+    this.opened = 0;            // counts opens, so work for a mesh closed meanwhile stops
+    this.opening = null;        // the running open(), if any
+    this.moving = null;         // the running move() of this mesh: { ticket, done }
+    this.failed = null;         // the error that stopped the mesh, if any
+    this.stalled = null;        // the transient error the retries ran out on, if any
+    this.shown = null;          // the level last reported by 'level'
+    this.geomorph = null;       // the geomorph (geomorph.js) coarsening waits for
+    this.counts = { packets: 0, retries: 0, largest: 0 };
+    const option = (key) => this.option(key);
+    this.sizer = new PacketSizer(option);   // the packets' size, from the link and the rate
+    // packets requested ahead, in order (of the mesh open when each was asked for)
+    this.queue = new PacketQueue((from, to, signal) => this.fetchPacket(
+      this.info, from, to, signal, this.opened));
+    // when the applied packets are reported ('level')
+    this.pacer = new ReportPacer(option, { emit: (pending) => this.emitLevel(pending),
+                                           rest: () => this.restOfTheWay() });
+    viewer.on('open', (detail) => {
+      const { id, ...options } = typeof detail === 'object' && detail ? detail : { id: detail };
+      this.open(id, options);
     });
-  }
-  const url = versioned
-    ? new URL(versioned.replace(/^\/+/, ''), root)
-    : new URL(`meshes/${encodeURIComponent(summary.id)}/${route}`, root);
-  for (const [key, value] of Object.entries(rest)) url.searchParams.set(key, value);
-  return url.href;
-}
-
-export function createStream(viewer) {
-  const { settings } = viewer;
-  const option = (key) => settings[key] ?? DEFAULTS[key];
-  let info = null;            // GET /meshes/{id}
-  let state = null;           // the level held
-  let target = null;
-  let bytes = 0;              // geometry bytes received: the first level and packets
-  let opened = 0;             // counts opens, so work for a mesh closed meanwhile stops
-  let opening = null;         // the running open(), if any
-  let moving = null;          // the running move() of this mesh: { ticket, done }
-  let failed = null;          // the error that stopped the mesh, if any
-  let stalled = null;         // the transient error the retries ran out on, if any
-  let size = option('chunkSplits');
-  let queue = [];             // packets requested ahead, in order: see request()
-  let planned = null;         // the level the last queued packet ends at
-  let shown = null;           // the level last reported by 'level'
-  let pending = null;         // applied, not yet reported: { records, applyMs }
-  let frame = 0;              // a requestAnimationFrame since the last report, pending
-  let timer = 0;              // the timeout of a report waiting for its gap
-  let framed = true;          // an animation frame has run since the last report
-  let reportedAt = -Infinity; // performance.now() of the last report
-  let frameCostMs = 16;       // what a drawn frame costs the main thread (moving average)
-  let rate = 0;               // records applied per ms (see adapt)
-  let lastLink = null;        // the link's figures at the last packet (linkOf)
-  let receivedBytes = 0, receivedRecords = 0;   // packets' bytes and records so far (this mesh)
-  let holdUntil = null;       // a report held for the rest arriving, until then (restInHand)
-  let holdTimer = 0;
-  let bodies = [];            // [responseStart, responseEnd, bytes] of the last packets (linkOf)
-  // The next packet waits for the last report's frame: three.js uploads the
-  // reported ranges when it draws, from the very arrays the decoder changes.
-  const waiting = [];
-  let geomorph = null;
-  const stats = { packets: 0, retries: 0, aborted: 0, largest: 0 };
-
-  function emitStream(name, extra = {}) {
-    viewer.emit('stream', { state: name, level: state?.level ?? null, target, size, ...extra });
+    viewer.on('goto', (level) => this.goto(level));
   }
 
-  async function fetchOk(url, options) {
-    let response;
-    try {
-      response = await fetch(url, options);
-    } catch (error) {
-      if (error.name === 'AbortError') throw error;
-      throw new FetchError(`the request failed (${error.message})`, true);
-    }
-    if (!response.ok) {
-      const body = await response.json().catch(() => ({}));
-      const status = response.status;
-      throw new FetchError(body.message || `the server answered ${status}`,
-                           status >= 500 || status === 408 || status === 429);
-    }
-    return response;
+  option(key) {
+    return this.viewer.settings[key] ?? DEFAULTS[key];
   }
 
-  async function fetchGeometry(url, ticket) {
-    const buffer = await (await fetchOk(url)).arrayBuffer();
-    if (ticket === opened) bytes += buffer.byteLength;
+  get busy() { return this.moving !== null; }
+  get packetSize() { return this.sizer.size; }
+  get stats() { return { ...this.counts, aborted: this.queue.aborted }; }
+
+  emitStream(name, extra = {}) {
+    this.viewer.emit('stream', { state: name, level: this.state?.level ?? null,
+                                 target: this.target, size: this.sizer.size, ...extra });
+  }
+
+  async fetchBase(level, ticket) {
+    const buffer = await this.source.base(level);
+    if (ticket === this.opened) this.bytes += buffer.byteLength;
     return buffer;
   }
 
-  // The summary of a mesh once it is built, reporting the build's progress.
-  async function waitUntilReady(id, ticket) {
-    for (;;) {
-      const summary = await (await fetchOk(`../meshes/${encodeURIComponent(id)}`)).json();
-      if (ticket !== opened) return null;
-      if (summary.status === 'ready') return summary;
-      if (summary.status === 'failed') throw new Error(`the build failed: ${summary.failure}`);
+  // The source of a mesh once it is built, reporting the build's progress;
+  // null once another mesh is opened.
+  waitUntilReady(id, ticket) {
+    return ServerSource.open(id, { onProgress: (summary) => {
+      if (ticket !== this.opened) return false;
       const percent = Math.round(100 * summary.progress);
-      viewer.emit('status', `${summary.name}: ${summary.status} ${percent}%`);
-      await sleep(POLL_MS);
-    }
+      this.viewer.emit('status', `${summary.name}: ${summary.status} ${percent}%`);
+      return true;
+    } });
   }
 
+  // Opens mesh `id` at a first level (see openMesh); resolves once it is open.
+  open(id, options = {}) {
+    this.opening = this.openMesh(id, options);
+    return this.opening;
+  }
 
   // Opens mesh `id` at `level`: a number of vertices, or a function of the
   // mesh's summary returning one (or a promise of one), e.g. the level a
@@ -214,43 +145,45 @@ export function createStream(viewer) {
   // opening one stream per part with open(id, { summary: the part's, ... }):
   // a summary given is not fetched (nor is it checked for a scene), and
   // `materials: false` leaves the part's materials to the caller.
-  async function open(id, { level, summary: given = null, materials: withMaterials = true } = {}) {
-    const ticket = ++opened;
-    stopMoving();
-    [info, state, target, bytes, failed, stalled, shown] = [null, null, null, 0, null, null, null];
-    size = option('chunkSplits');
-    rate = 0;
-    bodies = [];
-    [lastLink, receivedBytes, receivedRecords] = [null, 0, 0];
+  // A source given (source.js: a ServerSource, a file) is read instead of the
+  // page's server, its summary as a given one.
+  async openMesh(id, { level, summary: givenSummary = null, source: givenSource = null,
+                       materials: withMaterials = true } = {}) {
+    const ticket = ++this.opened;
+    this.stopMoving();
+    [this.info, this.state, this.target, this.bytes] = [null, null, null, 0];
+    [this.failed, this.stalled, this.shown] = [null, null, null];
+    this.sizer.reset();
+    const given = givenSource?.summary ?? givenSummary;
     try {
-      const summary = given ?? await waitUntilReady(id, ticket);
-      if (!summary) return;
+      const found = givenSource ?? (givenSummary ? new ServerSource(givenSummary)
+        : await this.waitUntilReady(id, ticket));
+      if (!found || ticket !== this.opened) return;
+      this.source = found;
+      const { summary } = this.source;
       let first = typeof level === 'function' ? await level(summary) : level;
-      if (ticket !== opened) return;
+      if (ticket !== this.opened) return;
       if (!given && summary.scene === true) {
-        info = summary;
-        viewer.emit('scene', { info: summary, level: first });
+        this.info = summary;
+        this.viewer.emit('scene', { info: summary, level: first });
         return;
       }
       const base = summary.base_vertices;
       first = Number.isFinite(first)
         ? Math.min(summary.vertices, Math.max(base, Math.round(first))) : base;
-      viewer.emit('status', `${summary.name}: loading level ${first}`);
-      const baseLevel = fetchGeometry(routeUrl(summary, 'lod', { vertices: base, format: 'json' }),
-                                      ticket);
+      this.viewer.emit('status', `${summary.name}: loading level ${first}`);
+      const baseLevel = this.fetchBase(base, ticket);
       // (retried as any packet; not aborted: a new open() drops it by its ticket)
       const packet = first > base
-        ? fetchPacket(summary, base, first, new AbortController().signal, ticket)
+        ? this.fetchPacket(summary, base, first, new AbortController().signal, ticket)
         : null;
       packet?.catch(() => {});          // awaited below, after the base level
       const document = JSON.parse(new TextDecoder().decode(await baseLevel));
-      if (ticket !== opened) return;
+      if (ticket !== this.opened) return;
       const appearance = { materialFaces: document.material_faces, materials: null };
       const materials = document.materials && withMaterials
         // the glTF records; their image uris are relative to this document
-        ? fetchOk(routeUrl(summary, 'materials')).then(async (response) => (
-          { document: await response.json(), url: response.url }))
-        : null;
+        ? this.source.materials() : null;
       const held = LodState.fromJson(document, { vertexCapacity: summary.vertices,
                                                  faceCapacity: summary.faces });
       // a first packet that fails (after its retries) leaves the base shown,
@@ -259,125 +192,80 @@ export function createStream(viewer) {
       if (packet) {
         try {
           const got = await packet;
-          if (ticket !== opened) return;
+          if (ticket !== this.opened) return;
           held.apply(got.packet);
-          bytes += got.bytes;
+          this.bytes += got.bytes;
         } catch (error) {
           refused = error;
         }
       }
       if (materials) appearance.materials = await materials;
-      if (ticket !== opened) return;
-      info = summary;
-      state = held;
-      target = planned = shown = state.level;
-      viewer.emit('mesh', { info, state, appearance,
-                            curve: new ErrorCurve(info, document.error) });
-      viewer.emit('level', { state, bytes, dirty: state.takeDirty() });
-      if (refused) fail(refused);
-      else goto(Math.round(option('initialRatio') * info.vertices), { opening: true });
+      if (ticket !== this.opened) return;
+      this.info = summary;
+      this.state = held;
+      this.target = this.queue.planned = this.shown = this.state.level;
+      this.viewer.emit('mesh', { info: this.info, state: this.state, appearance,
+                            curve: new ErrorCurve(this.info, document.error) });
+      this.viewer.emit('level', { state: this.state, bytes: this.bytes,
+                                  dirty: this.state.takeDirty() });
+      if (refused) this.fail(refused);
+      else this.goto(Math.round(this.option('initialRatio') * this.info.vertices),
+                     { opening: true });
     } catch (error) {
-      if (ticket === opened) stop(error);
+      if (ticket === this.opened) this.stop(error);
     }
   }
 
-  function stop(error) {
-    failed = error;
-    abortQueue(0);
-    viewer.emit('status', `error: ${error.message}`);
-    emitStream('failed', { error: error.message });
+  stop(error) {
+    this.failed = error;
+    this.queue.abort(0, this.state?.level ?? null);
+    this.viewer.emit('status', `error: ${error.message}`);
+    this.emitStream('failed', { error: error.message });
   }
 
-  function goto(level, { opening: first = false } = {}) {
-    if (!state || failed || !Number.isFinite(level)) return;
-    target = Math.min(info.vertices, Math.max(info.base_vertices, Math.round(level)));
-    viewer.emit('target', target);
-    if (stalled) {
-      stalled = null;           // a move of the level retries a stalled stream
-      planned = state.level;
+  goto(level, { opening: first = false } = {}) {
+    if (!this.state || this.failed || !Number.isFinite(level)) return;
+    const { vertices, base_vertices: base } = this.info;
+    this.target = Math.min(vertices, Math.max(base, Math.round(level)));
+    this.viewer.emit('target', this.target);
+    if (this.stalled) {
+      this.stalled = null;           // a move of the level retries a stalled stream
+      this.queue.planned = this.state.level;
     }
-    trimQueue();
-    refill(opened);
-    if (!moving || moving.ticket !== opened) {
-      const run = { ticket: opened, opening: first };
-      run.done = move(run).finally(() => { if (moving === run) moving = null; });
-      moving = run;
-    } else if (!first) moving.opening = false;
+    this.queue.trim(this.state.level, this.target);
+    this.refill();
+    if (!this.moving || this.moving.ticket !== this.opened) {
+      const run = { ticket: this.opened, opening: first };
+      run.done = this.move(run).finally(() => { if (this.moving === run) this.moving = null; });
+      this.moving = run;
+    } else if (!first) this.moving.opening = false;
   }
 
   // ---- packets ahead ---------------------------------------------------------------
 
-  // The next level on the way from `from` to `to`: the nearest multiple of the
-  // packet size.
-  function nextStop(from, to) {
-    return to > from ? Math.min(to, (Math.floor(from / size) + 1) * size)
-                     : Math.max(to, (Math.ceil(from / size) - 1) * size);
-  }
-
-  // Request the packet from -> to: { from, to, controller, ready, result (a
-  // promise of { packet, bytes, url }) }.
-  function request(from, to, ticket) {
-    const controller = new AbortController();
-    const entry = { from, to, controller, ready: false };
-    entry.result = fetchPacket(info, from, to, controller.signal, ticket).then((value) => {
-      entry.ready = true;
-      return value;
-    });
-    entry.result.catch(() => {});    // awaited (or dropped) by move()
-    return entry;
-  }
-
   // One packet of mesh `summary`, retried with backoff while the failure is transient.
-  async function fetchPacket(summary, from, to, signal, ticket) {
-    const url = routeUrl(summary, 'splits', { from, to });
+  async fetchPacket(summary, from, to, signal, ticket) {
+    const records = this.source;         // this mesh's, whatever is opened meanwhile
     for (let attempt = 0; ; attempt++) {
       try {
-        const response = await fetchOk(url, { signal });
-        let buffer;
-        try {
-          buffer = await response.arrayBuffer();
-        } catch (error) {
-          if (error.name === 'AbortError') throw error;
-          throw new FetchError(`the packet was cut short (${error.message})`, true);
-        }
+        const { buffer, url } = await records.packet(from, to, { signal });
         const packet = await LodState.readPacket(buffer);
         return { packet, bytes: buffer.byteLength, url };
       } catch (error) {
-        if (signal.aborted || ticket !== opened) throw error;
-        if (!(error instanceof FetchError && error.transient) || attempt >= option('retries')) {
+        if (signal.aborted || ticket !== this.opened) throw error;
+        const transient = error instanceof FetchError && error.transient;
+        if (!transient || attempt >= this.option('retries')) {
           throw error;
         }
         const delay = Math.min(RETRY_MAX_MS, RETRY_BASE_MS * 2 ** attempt);
-        stats.retries++;
-        viewer.emit('status', `${summary.name}: a packet failed (${error.message}); retrying in ` +
-                    `${(delay / 1000).toFixed(1)} s (attempt ${attempt + 2} of ` +
-                    `${option('retries') + 1})`);
-        emitStream('retrying', { attempt: attempt + 1, delayMs: delay, error: error.message });
+        this.counts.retries++;
+        this.viewer.emit('status', `${summary.name}: a packet failed (${error.message}); ` +
+                         `retrying in ${(delay / 1000).toFixed(1)} s (attempt ${attempt + 2} ` +
+                         `of ${this.option('retries') + 1})`);
+        this.emitStream('retrying', { attempt: attempt + 1, delayMs: delay, error: error.message });
         await sleep(delay, signal);
       }
     }
-  }
-
-  // Drops the queued packets from index `keep` on.
-  function abortQueue(keep) {
-    for (const entry of queue.splice(keep)) {
-      stats.aborted++;
-      entry.controller.abort();
-    }
-    planned = queue.length ? queue[queue.length - 1].to : state?.level ?? null;
-  }
-
-  // Keeps the queued packets that still lead from the state toward the target.
-  function trimQueue() {
-    if (!state) return;
-    const forward = target > state.level;
-    let keep = 0;
-    for (const { from, to } of queue) {
-      const toward = forward ? to > from && to <= target : to < from && to >= target;
-      if (!toward || target === state.level) break;
-      keep++;
-    }
-    abortQueue(keep);
   }
 
   // Packets in flight: settings.packetsAhead, or, where a drawn frame blocks
@@ -386,140 +274,38 @@ export function createStream(viewer) {
   // at packetPaceMs a packet: no packet is requested while the thread is
   // blocked, and two packets ahead would leave the link idle for most of each
   // frame (bench/viewer measures it on a throttled large mesh). At most MAX_AHEAD.
-  function packetsAhead() {
-    const covered = frameCostMs * (option('reportGap') + 1) / option('packetPaceMs');
-    return Math.max(1, option('packetsAhead'), Math.min(MAX_AHEAD, Math.ceil(covered)));
+  packetsAhead() {
+    const gap = this.option('reportGap') + 1;
+    const covered = this.pacer.frameCostMs * gap / this.option('packetPaceMs');
+    return Math.max(1, this.option('packetsAhead'), Math.min(MAX_AHEAD, Math.ceil(covered)));
   }
 
-  function refill(ticket) {
-    if (!state || failed || stalled) return;
-    const ahead = packetsAhead();
-    while (queue.length < ahead && planned !== target) {
-      const to = nextStop(planned, target);
-      queue.push(request(planned, to, ticket));
-      planned = to;
-    }
+  refill() {
+    if (!this.state || this.failed || this.stalled) return;
+    const cut = (from, to) => this.sizer.nextStop(from, to);
+    this.queue.refill(this.target, this.packetsAhead(), cut);
   }
 
   // ---- applying ----------------------------------------------------------------------
 
-  // Reports the packets applied since the last report, now.
-  function report() {
-    if (timer) clearTimeout(timer);
-    timer = 0;
-    if (!pending || !state) return;
-    const { records, applyMs, morph = false } = pending;
-    pending = null;
-    holdUntil = null;
-    shown = state.level;
-    reportedAt = performance.now();
-    framed = false;
-    // The next frame draws this level; a message posted from its first
-    // callback runs once the frame is done: the delay is what it cost.
-    if (!frame) frame = requestAnimationFrame(() => {
-      const drawn = performance.now();
-      const channel = new MessageChannel();
-      channel.port1.onmessage = () => {
-        frame = 0;
-        frameCostMs = 0.5 * frameCostMs + 0.5 * (performance.now() - drawn);
-        framed = true;
-        for (const resolve of waiting.splice(0)) resolve();
-        reportSoon();
-      };
-      channel.port2.postMessage(null);
-    });
-    viewer.emit('level', { state, bytes, records, applyMs, morph, dirty: state.takeDirty() });
+  // Reports the packets applied since the last one (ReportPacer decides when).
+  emitLevel({ records, applyMs, morph = false }) {
+    if (!this.state) return;
+    this.shown = this.state.level;
+    this.viewer.emit('level', { state: this.state, bytes: this.bytes, records, applyMs, morph,
+                                dirty: this.state.takeDirty() });
   }
 
-  // Reports once a frame has run since the last report and the gap has passed.
-  function reportSoon() {
-    if (!pending || timer || !framed || restInHand()) return;
-    const wait = reportedAt + option('reportGap') * frameCostMs - performance.now();
-    if (wait <= 0) report();
-    else timer = setTimeout(() => {
-      timer = 0;
-      reportSoon();
-    }, wait);
-  }
-
-  // The link's figures for a fetched URL: { latencyMs, bytesPerMs } from its
-  // Resource Timing entry (null when there is none, e.g. the buffer is full).
-  // Packets in flight together share the link, so one body's bytes over its own
-  // time would be a share of the link's rate (and shrink packets the more are
-  // ahead): the rate is the bytes of the last few bodies over the time any of
-  // them was arriving (the union of their intervals).
-  function linkOf(url, bytes) {
-    const entries = performance.getEntriesByName(new URL(url, window.location.href).href,
-                                                 'resource');
-    const entry = entries[entries.length - 1];
-    if (!entry || !(entry.responseEnd > 0)) return null;
-    const latencyMs = Math.max(0, entry.responseStart - entry.requestStart);
-    bodies.push([entry.responseStart, entry.responseEnd, bytes]);
-    if (bodies.length > LINK_BODIES) bodies.shift();
-    const sorted = [...bodies].sort((a, b) => a[0] - b[0]);
-    let busyMs = 0, until = -Infinity, total = 0;
-    for (const [start, end, size] of sorted) {
-      busyMs += Math.max(0, end - Math.max(start, until));
-      until = Math.max(until, end);
-      total += size;
-    }
-    return { latencyMs, bytesPerMs: total / Math.max(0.1, busyMs) };
-  }
-
-  // The packet size after a packet of `records` records, `bytes` bytes,
-  // applied in applyMs, over `link` (see linkOf).
-  function adapt(records, bytes, applyMs, link) {
-    const chunk = option('chunkSplits');
-    // records per ms: the fastest lately (a cold JIT or a GC pause makes one
-    // packet slow; the rate decays so a lasting slowdown still shrinks packets)
-    rate = Math.max(records / Math.max(applyMs, 0.05), 0.7 * rate);
-    // where a drawn frame blocks the main thread longer than the budget (software
-    // GL), a packet as long as half a frame costs no responsiveness
-    const budget = Math.max(option('frameBudgetMs'), 0.5 * frameCostMs);
-    let want = budget * rate;
-    if (link) {
-      const pace = option('packetPaceMs') - link.latencyMs;
-      want = Math.min(want, Math.max(0, pace) * link.bytesPerMs * records / Math.max(bytes, 1));
-    }
-    want = Math.min(want, 4 * size, MAX_SPLITS);
-    let next = chunk;
-    while (next * 2 <= want) next *= 2;
-    size = next;
-  }
-
-  // Whether the rest of the way to the target has arrived and applying it should
-  // take less than a drawn frame costs: then a frame of the level between is
-  // not worth its cost (under software GL a frame of a million triangles blocks
-  // the main thread for seconds) and the report waits for the target.
-  // Also while the rest is still arriving, if it should arrive (at the link's
-  // rate, bytesPerRecord of the packets so far) and be applied within a drawn
-  // frame's cost: a frame drawn meanwhile would only delay the full level
-  // (on a throttled large mesh, by seconds after its last byte). Held at most
-  // twice as long as estimated (holdUntil), so a stalling link still shows
-  // what has arrived.
-  function restInHand() {
-    if (planned !== target || !(rate > 0)) return false;
-    let records = 0, missing = 0;
-    for (const entry of queue) {
-      const count = Math.abs(entry.to - entry.from);
-      records += count;
-      if (!entry.ready) missing += count;
-    }
-    if (missing === 0) return records / rate < frameCostMs;
-    if (!lastLink || !(receivedRecords > 0)) return false;
-    const arriveMs = lastLink.latencyMs
-      + missing * (receivedBytes / receivedRecords) / lastLink.bytesPerMs;
-    const restMs = arriveMs + records / rate;
-    const now = performance.now();
-    if (restMs >= frameCostMs) return false;
-    if (holdUntil === null) holdUntil = now + 2 * restMs;
-    if (now < holdUntil) {
-      // look again then, in case no packet arrives to trigger a report
-      if (!holdTimer) holdTimer = setTimeout(() => { holdTimer = 0; reportSoon(); },
-                                             holdUntil - now + 1);
-      return true;
-    }
-    return false;
+  // The rest of the way to the target, for ReportPacer.holding(): { ms: its
+  // time to arrive and be applied, arriving: whether some is still on the
+  // link }, or null (more packets to ask for, nothing measured yet).
+  restOfTheWay() {
+    const { rate } = this.sizer;
+    if (this.queue.planned !== this.target || !(rate > 0)) return null;
+    const { all: records, missing } = this.queue.records();
+    if (missing === 0) return { ms: records / rate, arriving: false };
+    const arriveMs = this.sizer.linkMs(missing, 1);
+    return arriveMs === null ? null : { ms: arriveMs + records / rate, arriving: true };
   }
 
   // How long the rest of the way to the target should take to cross the link,
@@ -528,147 +314,122 @@ export function createStream(viewer) {
   // the link, not on its own work (decoding competes with the GPU's for the
   // cores under software GL): scene.js makes the environment at once when
   // this is long enough to hide its GPU work.
-  function restEstimateMs() {
-    if (!state || target === null || !(receivedRecords > 0) || !lastLink) return null;
-    const records = Math.abs(target - state.level);
-    return records * (receivedBytes / receivedRecords) / lastLink.bytesPerMs;
+  restEstimateMs() {
+    if (!this.state || this.target === null) return null;
+    return this.sizer.linkMs(Math.abs(this.target - this.state.level));
   }
 
   // Follows `target` (which may change meanwhile), the queued packets in order.
-  async function move(run) {
+  async move(run) {
     const { ticket } = run;
     let sliceStart = performance.now();
     try {
-      while (ticket === opened && !failed && !stalled) {
-        refill(ticket);
-        const head = queue[0];
+      while (ticket === this.opened && !this.failed && !this.stalled) {
+        this.refill();
+        const { head } = this.queue;
         if (!head) break;
         const verb = head.to > head.from ? 'refining' : 'coarsening';
-        viewer.emit('status', `${info.name}: ${verb} to ${target}`);
-        emitStream('moving', { restMs: restEstimateMs() });
+        this.viewer.emit('status', `${this.info.name}: ${verb} to ${this.target}`);
+        this.emitStream('moving', { restMs: this.restEstimateMs() });
         let got;
         try {
           got = await head.result;
         } catch (error) {
-          if (ticket !== opened) return;
+          if (ticket !== this.opened) return;
           if (head.controller.signal.aborted) continue;     // dropped by a new target
           throw error;
         }
-        if (ticket !== opened) return;
-        if (queue[0] !== head) continue;                    // dropped while arriving
-        if (!framed) {
-          await new Promise((resolve) => waiting.push(resolve));
-          if (ticket !== opened) return;
-          if (queue[0] !== head) continue;
+        if (ticket !== this.opened) return;
+        if (this.queue.head !== head) continue;                  // dropped while arriving
+        if (!this.pacer.framed) {
+          await this.pacer.afterFrame();
+          if (ticket !== this.opened) return;
+          if (this.queue.head !== head) continue;
         }
-        queue.shift();
+        this.queue.shift();
         const started = performance.now();
-        const records = state.apply(got.packet);
+        const records = this.state.apply(got.packet);
         const applyMs = performance.now() - started;
-        bytes += got.bytes;
-        stats.packets++;
-        stats.largest = Math.max(stats.largest, records);
-        pending = { records: (pending?.records ?? 0) + records,
-                    applyMs: (pending?.applyMs ?? 0) + applyMs, morph: pending?.morph ?? false };
-        lastLink = linkOf(got.url, got.bytes) ?? lastLink;
-        receivedBytes += got.bytes;
-        receivedRecords += records;
-        adapt(records, got.bytes, applyMs, lastLink);
+        this.bytes += got.bytes;
+        this.counts.packets++;
+        this.counts.largest = Math.max(this.counts.largest, records);
+        this.pacer.add(records, applyMs);
+        this.sizer.measure(got.url, got.bytes, records, applyMs, this.pacer.frameCostMs);
         const backward = head.to < head.from;
-        const morphing = geomorph && !run.opening && geomorph.enabled();
+        const morphing = this.geomorph && !run.opening && this.geomorph.enabled();
         if (backward && morphing) {
           // apply what has already arrived in the same direction, then glide
           // the vanishing vertices into their parents, then drop them
-          if (queue[0]?.ready && queue[0].to < queue[0].from) continue;
-          await geomorph.coarsen(state, shown);
-          if (ticket !== opened) return;
-          report();
+          const next = this.queue.head;
+          if (next?.ready && next.to < next.from) continue;
+          await this.geomorph.coarsen(this.state, this.shown);
+          if (ticket !== this.opened) return;
+          this.pacer.now();
         } else {
-          pending.morph = morphing;             // the geomorph glides the new vertices out
-          if (!restInHand()) reportSoon();
+          this.pacer.pending.morph = morphing;       // the geomorph glides the new vertices out
+          if (!this.pacer.holding()) this.pacer.soon();
         }
-        if (performance.now() - sliceStart > option('frameBudgetMs')) {
+        if (performance.now() - sliceStart > this.option('frameBudgetMs')) {
           await yieldTask();
           sliceStart = performance.now();
         }
       }
-      if (ticket !== opened) return;
-      report();
-      if (!failed && !stalled) {
-        viewer.emit('status', `${info.name}`);
-        emitStream('idle', { ...stats });
+      if (ticket !== this.opened) return;
+      this.pacer.now();
+      if (!this.failed && !this.stalled) {
+        this.viewer.emit('status', `${this.info.name}`);
+        this.emitStream('idle', { ...this.stats });
       }
     } catch (error) {
-      if (ticket !== opened) return;
-      report();
-      fail(error);
+      if (ticket !== this.opened) return;
+      this.pacer.now();
+      this.fail(error);
     }
   }
 
   // A packet failed: a transient failure the retries ran out on stalls the
   // stream (the next move of the level tries again); any other stops the mesh.
-  function fail(error) {
+  fail(error) {
     if (error instanceof FetchError && error.transient) {
-      stalled = error;
-      abortQueue(0);
-      viewer.emit('status', `error: ${error.message} (move the level to try again)`);
-      emitStream('stalled', { error: error.message });
+      this.stalled = error;
+      this.queue.abort(0, this.state?.level ?? null);
+      this.viewer.emit('status', `error: ${error.message} (move the level to try again)`);
+      this.emitStream('stalled', { error: error.message });
     } else {
-      stop(error instanceof PacketError || error instanceof FetchError ? error
+      this.stop(error instanceof PacketError || error instanceof FetchError ? error
         : new Error(`the packet could not be applied (${error.message})`));
     }
   }
 
-  function stopMoving() {
-    for (const entry of queue) entry.controller.abort();
-    queue = [];
-    pending = null;
-    if (timer) clearTimeout(timer);
-    timer = 0;
-    if (holdTimer) clearTimeout(holdTimer);
-    [holdTimer, holdUntil] = [0, null];
-    framed = true;
-    for (const resolve of waiting.splice(0)) resolve();
+  stopMoving() {
+    this.queue.clear();
+    this.pacer.reset();
   }
 
-  viewer.on('open', (detail) => {
-    const { id, ...options } = typeof detail === 'object' && detail ? detail : { id: detail };
-    opening = open(id, options);
-  });
-  viewer.on('goto', (level) => goto(level));
+  // Stops streaming (a scene's part when the scene is closed): nothing more
+  // is fetched or reported.
+  close() {
+    this.opened++;
+    this.stopMoving();
+    [this.info, this.state, this.target] = [null, null, null];
+    [this.opening, this.source] = [null, null];
+  }
 
-  return {
-    get info() { return info; },
-    get state() { return state; },
-    get target() { return target; },
-    get bytes() { return bytes; },
-    get busy() { return moving !== null; },
-    get failed() { return failed; },
-    get stalled() { return stalled; },
-    get packetSize() { return size; },
-    get stats() { return { ...stats }; },
-    // Opens a mesh at a first level: open(id, { level }) (see open() above).
-    open(id, options = {}) {
-      opening = open(id, options);
-      return opening;
-    },
-    // Stops streaming (a scene's part when the scene is closed): nothing more
-    // is fetched or reported.
-    close() {
-      opened++;
-      stopMoving();
-      [info, state, target, opening] = [null, null, null, null];
-    },
-    // The geomorph (geomorph.js) that coarsening waits for.
-    attachGeomorph(morph) {
-      geomorph = morph;
-    },
-    // Resolves once the mesh is open, its level reached the target, nothing is
-    // in flight and no geomorph is running.
-    async settled() {
-      await opening;
-      while (moving) await moving.done;
-      await geomorph?.idle();
-    },
-  };
+  // The geomorph (geomorph.js) that coarsening waits for.
+  attachGeomorph(morph) {
+    this.geomorph = morph;
+  }
+
+  // Resolves once the mesh is open, its level reached the target, nothing is
+  // in flight and no geomorph is running.
+  async settled() {
+    await this.opening;
+    while (this.moving) await this.moving.done;
+    await this.geomorph?.idle();
+  }
+}
+
+// The stream of the viewer's bus `viewer` (main.js, animated.js).
+export function createStream(viewer) {
+  return new PacketStream(viewer);
 }

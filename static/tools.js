@@ -40,7 +40,7 @@ export function readUrl(href = window.location.href) {
     ? { position: numbers.slice(0, 3), target: numbers.slice(3) } : null;
   const auto = params.get('auto');
   return { mesh: params.get('mesh'), level: Number.isFinite(level) && level > 0 ? level : null,
-           camera, auto: auto === null ? null : auto === '1' };
+           camera, auto: auto === '1' ? true : auto === '0' ? false : null };
 }
 
 // Sets (or, with null, removes) URL parameters without a new history entry.
@@ -114,8 +114,8 @@ export function createTools(viewer, root) {
   });
   viewer.on('settings', (key) => {
     if (key === 'autoByDistance') {
-      writeUrl({ auto: settings.autoByDistance ? '1' : null,
-                 level: settings.autoByDistance ? null : level });
+      // auto is the default, and a level in the URL turns it off
+      writeUrl({ auto: null, level: settings.autoByDistance ? null : level });
     } else if (key === 'up' && info) {
       storeUp(info.id, settings.up);
     }

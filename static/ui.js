@@ -19,7 +19,7 @@ const KEY_STEPS = { ArrowUp: 10, ArrowRight: 10, ArrowDown: -10, ArrowLeft: -10,
                     PageUp: 100, PageDown: -100 };
 // The settings the panel edits: which key, how it is shown.
 const CONTROLS = [
-  { key: 'autoByDistance', label: 'auto level by distance', type: 'checkbox' },
+  { key: 'autoByDistance', label: 'stop at the error budget (auto level)', type: 'checkbox' },
   { key: 'errorBudgetPx', label: 'error budget (px)', type: 'number', min: 0.05, step: 0.05 },
   { key: 'shading', label: 'shading', options: ['smooth', 'flat'] },
   { key: 'wireframe', label: 'wireframe', type: 'checkbox' },
@@ -195,6 +195,8 @@ export function createUi(viewer, root, { firstLevel = null } = {}) {
     const error = curve.errorAt(state.level);
     const rows = [
       ['vertices', `${state.level.toLocaleString()} / ${info.vertices.toLocaleString()}`],
+      ['detail', settings.autoByDistance ? `${settings.errorBudgetPx} px`
+        : target === info.vertices ? 'full detail' : 'set by hand'],
       ['faces', `${state.faceCount.toLocaleString()} / ${info.faces.toLocaleString()}`],
       ['error', error === 0 ? '0'
         : `${curve.isExact(state.level) ? '' : '≈ '}${error.toPrecision(3)} mesh units`],
@@ -247,6 +249,7 @@ export function createUi(viewer, root, { firstLevel = null } = {}) {
   });
   // settings changed elsewhere (the up axis chosen for a mesh): show them
   viewer.on('settings', (key) => {
+    showStats();
     const input = root.querySelector(`[data-key="${key}"]`);
     if (!input) return;
     if (input.type === 'checkbox') input.checked = settings[key];
@@ -262,6 +265,8 @@ export function createUi(viewer, root, { firstLevel = null } = {}) {
       status.textContent = `error: ${error.message}`;
     });
   });
+  // full detail, one click away from the budget's level
+  $('#full-detail').addEventListener('click', () => info && request(info.vertices));
   slider.max = SLIDER_STEPS;
   slider.addEventListener('input', () => request(levelOf(Number(slider.value))));
   number.addEventListener('change', () => {

@@ -141,7 +141,7 @@ def test_no_import_cycle():
 
 def test_the_map_names_every_module_and_viewer_file():
     text = (REPO / "docs" / "architecture.md").read_text()
-    named = set(re.findall(r"`([\w/]+\.(?:py|js))`", text))
+    named = set(re.findall(r"`([\w/-]+\.(?:py|js))`", text))
     missing = sorted(str(path.relative_to(PACKAGE)) for path in PACKAGE.rglob("*.py")
                      if path.name != "__init__.py" and path.name not in named
                      and str(path.relative_to(PACKAGE)) not in named)

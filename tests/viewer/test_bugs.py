@@ -114,7 +114,7 @@ def test_the_dropdown_statuses_refresh(chromium, server, meshes):
 
 def test_clearing_the_level_box_keeps_the_level(chromium, server, meshes):
     mesh = meshes["spot"]
-    page = _open(chromium, server, f"mesh={mesh['id']}")
+    page = _open(chromium, server, f"mesh={mesh['id']}&level={mesh['vertices']}")
     try:
         before = page.evaluate("lodViewer.status()")
         assert before["level"] == mesh["vertices"]

@@ -75,7 +75,7 @@ def open_still(browser, base_url: str, mesh: dict):
     one-pixel drag: the view no longer follows the level)."""
     page = browser.new_page(viewport=VIEWPORT)
     page.add_init_script(PRESERVE_JS)
-    page.goto(f"{base_url}/viewer/?mesh={mesh['id']}")
+    page.goto(f"{base_url}/viewer/?mesh={mesh['id']}&level={mesh['vertices']}")
     page.wait_for_function("() => window.lodViewer?.status().level != null")
     page.evaluate("""async (full) => {
       while ((await lodViewer.settled()).level !== full) {

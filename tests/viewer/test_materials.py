@@ -188,7 +188,7 @@ def _compare(chromium, server, mesh, tmp_path):
     failures = []
     page.on("pageerror", lambda error: failures.append(error))
     try:
-        page.goto(f"{server.base_url}/viewer?mesh={mesh['id']}")
+        page.goto(f"{server.base_url}/viewer?mesh={mesh['id']}&level={mesh['vertices']}")
         page.wait_for_function("() => window.lodViewer?.status().level != null")
         status = page.evaluate("lodViewer.settled()")
         assert status["level"] == mesh["vertices"] and status["error"] is None, status

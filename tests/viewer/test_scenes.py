@@ -88,7 +88,7 @@ SKIN_JS = """() => {
 def _assert_skin_is_the_levels(page, document, part):
     """With JOINTS_0/WEIGHTS_0 in the part's layout, the drawn skin is the streamed
     level's, wedge for wedge (the json level's grid values, dequantized); without,
-    it was kept from the GLB (animated.js: transfer)."""
+    it was kept from the GLB (partgeometry.js: transfer)."""
     names = [name for name, _ in document.get("layout", [])]
     if "JOINTS_0" not in names:
         assert set(part["attributes"]["kept"]) >= {"skinIndex", "skinWeight"}, part
@@ -118,9 +118,10 @@ def fox(server):
     return summary
 
 
-def _open(chromium, server, mesh_id, *, hold_splits=False):
-    """A page showing mesh `mesh_id`, its errors and CSP violations recorded; with
-    hold_splits, the parts' packet requests are held (page.held) until released."""
+def _open(chromium, server, mesh_id, *, hold_splits=False, level=None):
+    """A page showing mesh `mesh_id` (at `level` when given: the URL's), its errors and
+    CSP violations recorded; with hold_splits, the parts' packet requests are held
+    (page.held) until released."""
     page = chromium.new_page(viewport=VIEWPORT)
     page.failures, page.requests, page.held = [], [], []
     page.on("pageerror", lambda error: page.failures.append(error))
@@ -130,12 +131,12 @@ def _open(chromium, server, mesh_id, *, hold_splits=False):
         page.released = False
         page.route("**/parts/*/splits?*", lambda route: (
             route.continue_() if page.released else page.held.append(route)))
-    page.goto(f"{server.base_url}/viewer?mesh={mesh_id}")
+    page.goto(f"{server.base_url}/viewer?mesh={mesh_id}" + (f"&level={level}" if level else ""))
     return page
 
 
 def test_a_skinned_scene_animates_while_it_streams(chromium, server, fox):
-    page = _open(chromium, server, fox["id"], hold_splits=True)
+    page = _open(chromium, server, fox["id"], hold_splits=True, level=fox["vertices"])
     try:
         # the scene as one versioned GLB, its clips listed and the first playing
         page.wait_for_function("() => lodViewer.status().animation?.parts.length > 0")
@@ -235,7 +236,7 @@ def test_clip_choice_pause_and_scrub(chromium, server, fox):
 def test_a_single_mesh_is_shown_as_before(chromium, server):
     mesh = upload_and_wait(server, DATA / "spot.obj")
     assert mesh["scene"] is False
-    page = _open(chromium, server, mesh["id"])
+    page = _open(chromium, server, mesh["id"], level=mesh["vertices"])
     try:
         page.wait_for_function("() => window.lodViewer?.status().level != null")
         status = page.evaluate("lodViewer.settled()")

@@ -56,7 +56,8 @@ def _open(chromium, server, mesh, route=None, listeners=()):
     page.add_init_script(WATCH_JS)
     if route is not None:
         page.route("**/splits?*", route)
-    page.goto(f"{server.base_url}/viewer/?mesh={mesh['id']}")
+    # full detail asked for: these tests follow the stream all the way
+    page.goto(f"{server.base_url}/viewer/?mesh={mesh['id']}&level={mesh['vertices']}")
     page.wait_for_function("() => window.lodViewer?.status().level != null")
     return page, errors, packets
 

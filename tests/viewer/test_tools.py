@@ -60,6 +60,9 @@ PROJECTED_BOX_JS = """async () => {
   }
   return { left: Math.min(...xs), right: Math.max(...xs), top: Math.min(...ys), bottom: Math.max(...ys) };
 }"""
+STATS_JS = """() => Object.fromEntries([...document.querySelectorAll('#stats tr')]
+    .map((row) => [row.cells[0].textContent, row.cells[1].textContent]))"""
+CAMERA_DISTANCE_JS = "lodViewer.scene.three.camera.position.length()"
 CAMERA_JS = """() => {
   const { camera } = window.lodViewer.scene.three;
   return { position: camera.position.toArray(), up: camera.up.toArray() };
@@ -130,7 +133,12 @@ def test_the_first_level_is_chosen_for_the_view_and_the_base_never_drawn(chromiu
         level = int(packets[0].split("to=")[1].split("&")[0])
         assert mesh["base_vertices"] < level < mesh["vertices"], level
         assert page.evaluate("window.framedLevels[0]") == level
-        assert page.evaluate("lodViewer.status()")["level"] == mesh["vertices"]
+        # the page stops at what the screen shows: the level of the 1 px budget,
+        # no packet past it, and the panel says so
+        settled = page.evaluate("lodViewer.status()")["level"]
+        assert settled == level < mesh["vertices"], (settled, level)
+        assert all(int(url.split("to=")[1].split("&")[0]) <= level for url in packets), packets
+        assert page.evaluate(STATS_JS)["detail"] == "1 px"
         # how many pixels a unit covers at the nearest point of the box's sphere
         # (centre 0, radius sqrt 3), seen from where the page framed it
         per_unit = page.evaluate("""() => {
@@ -151,6 +159,35 @@ def test_the_first_level_is_chosen_for_the_view_and_the_base_never_drawn(chromiu
     # points, tells: allow half a pixel for the interpolation)
     assert error_px(mesh["base_vertices"]) > 10
     assert error_px(level) <= 1.5
+
+
+def test_the_level_follows_the_view_without_thrashing(chromium, server, meshes):
+    """The 1 px stop refines when the wheel zooms in, keeps its level when the view
+    backs off a little, and the full detail button goes all the way."""
+    mesh = meshes["sphere"]
+    page = _open(chromium, server, f"mesh={mesh['id']}")
+    try:
+        first = page.evaluate("lodViewer.status()")
+        assert first["level"] < mesh["vertices"], first
+        box = page.locator("#viewport canvas").bounding_box()
+        page.mouse.move(box["x"] + 0.7 * box["width"], box["y"] + box["height"] / 2)
+        page.mouse.wheel(0, -400)                           # closer
+        page.wait_for_function(f"() => lodViewer.status().target > {first['level']}")
+        closer = page.evaluate("lodViewer.settled()")
+        assert closer["level"] > first["level"] and closer["error"] is None, closer
+        closer_distance = page.evaluate(CAMERA_DISTANCE_JS)
+        assert page.evaluate(STATS_JS)["detail"] == "1 px"
+        frames = page.evaluate("lodViewer.scene.draws")
+        page.mouse.wheel(0, 40)                             # a little farther
+        page.wait_for_function(f"() => lodViewer.scene.draws > {frames}")
+        assert page.evaluate(CAMERA_DISTANCE_JS) > closer_distance
+        assert page.evaluate("lodViewer.settled()")["level"] == closer["level"]
+        page.click("#full-detail")
+        assert page.evaluate("lodViewer.settled()")["level"] == mesh["vertices"]
+        assert page.evaluate(STATS_JS)["detail"] == "full detail"
+        assert not page.errors, page.errors
+    finally:
+        page.close()
 
 
 # ---- framing ---------------------------------------------------------------------------
@@ -239,7 +276,8 @@ def test_reset_wireframe_shading_and_render_stats(chromium, server, meshes):
         assert np.allclose(page.evaluate(CAMERA_JS)["position"], framed, rtol=1e-6)
 
         stats = page.text_content("#render-stats")
-        assert "1 draw call" in stats and f"{mesh['faces']:,} triangles" in stats, stats
+        faces = page.evaluate("lodViewer.status()")["faces"]     # the level's: the 1 px stop
+        assert "1 draw call" in stats and f"{faces:,} triangles" in stats, stats
         assert "fps" in stats
 
         pixels = "Array.from(lodViewer.scene.pixels().data.filter((_, i) => i % 16 === 0))"

@@ -101,6 +101,12 @@ def _expected(client, mesh_id, level):
     return document["face_count"], hashlib.sha256(data).hexdigest()
 
 
+def _detail(page) -> str:
+    """What the panel says the level stops at ("1 px", "full detail", ...)."""
+    return page.evaluate("""() => [...document.querySelectorAll('#stats tr')]
+        .find((row) => row.cells[0].textContent === 'detail').cells[1].textContent""")
+
+
 def _pixel_fractions(page, png: bytes) -> tuple[float, float]:
     """(drawn, dark) for a screenshot, decoded in the page: the fraction of its
     pixels that are not the background, and the fraction of those that are dark
@@ -155,7 +161,6 @@ def test_viewer_levels_equal_the_server_levels(name, chromium, server, tmp_path)
         # which the viewer's script-src (no 'unsafe-eval') refuses
         page.wait_for_function("() => window.lodViewer?.status().level != null")
         status = page.evaluate("lodViewer.settled()")
-        assert status["level"] == mesh["vertices"], status   # streamed to full detail first
 
         def check(status):
             assert status["error"] is None and status["level"] == status["target"], status
@@ -163,7 +168,14 @@ def test_viewer_levels_equal_the_server_levels(name, chromium, server, tmp_path)
             assert status["faces"] == faces
             assert page.evaluate("lodViewer.hash()") == digest, f"level {status['level']}"
 
+        # streamed to what the screen shows (the 1 px budget), then full detail a click away
         check(status)
+        assert _detail(page) == "1 px"
+        page.click("#full-detail")
+        status = page.evaluate("lodViewer.settled()")
+        assert status["level"] == mesh["vertices"], status
+        check(status)
+        assert _detail(page) == "full detail"
         visited = [status["level"]]
         for position in SLIDER_PATH:
             page.evaluate("""(position) => {
