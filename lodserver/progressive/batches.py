@@ -246,11 +246,12 @@ def _by_split_vertex(order, batch, parent, n0):
     return out
 
 
-def reordered(pm: ProgressiveMesh, order: np.ndarray) -> ProgressiveMesh:
+def reordered(pm: ProgressiveMesh, order: np.ndarray, batch=None) -> ProgressiveMesh:
     """``pm`` with its splits in ``order`` (recorded split indices, a linear
     extension of the dependencies), renumbered so split ``t`` creates vertex
     ``t``: the collapse log read back from ``pm`` in the new order, laid out
-    again by ``from_collapse_log``."""
+    again by ``from_collapse_log``; ``batch`` (k,) int32, optional, is kept as
+    its ``split_batch``."""
     from ..simplify.log import CollapseLog
 
     n0 = pm.base_vertices
@@ -283,7 +284,7 @@ def reordered(pm: ProgressiveMesh, order: np.ndarray) -> ProgressiveMesh:
                       moved_offsets=moved_offsets, moved_corners=moved, rejected={}, passes=0,
                       **merges)
     full = Mesh(pm.positions, pm.faces, attributes, pm.face_material, pm.materials)
-    return from_collapse_log(full, log, pm.metadata)
+    return from_collapse_log(full, log, pm.metadata, batch)
 
 
 def schedule(pm: ProgressiveMesh, window: float = WINDOW,
@@ -302,7 +303,8 @@ def schedule(pm: ProgressiveMesh, window: float = WINDOW,
     Returns
     -------
     Schedule
-        The re-ordered progressive mesh and the batch id of each split.
+        The re-ordered progressive mesh (its ``split_batch`` the batch ids),
+        the batch id of each split and where each split came from.
     """
     order, batch = batch_order(pm, window, min_window)
-    return Schedule(reordered(pm, order), batch, order)
+    return Schedule(reordered(pm, order, batch), batch, order)

@@ -280,3 +280,34 @@ def test_batches_split_a_share_of_the_level_and_the_window_bounds_them():
     assert np.array_equal(order, np.arange(pm.split_count))
     with pytest.raises(ValueError):
         batch_order(pm, window=-1)
+
+
+def test_the_build_option_batches_and_the_artefact_keeps_the_batches(tmp_path):
+    source = mesh("spot")
+    plain, batched = build(source), build(source, batched=True)
+    assert plain.split_batch is None and "batched" not in plain.metadata["options"]
+    assert batched.metadata["options"]["batched"] is True
+    expected = schedule(plain)
+    assert np.array_equal(batched.split_batch, expected.batch)
+    assert np.array_equal(batched.parent, expected.pm.parent)
+    assert np.array_equal(batched.faces, expected.pm.faces)
+    batched.save(tmp_path / "b.pm")
+    loaded = type(batched).load(tmp_path / "b.pm")
+    assert np.array_equal(loaded.split_batch, batched.split_batch)
+    assert _same(_state(loaded, loaded.vertex_count // 2), _state(batched, batched.vertex_count // 2))
+    plain.save(tmp_path / "p.pm")
+    assert type(plain).load(tmp_path / "p.pm").split_batch is None
+    # octree clustering's log batches too
+    clustered = build(source, method="cluster", batched=True)
+    assert clustered.split_batch is not None
+    assert np.array_equal(clustered.at(clustered.vertex_count).positions[:clustered.base_vertices],
+                          build(source, method="cluster").positions[:clustered.base_vertices])
+
+
+def test_a_batch_numbering_that_skips_or_falls_is_refused():
+    pm = built("spot")[1].pm
+    from lodserver.progressive.mesh import STORED_FIELDS, ProgressiveMesh
+    fields = {name: getattr(pm, name) for name in STORED_FIELDS}
+    for bad in (pm.split_batch + 1, pm.split_batch[::-1].copy(), pm.split_batch[:-1]):
+        with pytest.raises(ValueError, match="split_batch"):
+            ProgressiveMesh(**{**fields, "split_batch": bad})
