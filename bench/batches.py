@@ -20,6 +20,10 @@ scheduled at each window. Per window:
   samples, over the bounding-box diagonal) at the face counts of
   ``bench/simplify.py``'s ratios, batched over unbatched;
 - the schedule's time (dependencies, batches, the re-laid arrays).
+
+``--appearance`` instead judges the lodserver rows of ``bench/appearance.py``
+(its meshes, ratios, level nearest N faces, texture and judge), batched over
+unbatched: geometry RMS, UV and normal RMS and p99, texture RMS.
 """
 
 from __future__ import annotations
@@ -36,11 +40,12 @@ import numpy as np
 BENCH = Path(__file__).resolve().parent
 ROOT = BENCH.parent
 sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(BENCH))
 
 from lodserver import build  # noqa: E402
 from lodserver.io import clean_mesh, load_mesh  # noqa: E402
 from lodserver.metrics import surface_distance  # noqa: E402
-from lodserver.progressive.batches import WINDOW, schedule  # noqa: E402
+from lodserver.progressive.batches import ERROR_RATIO, WINDOW, schedule  # noqa: E402
 
 RATIOS = (0.5, 0.1, 0.02, 0.005)  # bench/simplify.py's
 SEED = 0
@@ -134,22 +139,70 @@ def bench(key, relative, args) -> dict:
            "base_vertices": pm.base_vertices, "windows": {}}
     if not args.no_fidelity:
         row["rms"] = rms_at(reference, pm, args.ratios, args.samples)
-    for window in args.windows:
+    for window, error_ratio in ((w, r) for w in args.windows for r in args.error_ratios):
         start = time.perf_counter()
-        result = schedule(pm, window)
+        result = schedule(pm, window, error_ratio)
         elapsed = time.perf_counter() - start
         facts = {**batch_facts(result.pm, result.batch), "schedule_s": elapsed}
         if not args.no_fidelity:
             facts["rms"] = rms_at(reference, result.pm, args.ratios, args.samples)
             facts["rms_over_unbatched"] = [None if a is None or b is None or b == 0 else a / b
                                            for a, b in zip(facts["rms"], row["rms"])]
-        row["windows"][str(window)] = facts
-        print(f"{key} window {window}: {json.dumps(facts)}", file=sys.stderr, flush=True)
+        row["windows"][f"{window} / {error_ratio}"] = facts
+        print(f"{key} {window} / {error_ratio}: {json.dumps(facts)}", file=sys.stderr, flush=True)
     return row
 
 
+def appearance_rows(windows, samples) -> list:
+    """bench/appearance.py's lodserver rows, batched at each (window, error
+    ratio) over unbatched."""
+    import appearance as bench_appearance
+
+    out = []
+    for key, relative in bench_appearance.MESHES.items():
+        mesh, _ = load_mesh(bench_appearance.MESH_DIR / relative)
+        texture, _ = bench_appearance.base_colour_texture(key, mesh)
+        from_file = mesh.attributes is not None and mesh.attributes.columns("NORMAL") is not None
+        reference = mesh if from_file else bench_appearance.with_computed_normals(mesh)
+        pm = build(mesh)
+        versions = {"unbatched": pm, **{f"{w} / {r}": schedule(pm, w, r).pm
+                                        for w, r in windows}}
+        for ratio in bench_appearance.RATIOS:
+            target = max(1, round(ratio * mesh.face_count))
+            judged = {}
+            for name, version in versions.items():
+                lod = version.at(bench_appearance.nearest_level(version, target))
+                candidate = lod if from_file else bench_appearance.with_computed_normals(lod)
+                report = bench_appearance.attribute_deviation(
+                    reference, candidate, samples=samples, seed=bench_appearance.SEED,
+                    texture=texture)
+                judged[name] = {"rms": report["geometry"]["rms"],
+                                **{f"{a} {s}": (report.get(a) or {}).get(s)
+                                   for a in ("TEXCOORD_0", "NORMAL", "texture")
+                                   for s in ("rms", "p99")}}
+            for window in (f"{w} / {r}" for w, r in windows):
+                row = {"mesh": key, "ratio": ratio, "window": window}
+                for figure, value in judged[window].items():
+                    base = judged["unbatched"][figure]
+                    row[figure] = None if value is None or not base else value / base
+                out.append(row)
+                print(json.dumps(row), file=sys.stderr, flush=True)
+    return out
+
+
+def appearance_table(rows) -> str:
+    figures = [k for k in rows[0] if k not in ("mesh", "ratio", "window")] if rows else []
+    lines = ["| mesh | ratio | window | " + " | ".join(f"{f} batched / unbatched"
+                                                     for f in figures) + " |",
+             "|" + "---|" * (3 + len(figures))]
+    for row in rows:
+        lines.append(f"| {row['mesh']} | {row['ratio']} | {row['window']} | " + " | ".join(
+            "-" if row[f] is None else f"{row[f]:.3f}" for f in figures) + " |")
+    return "\n".join(lines)
+
+
 def table(rows, ratios) -> str:
-    header = ["mesh", "splits", "window", "batches", "mean k/N", "median k/N",
+    header = ["mesh", "splits", "window / error ratio", "batches", "mean k/N", "median k/N",
               "mark bits/split", "log2 level", "schedule s",
               *(f"rms ratio @{r}" for r in ratios)]
     lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
@@ -171,9 +224,13 @@ def main(argv=None):
                         help=f"comma-separated, from {', '.join(SIMPLIFY_MESHES)}, Fox; "
                         "all-simplify: every mesh of bench/simplify.py")
     parser.add_argument("--windows", default=str(WINDOW), help="comma-separated windows")
+    parser.add_argument("--error-ratios", default=str(ERROR_RATIO),
+                        help="comma-separated error ratios (each with each window)")
     parser.add_argument("--ratios", default=",".join(map(str, RATIOS)))
     parser.add_argument("--samples", type=int, default=200_000)
     parser.add_argument("--no-fidelity", action="store_true", help="skip the RMS judging")
+    parser.add_argument("--appearance", action="store_true",
+                        help="judge bench/appearance.py's lodserver rows instead")
     parser.add_argument("--mesh-dir", type=Path, default=ROOT.parent / "shared" / "meshes")
     parser.add_argument("--out", type=Path, default=BENCH / "out")
     args = parser.parse_args(argv)
@@ -183,7 +240,15 @@ def main(argv=None):
     if unknown:
         parser.error(f"unknown mesh {unknown[0]}; choose from {', '.join(known)}")
     args.windows = [float(w) for w in args.windows.split(",")]
+    args.error_ratios = [float(r) for r in args.error_ratios.split(",")]
     args.ratios = [float(r) for r in args.ratios.split(",")]
+    if args.appearance:
+        rows = appearance_rows([(w, r) for w in args.windows for r in args.error_ratios],
+                               min(args.samples, 100_000))
+        args.out.mkdir(parents=True, exist_ok=True)
+        (args.out / "batches-appearance.json").write_text(json.dumps(rows, indent=1))
+        print(appearance_table(rows))
+        return
     rows = [bench(name, known[name], args) for name in names]
     args.out.mkdir(parents=True, exist_ok=True)
     (args.out / "batches.json").write_text(json.dumps(rows, indent=1))

@@ -20,10 +20,15 @@ same state.
 
 **Batches.** Going coarse to fine, a batch is every split whose predecessors
 (the collapses that depend on it) are in earlier batches and whose recorded
-place lies within ``window`` of the first split not yet scheduled (``window``
-times the current level size, at least ``min_window`` splits): a split moves
-at most that far from its place in cost order, so a level keeps nearly the
-splits the greedy order gave it. No two splits of a batch are joined by a
+place lies within reach of the first split not yet scheduled, ``P``: at most
+``window`` times the current level size ahead, and no further than where the
+level error curve (the worst collapse still applied) falls below
+``error_ratio`` times its value at ``P``. A split thus moves at most that far
+from its place in cost order, either way (``P`` is always ready, so a
+waiting split is placed once ``P`` reaches it), and a level keeps the splits
+the greedy order gave it but for some of nearly the same error: where errors
+fall steeply (a CAD part's last sharp features) the reach shrinks to a few
+splits, where they are flat it spans the window. No two splits of a batch are joined by a
 path, so they read disjoint faces: their split vertices are pairwise
 non-adjacent at the batch's start level, and none references a vertex
 another creates or moves. Within a batch splits are ordered by ascending
@@ -43,16 +48,18 @@ from ..mesh import Attributes, Mesh
 from .mesh import ProgressiveMesh, from_collapse_log
 
 __all__ = ["Schedule", "schedule", "collapse_dependencies", "batch_order", "WINDOW",
-           "MIN_WINDOW"]
+           "ERROR_RATIO"]
 
 # How far (a fraction of the level's vertex count) a split may move ahead of
 # the first split not yet scheduled: the trade between batch size (marks cost
 # about log2(e N / k) bits a split) and how far a level strays from the
-# greedy cost order.
-WINDOW = 0.25
-# The smallest window in splits, so the few splits above a tiny base mesh
-# still batch.
-MIN_WINDOW = 16
+# greedy cost order. Tuned on bench/batches.py (bench/README.md): wider
+# windows let some bench levels stray further from the greedy order's
+# fidelity than the issue allows.
+WINDOW = 0.1
+# ... and no further than where the level error falls below this share of its
+# value there, so no split of a distinctly larger error waits behind it.
+ERROR_RATIO = 0.85
 
 
 @dataclass(frozen=True)
@@ -171,9 +178,10 @@ def collapse_dependencies(pm: ProgressiveMesh):
 
 
 @njit(cache=True, nogil=True)
-def _batches(offsets, preds, n0, window, min_window):
+def _batches(offsets, preds, n0, window, limit):
     """Split order (indices ``u = k - 1 - i`` of the recorded split order) and
-    the batch of each, by the window rule of the module docstring."""
+    the batch of each, by the reach rule of the module docstring; ``limit[u]``
+    (k,) is the end of the error reach from ``u``."""
     k = offsets.shape[0] - 1
     # a split waits for the splits of the collapses that depend on its collapse
     waiting = np.zeros(k, np.int64)
@@ -190,8 +198,7 @@ def _batches(offsets, preds, n0, window, min_window):
     while placed < k:
         while done[first]:
             first += 1
-        reach = max(int(window * (n0 + placed)), min_window)
-        top = min(k, first + reach)
+        top = min(limit[first], first + max(int(window * (n0 + placed)), 1))
         count = 0
         for u in range(first, top):
             if not done[u] and waiting[u] == 0:
@@ -211,7 +218,7 @@ def _batches(offsets, preds, n0, window, min_window):
     return order, batch
 
 
-def batch_order(pm: ProgressiveMesh, window: float = WINDOW, min_window: int = MIN_WINDOW):
+def batch_order(pm: ProgressiveMesh, window: float = WINDOW, error_ratio: float = ERROR_RATIO):
     """The batched split order of ``pm`` without re-ordering its arrays.
 
     Returns
@@ -222,10 +229,14 @@ def batch_order(pm: ProgressiveMesh, window: float = WINDOW, min_window: int = M
     batch : (k,) int32
         Non-decreasing batch ids.
     """
-    if not window >= 0 or min_window < 1:
-        raise ValueError(f"window must be >= 0 and min_window >= 1, got {window}, {min_window}")
+    if not window >= 0 or not 0 <= error_ratio <= 1:
+        raise ValueError(f"window must be >= 0 and error_ratio in [0, 1], got {window}, "
+                         f"{error_ratio}")
     offsets, preds = collapse_dependencies(pm)
-    order, batch = _batches(offsets, preds, pm.base_vertices, float(window), int(min_window))
+    # the error of level n0 + u, for split u: non-increasing
+    curve = -pm.level_error[:pm.split_count]
+    limit = np.searchsorted(curve, error_ratio * curve, side="right").astype(np.int64)
+    order, batch = _batches(offsets, preds, pm.base_vertices, float(window), limit)
     return _by_split_vertex(order, batch, pm.parent, pm.base_vertices), batch
 
 
@@ -288,7 +299,7 @@ def reordered(pm: ProgressiveMesh, order: np.ndarray, batch=None) -> Progressive
 
 
 def schedule(pm: ProgressiveMesh, window: float = WINDOW,
-             min_window: int = MIN_WINDOW) -> Schedule:
+             error_ratio: float = ERROR_RATIO) -> Schedule:
     """``pm`` re-ordered into batches of independent splits (module docstring).
 
     Parameters
@@ -297,8 +308,10 @@ def schedule(pm: ProgressiveMesh, window: float = WINDOW,
     window : float
         How far a split may move ahead of the first unscheduled one, as a
         fraction of the level's vertex count (``WINDOW``).
-    min_window : int
-        The least such reach, in splits.
+    error_ratio : float
+        In [0, 1]: nor further than where the level error falls below this
+        share of its value at the first unscheduled split (``ERROR_RATIO``);
+        0 leaves only ``window``.
 
     Returns
     -------
@@ -306,5 +319,5 @@ def schedule(pm: ProgressiveMesh, window: float = WINDOW,
         The re-ordered progressive mesh (its ``split_batch`` the batch ids),
         the batch id of each split and where each split came from.
     """
-    order, batch = batch_order(pm, window, min_window)
+    order, batch = batch_order(pm, window, error_ratio)
     return Schedule(reordered(pm, order, batch), batch, order)

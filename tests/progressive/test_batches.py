@@ -275,11 +275,16 @@ def test_batches_split_a_share_of_the_level_and_the_window_bounds_them():
     sizes = np.bincount(batch)
     # far fewer batches than splits: most batches hold many splits
     assert len(sizes) < pm.split_count / 10
-    # a window of nothing still moves each split at most min_window ahead
-    order, _ = batch_order(pm, window=0.0, min_window=1)
+    # a window of nothing, or an error reach of nothing, keeps the recorded order
+    order, _ = batch_order(pm, window=0.0)
     assert np.array_equal(order, np.arange(pm.split_count))
-    with pytest.raises(ValueError):
-        batch_order(pm, window=-1)
+    order, batch = batch_order(pm, window=1.0, error_ratio=1.0)
+    moved = np.flatnonzero(order != np.arange(pm.split_count))
+    # with a reach of equal errors only, a split moves only among splits of its error
+    assert np.all(pm.level_error[order[moved]] == pm.level_error[moved])
+    for bad in (dict(window=-1), dict(error_ratio=1.5)):
+        with pytest.raises(ValueError):
+            batch_order(pm, **bad)
 
 
 def test_the_build_option_batches_and_the_artefact_keeps_the_batches(tmp_path):
