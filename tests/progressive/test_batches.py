@@ -1,5 +1,6 @@
 """Splits in batches of independent ones (``progressive.batches``): on real meshes with
-attributes (Duck; Fox, skinned; a morphed scene mesh) and generated ones, the batched mesh
+attributes (Duck; Fox, skinned; a morphed scene mesh) and generated ones (one with
+close-pair contractions), the batched mesh
 has the unbatched mesh's full and base levels exactly, every level is a valid mesh, the
 splits of a batch applied in any order give the same state (every attribute), both ways,
 and no split of a batch touches what another creates or moves."""
@@ -32,6 +33,9 @@ def _make(name):
         return build(textured_sphere(hard_equator=True))
     if name in ("spot", "torus"):
         return build(mesh(name))
+    if name == "two_boxes_joined":
+        # close pairs: contractions that kill no face, joining the two parts
+        return build(mesh("two_boxes"), pair_threshold="50%")
     if not SHARED.is_dir():
         pytest.skip(f"shared meshes not found at {SHARED}")
     if name.startswith("scenes/"):
@@ -47,7 +51,8 @@ def built(name):
     return _BUILT[name]
 
 
-NAMES = ["textured_sphere", "spot", "Duck.glb", "scenes/Fox.glb", "scenes/AnimatedMorphCube.glb"]
+NAMES = ["textured_sphere", "spot", "two_boxes_joined", "Duck.glb", "scenes/Fox.glb",
+         "scenes/AnimatedMorphCube.glb"]
 
 
 def _state(pm, level):
