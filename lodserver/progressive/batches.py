@@ -89,6 +89,19 @@ class Schedule:
         return np.concatenate([[0], edges, [k]]).astype(np.int64)
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _listed(preds, count, d, seen, i):
+    """``preds`` with collapse ``d`` appended as a predecessor of ``i`` unless
+    it is none (-1) or already listed for ``i`` (``seen``); grown when full."""
+    if d >= 0 and seen[d] != i:
+        seen[d] = i
+        if count == preds.shape[0]:
+            preds = np.concatenate((preds, np.empty(count, np.int64)))
+        preds[count] = d
+        count += 1
+    return preds, count
+
+
 @njit(cache=True, nogil=True)
 def _dependencies(faces, parent, n0, face_counts, moved_offsets, moved_corners):
     """Replay the collapses (split ``n - 1`` first) and list each one's
@@ -125,23 +138,11 @@ def _dependencies(faces, parent, n0, face_counts, moved_offsets, moved_corners):
                 if alive[f] and label[f, c % 3] == v:
                     nxt[c] = head[v]
                     head[v] = c
-                    d = last_touch[f]
-                    if d >= 0 and seen[d] != i:
-                        seen[d] = i
-                        if count == preds.shape[0]:
-                            preds = np.concatenate((preds, np.empty(count, np.int64)))
-                        preds[count] = d
-                        count += 1
+                    preds, count = _listed(preds, count, last_touch[f], seen, i)
                 c = after
         for f in range(face_counts[j], face_counts[j + 1]):
             for q in range(3):
-                d = last_count[label[f, q]]
-                if d >= 0 and seen[d] != i:
-                    seen[d] = i
-                    if count == preds.shape[0]:
-                        preds = np.concatenate((preds, np.empty(count, np.int64)))
-                    preds[count] = d
-                    count += 1
+                preds, count = _listed(preds, count, last_count[label[f, q]], seen, i)
         # perform: kill, move r's corners to s
         for f in range(face_counts[j], face_counts[j + 1]):
             alive[f] = False

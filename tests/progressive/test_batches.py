@@ -62,6 +62,12 @@ def _state(pm, level):
     return positions, faces, values, corners
 
 
+def _batch_levels(result):
+    """(start level, end level) of every batch of a ``Schedule``."""
+    n0, starts = result.pm.base_vertices, result.batch_starts
+    return [(n0 + int(a), n0 + int(b)) for a, b in zip(starts[:-1], starts[1:])]
+
+
 def _rows(faces):
     """Faces rotated to start at their smallest vertex, sorted: equal for equal
     face sets whatever the face order."""
@@ -168,12 +174,10 @@ def test_batch_ids_rise_and_split_vertices_ascend_within_a_batch(name):
     batched, batch = result.pm, result.batch
     assert batch.dtype == np.int32 and batch.shape == (pm.split_count,)
     assert batch[0] == 0 and np.all(np.diff(batch) >= 0) and np.all(np.diff(batch) <= 1)
-    starts = result.batch_starts
-    n0 = batched.base_vertices
-    for a, b in zip(starts[:-1], starts[1:]):
-        vs = batched.parent[n0 + a:n0 + b]
+    for low, high in _batch_levels(result):
+        vs = batched.parent[low:high]
         # split vertices exist at the batch's start and come in ascending order
-        assert np.all(vs < n0 + a) and np.all(np.diff(vs) > 0)
+        assert np.all(vs < low) and np.all(np.diff(vs) > 0)
 
 
 @pytest.mark.parametrize("name", NAMES)
@@ -181,16 +185,14 @@ def test_no_split_touches_what_another_split_of_its_batch_creates_or_changes(nam
     pm, result = built(name)
     batched = result.pm
     n0 = batched.base_vertices
-    starts = result.batch_starts
-    for a, b in zip(starts[:-1], starts[1:]):
-        level = n0 + a
+    for level, high in _batch_levels(result):
         faces = batched.arrays_at(level)[1]
-        vs = batched.parent[level:n0 + b]
+        vs = batched.parent[level:high]
         split = np.zeros(batched.vertex_count, dtype=bool)
         split[vs] = True
         # no face of the start level holds two split vertices: they are not adjacent
         assert np.all(split[faces].sum(axis=1) <= 1)
-        for t in range(level, n0 + b):
+        for t in range(level, high):
             j = t - n0
             s = batched.parent[t]
             # new faces: their own vertices, or vertices of the start level that no
@@ -200,7 +202,7 @@ def test_no_split_touches_what_another_split_of_its_batch_creates_or_changes(nam
             assert np.all(others < level) and not np.any(split[others])
             # moved corners: held by s at the start level
             moved = batched.moved_corners[batched.moved_offsets[j]:batched.moved_offsets[j + 1]]
-            start_faces, end_faces = len(faces), batched.faces_at_level(n0 + b)
+            start_faces, end_faces = len(faces), batched.faces_at_level(high)
             old = moved[moved // 3 < start_faces]
             assert np.all(faces.reshape(-1)[old] == s)
             # none on a face another split of the batch brings
@@ -211,13 +213,12 @@ def test_no_split_touches_what_another_split_of_its_batch_creates_or_changes(nam
 def test_a_batch_applied_in_any_order_gives_the_same_state_both_ways(name):
     pm, result = built(name)
     batched = result.pm
-    n0 = batched.base_vertices
-    starts = result.batch_starts
+    levels = _batch_levels(result)
     rng = np.random.default_rng(3)
-    picked = sorted(set(rng.choice(len(starts) - 1, size=min(12, len(starts) - 1),
-                                   replace=False).tolist()) | {0, len(starts) - 2})
+    picked = sorted(set(rng.choice(len(levels), size=min(12, len(levels)),
+                                   replace=False).tolist()) | {0, len(levels) - 1})
     for i in picked:
-        low, high = n0 + starts[i], n0 + starts[i + 1]
+        low, high = levels[i]
         for _ in range(2):
             state = _room(batched, low)
             for t in rng.permutation(np.arange(low, high)):
