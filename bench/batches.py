@@ -7,8 +7,10 @@ the re-ordering does to fidelity at the levels ``bench/simplify.py`` judges.
     python bench/batches.py --meshes spot,Duck --windows 0.1,0.25
 
 For each mesh the progressive mesh is built once with the default options
-(``build``; a scene's mesh with its poses, as the server builds it) and
-scheduled at each window. Per window:
+(``build``; a scene's mesh with its poses, as the server builds it; with
+``--geometry`` or ``--meshes all-simplify`` of positions and faces only, as
+``bench/simplify.py`` builds) and scheduled at each window (by default the
+schedule's own: ``WINDOW``, ``ATTRIBUTE_WINDOW`` with attributes). Per window:
 
 - batches; splits per batch over the level's vertex count (mean and median
   over batches);
@@ -44,8 +46,10 @@ sys.path.insert(0, str(BENCH))
 
 from lodserver import build  # noqa: E402
 from lodserver.io import clean_mesh, load_mesh  # noqa: E402
+from lodserver.mesh import Mesh  # noqa: E402
 from lodserver.metrics import surface_distance  # noqa: E402
-from lodserver.progressive.batches import ERROR_RATIO, WINDOW, schedule  # noqa: E402
+from lodserver.progressive.batches import (ATTRIBUTE_WINDOW, ERROR_RATIO, WINDOW,  # noqa: E402
+                                           schedule)
 
 RATIOS = (0.5, 0.1, 0.02, 0.005)  # bench/simplify.py's
 SEED = 0
@@ -86,8 +90,9 @@ def loop2(mesh_dir: Path, out: Path):
     return mesh
 
 
-def built(key: str, relative, mesh_dir: Path, out: Path):
-    """(reference mesh, progressive mesh) of one bench mesh."""
+def built(key: str, relative, mesh_dir: Path, out: Path, geometry: bool = False):
+    """(reference mesh, progressive mesh) of one bench mesh; ``geometry``:
+    positions and faces only, as bench/simplify.py builds."""
     if relative is None:
         mesh = loop2(mesh_dir, out)
         return mesh, build(mesh)
@@ -101,7 +106,16 @@ def built(key: str, relative, mesh_dir: Path, out: Path):
         index, mesh = max(scene.meshes.items(), key=lambda item: item[1].face_count)
         return mesh, build(mesh, poses=scene_poses(scene, index, mesh))
     mesh, _ = load_mesh(path)
+    if geometry:
+        mesh = Mesh(mesh.positions, mesh.faces)
     return mesh, build(mesh)
+
+
+def label(pm, window, error_ratio) -> str:
+    """'window / error ratio', the window the schedule takes when given None."""
+    if window is None:
+        window = ATTRIBUTE_WINDOW if pm.has_attributes else WINDOW
+    return f"{window} / {error_ratio}"
 
 
 def batch_facts(pm, batch) -> dict:
@@ -134,7 +148,7 @@ def rms_at(reference, pm, ratios, samples) -> list:
 
 
 def bench(key, relative, args) -> dict:
-    reference, pm = built(key, relative, args.mesh_dir, args.out)
+    reference, pm = built(key, relative, args.mesh_dir, args.out, args.geometry)
     row = {"mesh": key, "faces": reference.face_count, "splits": pm.split_count,
            "base_vertices": pm.base_vertices, "windows": {}}
     if not args.no_fidelity:
@@ -148,8 +162,9 @@ def bench(key, relative, args) -> dict:
             facts["rms"] = rms_at(reference, result.pm, args.ratios, args.samples)
             facts["rms_over_unbatched"] = [None if a is None or b is None or b == 0 else a / b
                                            for a, b in zip(facts["rms"], row["rms"])]
-        row["windows"][f"{window} / {error_ratio}"] = facts
-        print(f"{key} {window} / {error_ratio}: {json.dumps(facts)}", file=sys.stderr, flush=True)
+        row["windows"][label(pm, window, error_ratio)] = facts
+        print(f"{key} {label(pm, window, error_ratio)}: {json.dumps(facts)}", file=sys.stderr,
+              flush=True)
     return row
 
 
@@ -165,7 +180,7 @@ def appearance_rows(windows, samples) -> list:
         from_file = mesh.attributes is not None and mesh.attributes.columns("NORMAL") is not None
         reference = mesh if from_file else bench_appearance.with_computed_normals(mesh)
         pm = build(mesh)
-        versions = {"unbatched": pm, **{f"{w} / {r}": schedule(pm, w, r).pm
+        versions = {"unbatched": pm, **{label(pm, w, r): schedule(pm, w, r).pm
                                         for w, r in windows}}
         for ratio in bench_appearance.RATIOS:
             target = max(1, round(ratio * mesh.face_count))
@@ -180,7 +195,7 @@ def appearance_rows(windows, samples) -> list:
                                 **{f"{a} {s}": (report.get(a) or {}).get(s)
                                    for a in ("TEXCOORD_0", "NORMAL", "texture")
                                    for s in ("rms", "p99")}}
-            for window in (f"{w} / {r}" for w, r in windows):
+            for window in (label(pm, w, r) for w, r in windows):
                 row = {"mesh": key, "ratio": ratio, "window": window}
                 for figure, value in judged[window].items():
                     base = judged["unbatched"][figure]
@@ -223,12 +238,16 @@ def main(argv=None):
     parser.add_argument("--meshes", default=",".join(MESHES),
                         help=f"comma-separated, from {', '.join(SIMPLIFY_MESHES)}, Fox; "
                         "all-simplify: every mesh of bench/simplify.py")
-    parser.add_argument("--windows", default=str(WINDOW), help="comma-separated windows")
+    parser.add_argument("--windows", default="default",
+                        help="comma-separated windows; default: the schedule's own choice")
     parser.add_argument("--error-ratios", default=str(ERROR_RATIO),
                         help="comma-separated error ratios (each with each window)")
     parser.add_argument("--ratios", default=",".join(map(str, RATIOS)))
     parser.add_argument("--samples", type=int, default=200_000)
     parser.add_argument("--no-fidelity", action="store_true", help="skip the RMS judging")
+    parser.add_argument("--geometry", action="store_true",
+                        help="build positions and faces only, as bench/simplify.py does "
+                        "(implied by all-simplify)")
     parser.add_argument("--appearance", action="store_true",
                         help="judge bench/appearance.py's lodserver rows instead")
     parser.add_argument("--mesh-dir", type=Path, default=ROOT.parent / "shared" / "meshes")
@@ -236,10 +255,11 @@ def main(argv=None):
     args = parser.parse_args(argv)
     known = {**SIMPLIFY_MESHES, **MESHES}
     names = list(SIMPLIFY_MESHES) if args.meshes == "all-simplify" else args.meshes.split(",")
+    args.geometry = args.geometry or args.meshes == "all-simplify"
     unknown = [n for n in names if n not in known]
     if unknown:
         parser.error(f"unknown mesh {unknown[0]}; choose from {', '.join(known)}")
-    args.windows = [float(w) for w in args.windows.split(",")]
+    args.windows = [None if w == "default" else float(w) for w in args.windows.split(",")]
     args.error_ratios = [float(r) for r in args.error_ratios.split(",")]
     args.ratios = [float(r) for r in args.ratios.split(",")]
     if args.appearance:
