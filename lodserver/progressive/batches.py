@@ -64,7 +64,7 @@ WINDOW = 0.1
 ATTRIBUTE_WINDOW = 0.05
 # ... and no further than where the level error falls below this share of its
 # value there, so no split of a distinctly larger error waits behind it.
-ERROR_RATIO = 0.85
+ERROR_RATIO = 0.95
 
 
 @dataclass(frozen=True)
