@@ -28,7 +28,8 @@ with attributes, their layout). Version 2 adds optional blocks for
 appearance: the wedge arrays (``WEDGE_ARRAYS``), ``face_material``,
 ``materials`` (UTF-8 JSON of the glTF material records) and ``image.<i>`` (the
 image files' bytes); and ``split_batch`` for a mesh whose splits come in
-batches (``progressive.batches``). A reader skips blocks it does not know. Version 1 files (geometry only) are still read.
+batches (``progressive.batches``). A reader skips blocks it does not know.
+Version 1 files (geometry only) are still read.
 Only the arrays ``ProgressiveMesh`` is made from are written; everything derived
 (vertex hierarchy, split positions, birth faces) is rebuilt on load. Integer
 arrays whose values fit in int32 are stored as int32 (half the bytes).
@@ -138,7 +139,8 @@ def decode_artefact(data: bytes, *, source: str = "the artefact") -> dict:
     -------
     dict
         The stored fields present, by name, arrays as float64 or int64 (int32
-        for ``face_material`` and ``split_batch``) of their own: the keywords of ``ProgressiveMesh``.
+        for ``face_material`` and ``split_batch``) of their own: the keywords
+        of ``ProgressiveMesh``.
 
     Raises
     ------

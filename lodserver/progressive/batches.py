@@ -28,13 +28,14 @@ from its place in cost order, either way (``P`` is always ready, so a
 waiting split is placed once ``P`` reaches it), and a level keeps the splits
 the greedy order gave it but for some of nearly the same error: where errors
 fall steeply (a CAD part's last sharp features) the reach shrinks to a few
-splits, where they are flat it spans the window. No two splits of a batch are joined by a
-path, so they read disjoint faces: their split vertices are pairwise
-non-adjacent at the batch's start level, and none references a vertex
-another creates or moves. Within a batch splits are ordered by ascending
-split vertex (its id at the batch's start), the order a decoder that reads
-one mark per vertex recovers; vertices are renumbered so split ``t`` still
-creates vertex ``t``.
+splits, where they are flat it spans the window.
+
+No two splits of a batch are joined by a path, so they read disjoint faces:
+their split vertices are pairwise non-adjacent at the batch's start level,
+and none references a vertex another creates or moves. Within a batch splits
+are ordered by ascending split vertex (its id at the batch's start), the
+order a decoder that reads one mark per vertex recovers; vertices are
+renumbered so split ``t`` still creates vertex ``t``.
 """
 
 from __future__ import annotations

@@ -38,8 +38,8 @@ corner's wedge at a level is the first ancestor of its full-detail wedge below
 that level's wedge count, and a wedge's attribute vector is the one left by
 its most recent applied merge (``wedge_coarse_value``), exactly as for
 positions. So attributes, too, are exact at every level, in both directions.
-Face materials ride on the faces (``face_material``, renumbered with them);
-batches of independent splits (``progressive.batches``) on the splits (``split_batch``).
+Face materials ride on the faces (``face_material``, renumbered with them),
+batches of independent splits on the splits (``split_batch``, ``batches``).
 """
 
 from __future__ import annotations

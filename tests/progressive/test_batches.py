@@ -305,7 +305,8 @@ def test_the_build_option_batches_and_the_artefact_keeps_the_batches(tmp_path):
     batched.save(tmp_path / "b.pm")
     loaded = type(batched).load(tmp_path / "b.pm")
     assert np.array_equal(loaded.split_batch, batched.split_batch)
-    assert _same(_state(loaded, loaded.vertex_count // 2), _state(batched, batched.vertex_count // 2))
+    middle = batched.vertex_count // 2
+    assert _same(_state(loaded, middle), _state(batched, middle))
     plain.save(tmp_path / "p.pm")
     assert type(plain).load(tmp_path / "p.pm").split_batch is None
     # octree clustering's log batches too
