@@ -1,6 +1,6 @@
 """Splits in batches of independent ones (``progressive.batches``): on real meshes with
-attributes (Duck; Fox, skinned; a morphed scene mesh) and generated ones (one with
-close-pair contractions), the batched mesh
+attributes (Duck; Fox, skinned; a morphed scene mesh) and generated ones (a sphere with a
+skin, morph targets and a custom attribute; one with close-pair contractions), the batched mesh
 has the unbatched mesh's full and base levels exactly, every level is a valid mesh, the
 splits of a batch applied in any order give the same state (every attribute), both ways,
 and no split of a batch touches what another creates or moves."""
@@ -13,7 +13,7 @@ import pytest
 from lodserver import build
 from lodserver.progressive.batches import batch_order, reordered, schedule
 
-from ..meshes import SHARED, mesh, textured_sphere
+from ..meshes import SHARED, mesh, skinned_sphere, textured_sphere
 from .test_appearance import corner_rows
 
 _BUILT = {}
@@ -31,6 +31,9 @@ def _scene_mesh(name):
 def _make(name):
     if name == "textured_sphere":
         return build(textured_sphere(hard_equator=True))
+    if name == "skinned_sphere":
+        # normals, UVs, tangents, a skin, two morph targets, a custom attribute
+        return build(skinned_sphere())
     if name in ("spot", "torus"):
         return build(mesh(name))
     if name == "two_boxes_joined":
@@ -51,8 +54,8 @@ def built(name):
     return _BUILT[name]
 
 
-NAMES = ["textured_sphere", "spot", "two_boxes_joined", "Duck.glb", "scenes/Fox.glb",
-         "scenes/AnimatedMorphCube.glb"]
+NAMES = ["textured_sphere", "skinned_sphere", "spot", "two_boxes_joined", "Duck.glb",
+         "scenes/Fox.glb", "scenes/AnimatedMorphCube.glb"]
 
 
 def _state(pm, level):
