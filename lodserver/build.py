@@ -10,6 +10,7 @@ from .simplify.carried import complete_log, solved_part
 from .simplify.collapse import decimate
 from .mesh import Mesh, MeshError
 from .options import METHODS, BuildOptions, distance_from
+from .progressive.batches import schedule
 from .progressive.mesh import ProgressiveMesh, from_collapse_log
 
 __all__ = ["build", "BuildOptions", "METHODS", "distance_from", "kernels_cold"]
@@ -77,20 +78,26 @@ def build(source, options: BuildOptions | dict | None = None, *, locked=None, pr
         log = octree_log(mesh)
         metadata["options"] = {"method": options.method}
         metadata["decimation"] = {"passes": log.passes}
-        return from_collapse_log(mesh, log, metadata)
+        pm = from_collapse_log(mesh, log, metadata)
+        return schedule(pm).pm if options.batched else pm
     locked = _locked(mesh, locked, options.lock_border)
     kernel = options.decimate_options(mesh)
     # the kernel ranks on the solved attributes; the carried ones follow the log
     log = decimate(solved_part(mesh), kernel, locked=locked, poses=poses, progress=progress,
                    cancel=cancel)
     log = complete_log(mesh, log)
+    recorded = options.model_dump()
+    if not options.batched:
+        # a default build's artefact stays byte for byte what it was before batches
+        del recorded["batched"]
     metadata["options"] = {
-        **options.model_dump(),
+        **recorded,
         "attributes": [name for name, _ in mesh.attributes.layout] if mesh.attributes else [],
         "attribute_weights": dict(kernel.attribute_weights),
         "locked_vertices": 0 if locked is None else int(np.count_nonzero(locked))}
     metadata["decimation"] = {"passes": log.passes, "rejected": log.rejected}
-    return from_collapse_log(mesh, log, metadata)
+    pm = from_collapse_log(mesh, log, metadata)
+    return schedule(pm).pm if options.batched else pm
 
 
 def _locked(mesh: Mesh, locked, lock_border: bool):

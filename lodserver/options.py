@@ -95,6 +95,10 @@ class BuildOptions(BaseModel):
                           DEFAULT_ATTRIBUTE_WEIGHTS["COLOR_0"], positive=True)
     seam_weight: _weight("Weight of the planes that keep UV and colour seams in place, as the "
                          "boundary weight does for borders.", 1.0)
+    batched: Annotated[bool, Field(
+        False, description="Re-order the splits into batches of independent ones (a codec "
+        "then codes one mark per vertex per batch); the full and base meshes stay, the "
+        "levels between change slightly.")]
     flip_cos: Annotated[float, Field(
         DEFAULT_FLIP_COS, ge=-1, le=1, allow_inf_nan=False,
         description="Refuse a collapse that turns a surviving face's normal by more than "

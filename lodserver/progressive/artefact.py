@@ -27,7 +27,9 @@ The ``meta`` block holds UTF-8 JSON (base_vertices, the metadata dict and,
 with attributes, their layout). Version 2 adds optional blocks for
 appearance: the wedge arrays (``WEDGE_ARRAYS``), ``face_material``,
 ``materials`` (UTF-8 JSON of the glTF material records) and ``image.<i>`` (the
-image files' bytes). Version 1 files (geometry only) are still read.
+image files' bytes); and ``split_batch`` for a mesh whose splits come in
+batches (``progressive.batches``). A reader skips blocks it does not know.
+Version 1 files (geometry only) are still read.
 Only the arrays ``ProgressiveMesh`` is made from are written; everything derived
 (vertex hierarchy, split positions, birth faces) is rebuilt on load. Integer
 arrays whose values fit in int32 are stored as int32 (half the bytes).
@@ -67,10 +69,10 @@ WEDGE_ARRAYS = ("wedge_values", "corner_wedges", "wedge_parent", "wedge_coarse_v
                 "wedge_counts")
 # Every field ``encode_artefact`` reads: base_vertices (int) and metadata
 # (JSON-able dict), the arrays, and the optional attribute_layout (tuple of
-# (name, width)), face_material (m,) int and materials (``mesh.Materials``),
-# each None when absent.
+# (name, width)), face_material (m,) int, materials (``mesh.Materials``) and
+# split_batch (k,) int, each None when absent.
 STORED_FIELDS = (("base_vertices", "metadata") + ARRAYS + WEDGE_ARRAYS
-                 + ("attribute_layout", "face_material", "materials"))
+                 + ("attribute_layout", "face_material", "materials", "split_batch"))
 # Arrays read back as float64; every other array is read back as int64.
 _FLOATS = ("positions", "coarse_position", "error", "wedge_values", "wedge_coarse_value")
 
@@ -102,8 +104,8 @@ def encode_artefact(fields: Mapping) -> bytes:
     fields : mapping
         At least ``STORED_FIELDS`` by name (a progressive mesh's own fields);
         the wedge arrays and ``attribute_layout`` are written when
-        ``wedge_values`` is not None, ``face_material`` and ``materials`` when
-        not None.
+        ``wedge_values`` is not None, ``face_material``, ``materials`` and
+        ``split_batch`` when not None.
     """
     meta = {"base_vertices": fields["base_vertices"], "metadata": fields["metadata"]}
     attributes = fields["wedge_values"] is not None
@@ -120,6 +122,8 @@ def encode_artefact(fields: Mapping) -> bytes:
         blocks.append(_encode_block("materials", _json_bytes(materials.gltf)))
         blocks += [_encode_block(f"image.{i}", np.frombuffer(image, dtype=np.uint8))
                    for i, image in enumerate(materials.images)]
+    if fields.get("split_batch") is not None:
+        blocks.append(_encode_block("split_batch", fields["split_batch"]))
     payload = b"".join(blocks)
     return _HEADER.pack(MAGIC, FORMAT_VERSION, zlib.crc32(payload), len(payload)) + payload
 
@@ -135,7 +139,8 @@ def decode_artefact(data: bytes, *, source: str = "the artefact") -> dict:
     -------
     dict
         The stored fields present, by name, arrays as float64 or int64 (int32
-        for ``face_material``) of their own: the keywords of ``ProgressiveMesh``.
+        for ``face_material`` and ``split_batch``) of their own: the keywords
+        of ``ProgressiveMesh``.
 
     Raises
     ------
@@ -201,6 +206,8 @@ def decode_artefact(data: bytes, *, source: str = "the artefact") -> dict:
                 images.append(blocks[f"image.{len(images)}"].tobytes())
             fields["materials"] = Materials(json.loads(blocks["materials"].tobytes()),
                                             tuple(images))
+        if "split_batch" in blocks:
+            fields["split_batch"] = np.array(blocks["split_batch"], dtype=np.int32)
         return fields
     except (ValueError, KeyError, IndexError, TypeError) as exc:
         raise ArtefactError(f"{source} holds inconsistent arrays ({exc})") from exc

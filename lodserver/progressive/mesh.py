@@ -38,7 +38,8 @@ corner's wedge at a level is the first ancestor of its full-detail wedge below
 that level's wedge count, and a wedge's attribute vector is the one left by
 its most recent applied merge (``wedge_coarse_value``), exactly as for
 positions. So attributes, too, are exact at every level, in both directions.
-Face materials ride on the faces (``face_material``, renumbered with them).
+Face materials ride on the faces (``face_material``, renumbered with them),
+batches of independent splits on the splits (``split_batch``, ``batches``).
 """
 
 from __future__ import annotations
@@ -248,6 +249,7 @@ class ProgressiveMesh:
     wedge_counts : (n-n0+1,) int64  wedges at level ``v`` = ``wedge_counts[v - n0]``
     face_material : (m,) int32      per face (renumbered), or None
     materials : Materials           glTF materials and images, or None
+    split_batch : (n-n0,) int32     batch of every split (``progressive.batches``), or None
     """
 
     positions: np.ndarray
@@ -268,6 +270,7 @@ class ProgressiveMesh:
     wedge_counts: np.ndarray | None = None
     face_material: np.ndarray | None = None
     materials: Materials | None = None
+    split_batch: np.ndarray | None = None
 
     @property
     def has_attributes(self) -> bool:
@@ -295,7 +298,12 @@ class ProgressiveMesh:
             self._check_wedges()
         if self.face_material is not None and self.face_material.shape != (len(self.faces),):
             raise ValueError("inconsistent progressive mesh arrays: face_material size")
-        for name in ARRAYS + WEDGE_ARRAYS + ("face_material",):
+        # batches numbered from 0, one after another
+        steps = None if self.split_batch is None else np.diff(self.split_batch, prepend=0)
+        if steps is not None and (self.split_batch.shape != (k,) or np.any(steps[:1])
+                                  or np.any(steps * (steps - 1))):
+            raise ValueError("inconsistent progressive mesh arrays: split_batch numbering")
+        for name in ARRAYS + WEDGE_ARRAYS + ("face_material", "split_batch"):
             if getattr(self, name) is not None:
                 getattr(self, name).setflags(write=False)
         self._derive()
@@ -616,12 +624,14 @@ class Cursor:
         return self.pm.mesh_of(*self.arrays(), *self.wedges())
 
 
-def from_collapse_log(mesh: Mesh, log: CollapseLog, metadata=None) -> ProgressiveMesh:
+def from_collapse_log(mesh: Mesh, log: CollapseLog, metadata=None,
+                      split_batch=None) -> ProgressiveMesh:
     """Renumber ``mesh`` and its collapse log into the prefix layout.
 
     The vertex removed by collapse ``i`` (of ``k``) becomes vertex ``n - 1 - i``;
     vertices never removed keep their input order as ``0 .. n0-1``. Faces never
     removed come first, in input order, then each split's faces.
+    ``split_batch`` (k,) int32, optional: the batch of every split, in split order.
     """
     n, m, k = mesh.vertex_count, mesh.face_count, len(log)
     n0 = n - k
@@ -662,7 +672,7 @@ def from_collapse_log(mesh: Mesh, log: CollapseLog, metadata=None) -> Progressiv
         parent=parent, base_vertices=n0, coarse_position=coarse_position, error=error,
         face_counts=face_counts.astype(np.int64, copy=False), moved_offsets=moved_offsets,
         moved_corners=moved_corners.astype(np.int64, copy=False), metadata=dict(metadata or {}),
-        materials=mesh.materials, **appearance)
+        materials=mesh.materials, split_batch=split_batch, **appearance)
 
 
 def _renumber_wedges(attributes: Attributes, log: CollapseLog, face_order) -> dict:
