@@ -86,12 +86,8 @@ def build(source, options: BuildOptions | dict | None = None, *, locked=None, pr
     log = decimate(solved_part(mesh), kernel, locked=locked, poses=poses, progress=progress,
                    cancel=cancel)
     log = complete_log(mesh, log)
-    recorded = options.model_dump()
-    if not options.batched:
-        # a default build's artefact stays byte for byte what it was before batches
-        del recorded["batched"]
     metadata["options"] = {
-        **recorded,
+        **options.recorded(),
         "attributes": [name for name, _ in mesh.attributes.layout] if mesh.attributes else [],
         "attribute_weights": dict(kernel.attribute_weights),
         "locked_vertices": 0 if locked is None else int(np.count_nonzero(locked))}

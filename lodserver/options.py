@@ -53,6 +53,11 @@ def _weight(description: str, default: float, *, positive: bool = False):
                                   description=description, **bound), Flag(metavar="W")]
 
 
+# Options added after artefacts, manifests and catalogue rows were first written,
+# with the default at which they are left out of those records (BuildOptions.recorded).
+LATE_OPTIONS = {"batched": False}
+
+
 class BuildOptions(BaseModel):
     """Every option of ``build.build`` but the per-vertex ``locked`` mask and the callbacks.
 
@@ -119,6 +124,17 @@ class BuildOptions(BaseModel):
     def attribute_weights(self) -> dict:
         """``decimate``'s attribute_weights: weight by glTF attribute name."""
         return {name: getattr(self, field) for name, field in _WEIGHT_FIELDS.items()}
+
+    def recorded(self) -> dict:
+        """The options by name as artefacts, manifests and the catalogue keep them.
+        An option added after records were first written (:data:`LATE_OPTIONS`) is
+        left out at its default, so that what earlier versions wrote stays the same
+        bytes and an export folder is not rebuilt for an option nobody set."""
+        values = self.model_dump()
+        for name, default in LATE_OPTIONS.items():
+            if values.get(name) == default:
+                del values[name]
+        return values
 
     def decimate_options(self, mesh: Mesh) -> DecimateOptions:
         """These options as the edge-collapse kernel takes them for ``mesh``

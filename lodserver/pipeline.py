@@ -549,7 +549,7 @@ def export_folder(source, output, chain: ChainOptions | None = None, *, jobs: in
         raise MeshError(f"{source} holds no mesh file ({', '.join(SOURCE_SUFFIXES)})")
     outputs.create()
     recorded = {"lods": list(chain.lods) if chain.lods is not None else None,
-                "separate": chain.separate, "reach": chain.reach, "build": options.model_dump()}
+                "separate": chain.separate, "reach": chain.reach, "build": options.recorded()}
     if chain.errors is not None:
         recorded["errors"] = list(chain.errors)
     # (recorded when not the default, so the manifests of earlier runs stay as they were)

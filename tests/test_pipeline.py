@@ -155,7 +155,7 @@ def test_manifest_records_sources_options_and_outputs(tmp_path):
                                                                         "spot.obj"]
     entry = manifest["sources"]["spot.obj"]
     assert entry["options"] == {"lods": [1.0, 0.5], "separate": False, "reach": "none",
-                                "build": BuildOptions().model_dump()}
+                                "build": BuildOptions().recorded()}
     assert entry["outputs"] == ["spot.glb"] and len(entry["sha256"]) == 64
     # an unreadable manifest only means everything is rebuilt
     (out / MANIFEST).write_text("{not json")

@@ -29,7 +29,9 @@ class MeshCreate(BuildOptions):
 
     def build_options(self) -> dict:
         """The options to store with the mesh and pass to ``build.build``, by name."""
-        return self.model_dump(exclude={"name"})
+        options = self.recorded()
+        del options["name"]
+        return options
 
 
 class MeshCreated(BaseModel):
