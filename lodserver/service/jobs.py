@@ -43,7 +43,7 @@ from ..mesh import Mesh, MeshError
 from .catalog import CatalogUnavailable
 from .errors import StoreUnavailable
 from .parsing import ParsePool, ParserClosed, check_mesh_file
-from .scenes import SceneReport, build_scene
+from ..scene.asset import SceneReport, build_scene
 from .store import (Claim, LeaseLostError, MeshRecord, Store, StorageFullError, StoreError,
                     UnknownMeshError, is_disk_full)
 

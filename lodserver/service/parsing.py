@@ -35,7 +35,7 @@ from ..mesh import Mesh, MeshError
 
 if TYPE_CHECKING:       # annotations only: the scene reader is imported when needed
     from ..io.scene import Scene
-    from .scenes import SceneReport
+    from ..scene.asset import SceneReport
 
 # Address space of one parse worker by default: its imports (numpy, numba,
 # trimesh) take about 0.5 GB of it before any file is read.
@@ -113,7 +113,7 @@ def check_mesh_file(path, *, file_type: str, max_triangles: int, root=None,
         finally:
             shutil.rmtree(unpacked, ignore_errors=True)
     if scenes and file_type in ("gltf", "glb"):
-        from .scenes import read_scene_upload
+        from ..scene.asset import read_scene_upload
         scene = read_scene_upload(path, root=root, limits=limits,
                                   max_triangles=max_triangles)
         if scene is not None:

@@ -73,7 +73,7 @@ from .errors import (LeaseLostError, SourceLostError, StorageFullError, StoreErr
                      StoreUnavailable, UnknownMeshError, is_disk_full)
 from .errors import raise_if_full as _raise_if_full
 from .loaded import LOADED_BYTES_PER_TRIANGLE, LoadedArtefacts
-from .scenes import SceneAsset, artefact_summary, load_artefact, save_asset
+from ..scene.asset import SceneAsset, artefact_summary, load_artefact, save_asset
 
 __all__ = ["CORRUPT_ARTEFACT", "ID_PATTERN", "LOADED_BYTES", "LOADED_BYTES_PER_TRIANGLE",
            "LOADED_CACHE_SIZE", "Claim", "LeaseLostError",

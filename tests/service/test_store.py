@@ -15,7 +15,7 @@ from lodserver.service.store import (
 from lodserver.io.scene import Scene
 from lodserver.packets import encode_records
 from lodserver.service.loaded import fixed_nbytes, loaded_nbytes, records_nbytes
-from lodserver.service.scenes import SceneAsset, ScenePart
+from lodserver.scene.asset import SceneAsset, ScenePart
 
 from ..conftest import record_calls
 from ..meshes import progressive

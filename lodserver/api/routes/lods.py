@@ -19,7 +19,7 @@ from fastapi import APIRouter, Query, Request, Response
 from ...io import SERVED_FORMATS
 from ...io.glb import coverage_from_ratios, encode_lod_chain
 from ...packets import MAX_BITS, MIN_BITS, packet_between, prepare_records, records_ready
-from ...pipeline import DEFAULT_LODS, lod_chain, parse_lods
+from ...chains import DEFAULT_LODS, lod_chain, parse_lods
 from ...service.levels import (
     LevelError,
     chain_bytes,
@@ -31,7 +31,7 @@ from ...service.levels import (
     resolve_level,
     scene_bytes,
 )
-from ...service.scenes import SceneAsset, scene_chain_glb, scene_glb, scene_levels_for
+from ...scene.asset import SceneAsset, scene_chain_glb, scene_glb, scene_levels_for
 from ..bodies import BodiesDep
 from ..caching import VersionQuery, etag_for, load_versioned, version_of
 from ..deps import MeshId, StoreDep

@@ -12,7 +12,7 @@ from typing import Annotated
 from fastapi import APIRouter, HTTPException, Path, Query, Request, Response
 
 from ...io import SERVED_FORMATS
-from ...service.scenes import PartError, SceneAsset, part_of
+from ...scene.asset import PartError, SceneAsset, part_of
 from ..bodies import BodiesDep
 from ..caching import VersionQuery, load_versioned
 from ..deps import MeshId, StoreDep

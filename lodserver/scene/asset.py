@@ -45,7 +45,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..budget import chain_levels, scene_instances, scene_levels
+from .budget import chain_levels, scene_instances, scene_levels
 from ..io.animation import node_worlds
 from ..io.gltf_document import parse_container, parse_json
 from ..io.limits import LimitError, LoadLimits
