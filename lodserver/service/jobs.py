@@ -43,7 +43,8 @@ from ..mesh import Mesh, MeshError
 from .catalog import CatalogUnavailable
 from .errors import StoreUnavailable
 from .parsing import ParsePool, ParserClosed, check_mesh_file
-from ..scene.asset import SceneReport, build_scene
+from ..scene.build import build_scene
+from ..scene.load import SceneReport
 from .store import (Claim, LeaseLostError, MeshRecord, Store, StorageFullError, StoreError,
                     UnknownMeshError, is_disk_full)
 
@@ -220,7 +221,7 @@ class JobRunner:
     def parse(self, source: Path, *, file_type: str, name: str, root=None,
               admit: bool = True) -> tuple[Mesh | Scene, LoadReport | SceneReport]:
         """Parse and check ``source`` (in the parse pool when there is one): a
-        glTF scene (``scenes.scene_reason``) as ``(Scene, SceneReport)``.
+        glTF scene (``scene.load.scene_reason``) as ``(Scene, SceneReport)``.
 
         Messages name ``name``, never ``source``, ``root`` or the data directory.
         """

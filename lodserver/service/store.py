@@ -12,7 +12,7 @@ The data directory (one process's alone: it is locked while open) holds
   mesh and the build queue, with leases), in SQLite's WAL mode;
 - ``sources/<id>.<ext>`` : the uploaded file, kept until its build is done, and
 - ``artefacts/<id>.<sha256>.pm`` : the progressive mesh (a scene's: every part's
-  and its document in one file, ``scenes.py``), under a key naming its own
+  and its document in one file, ``scene/artefact.py``), under a key naming its own
   digest, written once (atomically) and never changed: both in the default
   blob store, the directory itself; with ``LODSERVER_STORE_URL`` they live there;
 - ``tmp/``                : scratch folders (an upload being received, a source
@@ -73,7 +73,8 @@ from .errors import (LeaseLostError, SourceLostError, StorageFullError, StoreErr
                      StoreUnavailable, UnknownMeshError, is_disk_full)
 from .errors import raise_if_full as _raise_if_full
 from .loaded import LOADED_BYTES_PER_TRIANGLE, LoadedArtefacts
-from ..scene.asset import SceneAsset, artefact_summary, load_artefact, save_asset
+from ..scene.artefact import load_artefact, save_asset
+from ..scene.asset import SceneAsset, artefact_summary
 
 __all__ = ["CORRUPT_ARTEFACT", "ID_PATTERN", "LOADED_BYTES", "LOADED_BYTES_PER_TRIANGLE",
            "LOADED_CACHE_SIZE", "Claim", "LeaseLostError",
@@ -179,7 +180,7 @@ class Store(ABC):
     def put_artefact(self, *, mesh_id: str, pm: ProgressiveMesh | SceneAsset,
                      attempt: int | None = None, patience: float = 0.0) -> MeshRecord:
         """Store the built artefact (a progressive mesh, or a scene's parts and
-        document as one file: ``scenes.SceneAsset``), mark the mesh ready and drop
+        document as one file: ``scene.asset.SceneAsset``), mark the mesh ready and drop
         its source. While the catalogue cannot be reached, marking it ready is
         tried again for up to ``patience`` seconds (a builder gives its lease)."""
 

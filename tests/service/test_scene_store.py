@@ -12,9 +12,11 @@ from lodserver.build import build
 from lodserver.io.scene import load_scene
 from lodserver.service import store as store_module
 from lodserver.service.parsing import check_mesh_file
-from lodserver.scene.asset import (PartError, SceneAsset, build_scene, decode_asset,
-                                      encode_asset, instances_of, part_of, scene_glb,
-                                      scene_levels_for, scene_reason)
+from lodserver.scene.artefact import decode_asset, encode_asset
+from lodserver.scene.asset import PartError, SceneAsset, instances_of, part_of, scene_levels_for
+from lodserver.scene.build import build_scene
+from lodserver.scene.load import scene_reason
+from lodserver.scene.write import scene_glb
 from lodserver.service.store import LocalStore, NotReadyError, Status
 
 

@@ -31,7 +31,8 @@ from ...service.levels import (
     resolve_level,
     scene_bytes,
 )
-from ...scene.asset import SceneAsset, scene_chain_glb, scene_glb, scene_levels_for
+from ...scene.asset import SceneAsset, scene_levels_for
+from ...scene.write import scene_chain_glb, scene_glb
 from ..bodies import BodiesDep
 from ..caching import VersionQuery, etag_for, load_versioned, version_of
 from ..deps import MeshId, StoreDep
