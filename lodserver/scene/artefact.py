@@ -1,10 +1,14 @@
-"""The stored form of an asset: one artefact file, whatever the asset holds.
+"""The stored form of an asset: one artefact file, one reader and one writer.
 
-The asset is stored as ONE artefact (:func:`encode_asset`), so that everything
-the store guarantees of an artefact holds for a scene unchanged: one atomic
-write under a key naming its SHA-256, the row flipped to ready only after it,
-fencing by attempt, nothing written when a part fails. The file is a zip
-(stored, not deflated; every member CRC-32 checked on read) of
+Every asset is stored as ONE artefact (:func:`encode_asset`,
+:func:`decode_asset`), so that everything the store guarantees of an artefact
+(one atomic write under a key naming its SHA-256, the row flipped to ready only
+after it, fencing by attempt, nothing written when a part fails) holds for a
+scene as for a single mesh. A single mesh (a scene of one part without a
+document, ``SceneAsset.of_mesh``) is its ``.pm`` file (``progressive.artefact``),
+byte for byte; a scene is a zip, told apart by its first bytes, so every
+artefact ever stored reads back. A scene's zip (stored, not deflated; every
+member CRC-32 checked on read) holds
 
 - ``scene.json``: format, the glTF document as read, the parts (index, glTF
   mesh, name, nodes), the meshes kept as they are, notes, the carried accessors'
@@ -35,8 +39,7 @@ import numpy as np
 from ..io.files import write_atomic
 from ..io.scene import Scene
 from ..mesh import Materials
-from ..progressive import (ArtefactError, decode_progressive, encode_progressive,
-                           load_progressive)
+from ..progressive import ArtefactError, decode_progressive, encode_progressive
 from ..progressive.mesh import ProgressiveMesh
 from .asset import SceneAsset, ScenePart, instances_and_diagonal
 
@@ -66,6 +69,8 @@ def _without_materials(pm: ProgressiveMesh) -> ProgressiveMesh:
 def encode_asset(asset: SceneAsset) -> bytes:
     """The stored bytes of ``asset`` (module docstring)."""
     scene = asset.scene
+    if scene is None:
+        return encode_progressive(asset.parts[0].pm)
     carried, first = [], {}
     for index in sorted(scene.carried):
         values, record, role = scene.carried[index]
@@ -113,8 +118,10 @@ def encode_asset(asset: SceneAsset) -> bytes:
 
 
 def decode_asset(data: bytes, *, source: str = "the artefact") -> SceneAsset:
-    """Parse bytes written by :func:`encode_asset`; ArtefactError (one sentence) if
-    they are not one."""
+    """Parse bytes written by :func:`encode_asset`; ArtefactError (one sentence,
+    naming ``source``) if they are not one."""
+    if data[:4] != _ZIP_MAGIC:
+        return SceneAsset.of_mesh(decode_progressive(data, source=source))
     try:
         with zipfile.ZipFile(io.BytesIO(data)) as archive:
             head = json.loads(archive.read("scene.json"))
@@ -170,17 +177,10 @@ def save_asset(asset: SceneAsset, path) -> None:
     write_atomic(path, encode_asset(asset))
 
 
-def load_artefact(path, *, single=load_progressive):
-    """The SceneAsset stored at ``path`` when its magic bytes say it is one, else
-    ``single(path)`` (a ``.pm`` file); ArtefactError if it is corrupt."""
+def load_artefact(path) -> SceneAsset:
+    """The asset stored at ``path``; ArtefactError if it cannot be read (its cause
+    the OSError) or is corrupt."""
     path = Path(path)
-    try:
-        with open(path, "rb") as file:
-            scene = file.read(4) == _ZIP_MAGIC
-    except OSError:
-        scene = False       # `single` says why it cannot be read
-    if not scene:
-        return single(path)
     try:
         data = path.read_bytes()
     except OSError as exc:

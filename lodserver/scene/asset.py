@@ -1,11 +1,16 @@
-"""A stored asset: a scene of parts, each part a glTF mesh with its own progressive mesh.
+"""A stored asset: a scene of parts, each part a mesh with its own progressive mesh.
 
-A :class:`SceneAsset` holds a scene read by ``io.scene.load_scene`` (document,
-carried accessors, materials, meshes kept as they are) and its *parts*: each
-glTF mesh of ``Scene.meshes`` with its own
-:class:`~lodserver.progressive.mesh.ProgressiveMesh`, in glTF mesh order
-(part ``p`` is the ``p``-th such mesh). Its summary, its instances, its levels
-under one budget (``scene.budget``) are here; which uploads are scenes is
+Every asset the store keeps, every build and every route takes is one
+:class:`SceneAsset`. A glTF scene (``scene.load``) holds the scene read by
+``io.scene.load_scene`` (document, carried accessors, materials, meshes kept as
+they are) and its *parts*: each glTF mesh of ``Scene.meshes`` with its own
+:class:`~lodserver.progressive.mesh.ProgressiveMesh`, in glTF mesh order (part
+``p`` is the ``p``-th such mesh). A single mesh (OBJ, PLY, STL, OFF, a glTF of
+one mesh placed once) is a scene of one part without a document
+(:meth:`SceneAsset.of_mesh`): what a document adds (a whole-scene level, world
+instances, the scene artefact) it does not have, and it is stored and served as
+that one mesh (:attr:`SceneAsset.single`). Its summary, its instances, its
+levels under one budget (``scene.budget``) are here; which uploads are scenes is
 ``scene.load``, building is ``scene.build``, the stored form ``scene.artefact``,
 the GLB of the whole scene ``scene.write``.
 """
@@ -29,6 +34,7 @@ __all__ = ["PartError", "ScenePart", "SceneAsset", "artefact_summary", "instance
 class PartError(LookupError):
     """A part index the mesh does not have (HTTP 404)."""
 
+
 @dataclass(eq=False)
 class ScenePart:
     """One part of a scene: glTF mesh ``mesh`` (named ``name``), placed by ``nodes``."""
@@ -42,28 +48,46 @@ class ScenePart:
 
 @dataclass(eq=False)
 class SceneAsset:
-    """A built scene: ``scene`` (document, carried accessors, materials, meshes kept
+    """A built asset: ``scene`` (document, carried accessors, materials, meshes kept
     as they are; ``scene.meshes`` maps each part's glTF mesh to None, the
-    geometry being the parts'), its ``parts`` in order, and ``metadata``."""
+    geometry being the parts'), or None for a single mesh; its ``parts`` in
+    order (a single mesh's one part: index 0, glTF mesh 0, no nodes); and
+    ``metadata`` (a single mesh's is its progressive mesh's, the same dict, which
+    its ``.pm`` file stores)."""
 
-    scene: Scene
+    scene: Scene | None
     parts: list
     metadata: dict = field(default_factory=dict)
     _instances: tuple | None = field(default=None, repr=False)   # (instances, diagonal)
 
+    @classmethod
+    def of_mesh(cls, pm: ProgressiveMesh) -> SceneAsset:
+        """A single mesh as the scene of one part without a document."""
+        return cls(None, [ScenePart(0, 0, "mesh 0", [], pm)], pm.metadata)
+
+    @property
+    def single(self) -> ProgressiveMesh | None:
+        """The one progressive mesh of an asset without a glTF document (a single
+        mesh: stored as its ``.pm`` file, its levels and packets the mesh's), else
+        None (a scene: its levels are GLB files of the whole document)."""
+        return self.parts[0].pm if self.scene is None else None
+
     @property
     def materials(self) -> Materials | None:
-        return self.scene.materials
+        return self.parts[0].pm.materials if self.scene is None else self.scene.materials
 
     @property
     def pms(self) -> dict:
         return {part.index: part.pm for part in self.parts}
 
     def summary(self) -> dict:
-        """As ``ProgressiveMesh.summary``, for the whole scene (counts summed over the
-        parts, world bounds, a scene error curve by :func:`scene_levels_for`), with
-        ``scene: True`` and ``parts``: each part's index, name, glTF mesh, nodes
-        and its own summary (without metadata)."""
+        """A single mesh's ``ProgressiveMesh.summary``; for a scene the same for the
+        whole scene (counts summed over the parts, world bounds, a scene error
+        curve by :func:`scene_levels_for`), with ``scene: True`` and ``parts``:
+        each part's index, name, glTF mesh, nodes and its own summary (without
+        metadata)."""
+        if self.scene is None:
+            return self.parts[0].pm.summary()
         pms = self.pms
         curve = []
         for ratio in np.geomspace(1.0, 1e-3, 25):
@@ -86,22 +110,22 @@ class SceneAsset:
                 "parts": parts, "metadata": self.metadata}
 
 
-def artefact_summary(artefact) -> dict:
-    """The catalogue summary of a ProgressiveMesh or SceneAsset: its ``summary()`` with
-    only the load report and options of its metadata."""
-    summary = {key: value for key, value in artefact.summary().items() if key != "metadata"}
-    summary["metadata"] = {name: artefact.metadata[name] for name in ("load_report", "options")
-                           if name in artefact.metadata}
+def artefact_summary(asset: SceneAsset) -> dict:
+    """The catalogue summary of ``asset``: its ``summary()`` with only the load
+    report and options of its metadata."""
+    summary = {key: value for key, value in asset.summary().items() if key != "metadata"}
+    summary["metadata"] = {name: asset.metadata[name] for name in ("load_report", "options")
+                           if name in asset.metadata}
     return summary
 
 
-def part_of(artefact, index: int) -> ProgressiveMesh:
-    """Part ``index``'s progressive mesh: a ProgressiveMesh is a scene of one part."""
-    count = len(artefact.parts) if isinstance(artefact, SceneAsset) else 1
+def part_of(asset: SceneAsset, index: int) -> ProgressiveMesh:
+    """Part ``index``'s progressive mesh; PartError (one sentence) if there is none."""
+    count = len(asset.parts)
     if not 0 <= index < count:
         raise PartError(f"this mesh has {count} part{'s' if count > 1 else ''} "
                         f"(0 to {count - 1}); there is no part {index}")
-    return artefact.parts[index].pm if isinstance(artefact, SceneAsset) else artefact
+    return asset.parts[index].pm
 
 
 def instances_and_diagonal(asset: SceneAsset) -> tuple[dict, float]:

@@ -1,15 +1,45 @@
-"""Building a scene's parts: one progressive mesh per glTF mesh, nothing kept on failure."""
+"""Building an asset: one progressive mesh per part, nothing kept on failure.
+
+An upload is read as a ``Mesh`` (a single mesh) or a ``Scene`` (``scene.load``);
+either is built into the one asset model, ``asset.SceneAsset``: a scene part by
+part (:func:`build_scene`), a single mesh as the scene of one part.
+"""
 
 from __future__ import annotations
 
 import numpy as np
 
 from ..io.scene import Scene
-from ..mesh import MeshError
+from ..mesh import Mesh, MeshError
 from ..simplify.poses import scene_poses
+from ..simplify.topology import census
 from .asset import SceneAsset, ScenePart
 
-__all__ = ["build_scene"]
+__all__ = ["build_asset", "build_scene"]
+
+
+def build_asset(source: Mesh | Scene, *, build, options: dict, lock_border: bool = False,
+                progress=None, cancel=None) -> SceneAsset | None:
+    """Build ``source`` with ``build`` (``lodserver.build.build``, given ``options``
+    by keyword): a Scene by :func:`build_scene`, a Mesh as the scene of one part
+    (``SceneAsset.of_mesh``). ``lock_border`` locks the boundary vertices of every
+    mesh. None when ``cancel`` was set; a MeshError of a part is raised, nothing kept.
+    """
+    if isinstance(source, Scene):
+        return build_scene(source, build=build, options=options, lock_border=lock_border,
+                           progress=progress, cancel=cancel)
+    pm = build(source, locked=_border(source) if lock_border else None, progress=progress,
+               cancel=cancel, **options)
+    if cancel is not None and cancel.is_set():
+        return None     # a cut-short decimation is not the mesh's progressive mesh
+    return SceneAsset.of_mesh(pm)
+
+
+def _border(mesh: Mesh) -> np.ndarray:
+    """The vertices of ``mesh`` on its boundary, as a lock mask (n,) bool."""
+    locked = np.zeros(mesh.vertex_count, dtype=bool)
+    locked[census(mesh.faces, mesh.vertex_count).on_boundary] = True
+    return locked
 
 
 def build_scene(scene: Scene, *, build, options: dict, lock_border: bool = False,
@@ -35,11 +65,7 @@ def build_scene(scene: Scene, *, build, options: dict, lock_border: bool = False
             if progress is not None:
                 progress(before + faces * min(done / max(expected, 1), 1.0), total)
 
-        locked = None
-        if lock_border:
-            from ..simplify.topology import census
-            locked = np.zeros(mesh.vertex_count, dtype=bool)
-            locked[census(mesh.faces, mesh.vertex_count).on_boundary] = True
+        locked = _border(mesh) if lock_border else None
         name = records[mesh_index].get("name") if isinstance(records[mesh_index], dict) else None
         name = name if isinstance(name, str) else f"mesh {mesh_index}"
         try:

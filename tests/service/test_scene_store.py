@@ -206,7 +206,7 @@ def test_a_stored_scene_is_served_by_another_store_and_after_a_restart(asset, tm
     source = tmp_path / "two.glb"
     source.write_bytes(scene_file.read_bytes())
     record = first.create(name="two", source=source, file_type="glb", options={})
-    ready = first.put_artefact(mesh_id=record.id, pm=asset)
+    ready = first.put_artefact(mesh_id=record.id, asset=asset)
     assert ready.status is Status.READY and ready.summary["scene"] is True
     assert [p["nodes"] for p in ready.summary["parts"]] == [[1, 2], [3]]
     second = _stored(tmp_path, "b", **shared)
@@ -226,7 +226,7 @@ def test_a_corrupt_scene_artefact_fails_its_mesh_once(asset, tmp_path):
     source = tmp_path / "s.glb"
     source.write_bytes(b"x")
     record = store.create(name="s", source=source, file_type="glb", options={})
-    ready = store.put_artefact(mesh_id=record.id, pm=asset)
+    ready = store.put_artefact(mesh_id=record.id, asset=asset)
     path = store.artefacts / f"{record.id}.{ready.digest}.pm"
     data = bytearray(path.read_bytes())
     data[len(data) // 2] ^= 0xFF        # inside a stored member: its CRC-32 no longer matches
@@ -249,7 +249,7 @@ def test_a_failed_scene_write_stores_nothing(asset, tmp_path, monkeypatch):
 
     monkeypatch.setattr(store_module, "save_asset", full)
     with pytest.raises(store_module.StorageFullError):
-        store.put_artefact(mesh_id=record.id, pm=asset)
+        store.put_artefact(mesh_id=record.id, asset=asset)
     assert store.get(mesh_id=record.id).status is Status.QUEUED
     assert not list(store.artefacts.iterdir())
     assert not [p for p in store.tmp.iterdir()]

@@ -73,12 +73,12 @@ def get_lod(mesh_id: MeshId, store: StoreDep, bodies: BodiesDep, request: Reques
     of its bounding-box diagonal); each part's glTF mesh says its part in
     ``extras.lodserver_part``. Its parts' levels: ``/meshes/{id}/parts/{p}/lod``.
     """
-    artefact, digest, policy = load_versioned(store, mesh_id, v)
-    if isinstance(artefact, SceneAsset):
-        return _scene_lod(artefact, digest, policy, request, bodies, mesh_id=mesh_id,
+    asset, digest, policy = load_versioned(store, mesh_id, v)
+    if asset.single is None:
+        return _scene_lod(asset, digest, policy, request, bodies, mesh_id=mesh_id,
                           vertices=vertices, faces=faces, ratio=ratio, error=error,
                           format=format)
-    return level_response(artefact, digest, policy, request, bodies, mesh_id=mesh_id,
+    return level_response(asset.single, digest, policy, request, bodies, mesh_id=mesh_id,
                           criterion={"vertices": vertices, "faces": faces, "ratio": ratio,
                                      "error": error}, format=format, bits=bits, v=v)
 
@@ -120,11 +120,11 @@ def get_splits(mesh_id: MeshId, store: StoreDep, bodies: BodiesDep, request: Req
     per direction; other ``bits`` are encoded for the packet (under the heavy
     limit), and each such packet once: its body is cached like a level's.
     A scene's packets are its parts': ``/meshes/{id}/parts/{p}/splits``."""
-    artefact, digest, policy = load_versioned(store, mesh_id, v)
-    if isinstance(artefact, SceneAsset):
-        raise LevelError(f"mesh {mesh_id} is a scene of {len(artefact.parts)} parts; its "
+    asset, digest, policy = load_versioned(store, mesh_id, v)
+    if asset.single is None:
+        raise LevelError(f"mesh {mesh_id} is a scene of {len(asset.parts)} parts; its "
                          f"packets are its parts': /meshes/{mesh_id}/parts/{{p}}/splits")
-    return splits_response(artefact, digest, policy, request, bodies, start=start, to=to,
+    return splits_response(asset.single, digest, policy, request, bodies, start=start, to=to,
                            bits=bits)
 
 
@@ -173,13 +173,14 @@ def get_chain(mesh_id: MeshId, store: StoreDep, bodies: BodiesDep, request: Requ
 
     A scene's chain is the scene with ``MSFT_lod`` on every node placing a part,
     level k of every part at scene ratio k (one budget over the parts)."""
-    pm, digest, policy = load_versioned(store, mesh_id, v)
+    asset, digest, policy = load_versioned(store, mesh_id, v)
     ratios = parse_lods(lods)
     if len(ratios) > MAX_CHAIN_LEVELS:
         raise LevelError(f"a chain holds at most {MAX_CHAIN_LEVELS} levels, got {len(ratios)}")
-    if isinstance(pm, SceneAsset):
-        return _scene_chain(pm, digest, policy, request, bodies, mesh_id=mesh_id, ratios=ratios,
-                            reach=reach)
+    pm = asset.single
+    if pm is None:
+        return _scene_chain(asset, digest, policy, request, bodies, mesh_id=mesh_id,
+                            ratios=ratios, reach=reach)
     levels = [pm.level_for(ratio=ratio) for ratio in ratios]
     faces = sum(pm.faces_at_level(level) for level in levels)
     full = pm.faces_at_level(pm.vertex_count)
