@@ -4,7 +4,7 @@ The one place the chain's options live (:class:`ChainOptions`: ``lods``,
 ``errors``, ``per_mesh``, ``separate``, ``reach``), with their parsers for the
 command line and the HTTP query (:func:`parse_lods`, :func:`parse_errors`) and
 the levels of one progressive mesh they pick (:func:`lod_chain`,
-:func:`error_chain`). The pipeline (``pipeline.py``), the API's chain route
+:func:`error_chain`), and what an export wrote (:class:`Exported`). The pipeline (``pipeline.py``), the API's chain route
 and the command line take them from here; a scene's levels are chosen by the
 scene's budget (``scene.budget.chain_levels``).
 """
@@ -13,7 +13,8 @@ from __future__ import annotations
 
 import itertools
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
+from pathlib import Path
 
 from .io.glb import coverage_from_ratios
 from .mesh import Mesh, MeshError
@@ -59,6 +60,24 @@ def check_errors(errors) -> tuple[float, ...]:
         raise MeshError(f"LOD errors must be strictly increasing, finest first, "
                         f"got {list(errors)}")
     return errors
+
+
+@dataclass
+class Exported:
+    """One source's levels of detail, as written."""
+
+    source: Path                # a str URL for an object-store folder
+    outputs: list[Path]
+    faces: list[int]            # per level, finest first
+    coverage: list[float]       # MSFT_screencoverage per level
+    seconds: float
+    base_faces: int = 0         # the coarsest edge collapse reaches: ratios below it stop there
+    clustered: list[int] = field(default_factory=list)   # levels made by clustering (reach)
+    notes: list[str] = field(default_factory=list)       # what a scene's export did not keep
+    # a scene's: triangles drawn per level (each part once per instance) and the
+    # worst world error of each level (world units); empty for a single mesh
+    drawn: list[int] = field(default_factory=list)
+    errors: list[float] = field(default_factory=list)
 
 
 # A level whose edge-collapse mesh overshoots its face budget by more than this is
