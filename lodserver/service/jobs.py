@@ -40,11 +40,11 @@ from ..io.fileset import FileSetLimits
 from ..io.limits import DEFAULT_MAX_TRIANGLES, LoadLimits
 from ..io.scene import Scene
 from ..mesh import Mesh, MeshError
+from ..scene.build import build_asset
+from ..scene.load import SceneReport
 from .catalog import CatalogUnavailable
 from .errors import StoreUnavailable
 from .parsing import ParsePool, ParserClosed, check_mesh_file
-from ..scene.build import build_asset
-from ..scene.load import SceneReport
 from .store import (Claim, LeaseLostError, MeshRecord, Store, StorageFullError, StoreError,
                     UnknownMeshError, is_disk_full)
 

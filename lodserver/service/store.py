@@ -63,6 +63,8 @@ from pathlib import Path
 from ..io.files import write_atomic
 from ..io.limits import DEFAULT_MAX_TRIANGLES
 from ..progressive import ArtefactError
+from ..scene.artefact import load_artefact, save_asset
+from ..scene.asset import SceneAsset, artefact_summary
 from .blobs import (Blobs, BlobNotFoundError, LocalBlobs, delete_later, delete_patiently,
                     open_blobs, sha256_file)
 from .cache import DEFAULT_CACHE_BYTES, ArtefactCache
@@ -72,8 +74,6 @@ from .errors import (LeaseLostError, SourceLostError, StorageFullError, StoreErr
                      StoreUnavailable, UnknownMeshError, is_disk_full)
 from .errors import raise_if_full as _raise_if_full
 from .loaded import LOADED_BYTES_PER_TRIANGLE, LoadedArtefacts
-from ..scene.artefact import load_artefact, save_asset
-from ..scene.asset import SceneAsset, artefact_summary
 
 __all__ = ["CORRUPT_ARTEFACT", "ID_PATTERN", "LOADED_BYTES", "LOADED_BYTES_PER_TRIANGLE",
            "LOADED_CACHE_SIZE", "Claim", "LeaseLostError",
