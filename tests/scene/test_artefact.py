@@ -67,8 +67,8 @@ def test_bytes_that_are_no_artefact_are_one_sentence(tmp_path):
 def test_a_mesh_upload_builds_the_scene_of_one_part():
     asset = build_asset(mesh("grid"), build=build, options={})
     assert asset.scene is None and asset.single is not None
-    assert asset.single.vertex_count == progressive("grid").vertex_count
-    assert encode_asset(asset) == encode_progressive(progressive("grid"))
+    # a fresh build: the shared progressive("grid") may carry a job's metadata
+    assert encode_asset(asset) == encode_progressive(build(mesh("grid")))
     locked = build_asset(mesh("grid"), build=build, options={}, lock_border=True)
     # the border kept: the grid's coarsest level keeps every boundary vertex
     assert locked.single.base_vertices > asset.single.base_vertices
