@@ -2,8 +2,10 @@
 
 Data flow: ``io`` (``load_mesh``) -> ``simplify`` (quadrics, edge collapse,
 the collapse log) -> ``progressive`` (``ProgressiveMesh``, the stored ``.pm``
-artefact) -> ``packets`` -> ``service`` (store, jobs) -> ``api`` -> ``static/``
-(the viewer); ``pipeline`` turns files and folders into LOD chains (GLB).
+artefact) -> ``packets`` -> ``scene`` (``SceneAsset``: every stored asset, a
+scene of parts) -> ``service`` (store, jobs) -> ``api`` -> ``static/`` (the
+viewer); ``pipeline`` turns files and folders into LOD chains (GLB), which
+levels by ``chains``.
 ``options.BuildOptions`` holds every build option once, for ``build``, the
 command line and the HTTP form alike.
 """

@@ -23,7 +23,7 @@ from .io.glb import COMPRESSIONS, DEFAULT_COMPRESS, LOD_NAMINGS
 from .mesh import MeshError
 from .options import METHODS, BuildOptions, Flag, describe_error, field_default_text
 
-DEFAULT_LODS_TEXT = "1,0.5,0.2,0.05"      # pipeline.DEFAULT_LODS, without importing it
+DEFAULT_LODS_TEXT = "1,0.5,0.2,0.05"      # chains.DEFAULT_LODS, without importing it
 
 EXAMPLES = """\
 examples:
@@ -225,7 +225,8 @@ def _export_usage(args) -> str | None:
 
 
 def _cmd_export(args) -> int:
-    from .pipeline import ChainOptions, export_lods, is_url, parse_errors, parse_lods
+    from .chains import ChainOptions, parse_errors, parse_lods
+    from .pipeline import export_lods, is_url
 
     problem = _export_usage(args)
     if problem is not None:

@@ -26,9 +26,7 @@ writes each output as one whole object.
 
 from __future__ import annotations
 
-import itertools
 import json
-import math
 import tempfile
 import time
 import uuid
@@ -36,208 +34,17 @@ from contextlib import nullcontext
 from dataclasses import dataclass, field, replace
 from pathlib import Path, PurePosixPath
 
+from .chains import ChainOptions, Exported, error_chain, lod_chain
 from .folders import (MANIFEST, MANIFEST_VERSION, Folder, fetch_with_references, filesystem,
                       is_url, listing)
-from .io.glb import (LOD_NAMINGS, check_compress, coverage_from_ratios, encode_glb,
-                     encode_lod_chain, lod_name)
+from .io.glb import encode_glb, encode_lod_chain, lod_name
 from .io import SUPPORTED_INPUT, write_atomic
-from .mesh import Mesh, MeshError
+from .mesh import MeshError
 from .options import BuildOptions
 from .progressive.mesh import ProgressiveMesh
+from .scene.export import export_scene
 
-DEFAULT_LODS = (1.0, 0.5, 0.2, 0.05)
 SOURCE_SUFFIXES = tuple(f".{kind}" for kind in SUPPORTED_INPUT) + (".pm",)
-# objects of an object-store source hashed at once (each GET is mostly waiting)
-
-
-def parse_lods(text: str) -> tuple[float, ...]:
-    """Face ratios from ``"1,0.5,0.2"``: finest first, each in (0, 1], decreasing."""
-    return check_lods(_numbers(text, "LOD ratios", "1,0.5,0.2"))
-
-
-def _numbers(text: str, what: str, example: str) -> tuple[float, ...]:
-    """The comma-separated numbers of ``text``; MeshError naming ``what`` otherwise."""
-    try:
-        return tuple(float(part) for part in text.split(","))
-    except ValueError:
-        raise MeshError(f"{what} must be comma-separated numbers like {example}, "
-                        f"got {text!r}") from None
-
-
-def check_lods(ratios) -> tuple[float, ...]:
-    ratios = tuple(float(r) for r in ratios)
-    if not all(0 < ratio <= 1 for ratio in ratios):
-        raise MeshError(f"every LOD ratio must be in (0, 1], got {list(ratios)}")
-    coverage_from_ratios(ratios)        # and strictly decreasing
-    return ratios
-
-
-def parse_errors(text: str) -> tuple[float, ...]:
-    """Error bounds from ``"0.001,0.01"``: finest first, each >= 0, increasing."""
-    return check_errors(_numbers(text, "LOD errors", "0.001,0.01"))
-
-
-def check_errors(errors) -> tuple[float, ...]:
-    """Error bounds (fractions of the bounding-box diagonal) of the levels, finest
-    first: each finite and >= 0, strictly increasing."""
-    errors = tuple(float(e) for e in errors)
-    if not errors or not all(math.isfinite(e) and e >= 0 for e in errors):
-        raise MeshError(f"every LOD error must be a non-negative number (a fraction of the "
-                        f"bounding-box diagonal), got {list(errors)}")
-    if any(b <= a for a, b in itertools.pairwise(errors)):
-        raise MeshError(f"LOD errors must be strictly increasing, finest first, "
-                        f"got {list(errors)}")
-    return errors
-
-
-@dataclass
-class Exported:
-    """One source's levels of detail, as written."""
-
-    source: Path                # a str URL for an object-store folder
-    outputs: list[Path]
-    faces: list[int]            # per level, finest first
-    coverage: list[float]       # MSFT_screencoverage per level
-    seconds: float
-    base_faces: int = 0         # the coarsest edge collapse reaches: ratios below it stop there
-    clustered: list[int] = field(default_factory=list)   # levels made by clustering (reach)
-    notes: list[str] = field(default_factory=list)       # what a scene's export did not keep
-    # a scene's: triangles drawn per level (each part once per instance) and the
-    # worst world error of each level (world units); empty for a single mesh
-    drawn: list[int] = field(default_factory=list)
-    errors: list[float] = field(default_factory=list)
-
-
-# A level whose edge-collapse mesh overshoots its face budget by more than this is
-# out of reach of edge collapse (locked, non-manifold or separate parts).
-REACH_SLACK = 1.1
-REACH_METHODS = ("none", "cluster")
-
-
-def check_reach(reach: str) -> str:
-    if reach not in REACH_METHODS:
-        raise MeshError(f"reach must be one of {', '.join(REACH_METHODS)}, got {reach!r}")
-    return reach
-
-
-def lod_chain(pm: ProgressiveMesh, lods=DEFAULT_LODS, *, reach: str = "none"):
-    """The levels of ``pm`` at face ratios ``lods`` (finest first).
-
-    Returns ``(meshes, coverage, clustered)``: the meshes, their screen coverage
-    hints (:func:`gltf.coverage_from_ratios`) and the indices of the levels made
-    by clustering (``reach``, as :class:`ChainOptions` says). Raises
-    :class:`MeshError` on bad ratios or ``reach``.
-    """
-    ratios = check_lods(lods)
-    check_reach(reach)
-    meshes, clustered, full = [], [], None
-    for ratio in ratios:
-        mesh = pm.at(pm.level_for(ratio=ratio))
-        budget = max(1, round(ratio * pm.face_count))
-        if reach == "cluster" and mesh.face_count > REACH_SLACK * budget:
-            from .simplify.cluster import cluster
-            if full is None:
-                full = pm.at(pm.vertex_count)
-                full = Mesh(full.positions, full.faces)
-            joined = cluster(full, target_faces=budget)
-            if joined.face_count < mesh.face_count:
-                mesh = joined
-                clustered.append(len(meshes))
-        meshes.append(mesh)
-    return meshes, coverage_from_ratios(ratios), clustered
-
-
-def error_chain(pm: ProgressiveMesh, errors):
-    """The levels of ``pm`` within error bounds ``errors`` (fractions of its
-    bounding-box diagonal, finest first): ``(meshes, coverage)``, the hints from
-    the levels' measured errors (:func:`budget.coverage_from_errors`)."""
-    from .budget import coverage_from_errors, part_diagonal
-
-    diagonal = part_diagonal(pm)
-    levels = [pm.level_for(error=e * diagonal) for e in check_errors(errors)]
-    coverage = coverage_from_errors([pm.error_at_level(v) for v in levels], diagonal)
-    return [pm.at(v) for v in levels], coverage
-
-
-@dataclass(frozen=True)
-class ChainOptions:
-    """Which levels an export writes, and how: the options of the chain of levels,
-    checked when made (``MeshError``, one sentence) and held checked.
-
-    Attributes
-    ----------
-    lods : tuple of float
-        Face ratios of the levels, finest first, strictly decreasing, in (0, 1];
-        ``DEFAULT_LODS`` when neither ``lods`` nor ``errors`` is given, None with
-        ``errors``. For a scene, ratios of the whole scene's triangles, each part
-        once per instance, with one budget for all parts (:func:`budget.scene_levels`).
-    errors : tuple of float, optional
-        Instead of ``lods``: error bounds of the levels, finest first, strictly
-        increasing, >= 0, as fractions of the bounding-box diagonal (a scene's
-        world box); each mesh at its coarsest level within the bound (world
-        error for a scene: the mesh's error times its largest instance scale).
-    per_mesh : bool
-        A scene's ``lods`` are each mesh's own face ratios instead of one
-        budget for the whole scene. The same for a single mesh. Not with
-        ``errors``.
-    separate : bool
-        Write ``OUT_lod0.glb``, ``OUT_lod1.glb``, ... instead of one file.
-    compress : str
-        How the GLB files store the levels (``io.glb.COMPRESSIONS``): ``"none"``
-        (float32, the progressive mesh's order: lossless, the library's default),
-        ``"quantize"`` (the command line's default, ``io.glb.DEFAULT_COMPRESS``) or
-        ``"meshopt"``.
-    naming : str
-        How one file's levels are told apart (``io.glb.LOD_NAMINGS``): ``"msft"``
-        (the ``MSFT_lod`` extension, nodes ``LOD0``...), ``"suffix"`` (nodes
-        ``STEM_LOD0``... under a root ``STEM``, all in the scene) or ``"both"``. With
-        ``separate`` each file's node is ``STEM_LODi`` whatever it says. A scene's
-        levels are linked by ``MSFT_lod`` only.
-    reach : str
-        ``"none"``: a level edge collapse cannot bring down to its budget stays
-        at the coarsest it reaches. ``"cluster"``: such a level is made by vertex
-        clustering of the full mesh instead (``cluster.cluster``), which joins
-        parts and meets the budget but keeps positions only (no UVs, normals or
-        materials: a textured asset's far level is drawn untextured). Not with
-        ``errors``.
-    """
-
-    lods: tuple[float, ...] | None = None
-    errors: tuple[float, ...] | None = None
-    per_mesh: bool = False
-    separate: bool = False
-    reach: str = "none"
-    compress: str = "none"
-    naming: str = "msft"
-
-    def __post_init__(self):
-        check_reach(self.reach)
-        check_compress(self.compress)
-        if self.naming not in LOD_NAMINGS:
-            raise MeshError(f"LOD naming must be one of {', '.join(LOD_NAMINGS)}, "
-                            f"got {str(self.naming)[:40]!r}")
-        if self.lods is not None and self.errors is not None:
-            raise MeshError("give LOD ratios or LOD errors, not both")
-        if self.errors is not None:
-            if self.per_mesh:
-                raise MeshError("per-mesh levels are chosen by ratio; levels by error are "
-                                "per mesh already")
-            if self.reach != "none":
-                raise MeshError("reach meets face budgets, and levels by error have none")
-            object.__setattr__(self, "errors", check_errors(self.errors))
-        else:
-            lods = DEFAULT_LODS if self.lods is None else self.lods
-            object.__setattr__(self, "lods", check_lods(lods))
-
-    @classmethod
-    def of(cls, chain: ChainOptions | None, keywords: dict) -> ChainOptions:
-        """``chain``, or one made of ``keywords`` (the fields by name, as
-        ``export_lods`` and ``export_folder`` also take them); not both."""
-        if chain is None:
-            return cls(**keywords)
-        if keywords:
-            raise TypeError(f"give chain or {', '.join(sorted(keywords))}, not both")
-        return chain
 
 
 def export_lods(source, output, chain: ChainOptions | None = None, *,
@@ -289,7 +96,7 @@ def export_lods(source, output, chain: ChainOptions | None = None, *,
     if source.suffix.lower() in (".gltf", ".glb"):
         from .io.scene import load_scene
         scene = load_scene(source, root=source.parent if untrusted else None)
-        return _export_scene(scene, source, output, chain, options, progress, start)
+        return export_scene(scene, source, output, chain, options, progress, start)
     if source.suffix.lower() == ".pm":
         pm = ProgressiveMesh.load(source)
     else:
@@ -321,132 +128,6 @@ def _write_chain(output: Path, chain: ChainOptions, meshes, coverage) -> list[Pa
     for path, blob in zip(outputs, blobs):
         write_atomic(path, blob)
     return outputs
-
-
-def _build_parts(scene, source: Path, options, progress) -> dict:
-    """glTF mesh index -> its progressive mesh, each built once; a skinned or morphed
-    mesh with its error measured in the poses it is seen in (``simplify.poses``)."""
-    from .build import build
-    from .simplify.poses import scene_poses
-
-    pms = {}
-    for index, mesh in scene.meshes.items():
-        try:
-            pms[index] = build(mesh, options, progress=progress,
-                               poses=scene_poses(scene, index, mesh))
-        except ValueError as exc:       # argument checks deep in the build
-            raise MeshError(str(exc)) from exc
-        except MeshError as exc:
-            raise MeshError(f"cannot build mesh {index} of {source.name}: {exc}") from exc
-    return pms
-
-
-def _export_scene(scene, source: Path, output: Path, chain: ChainOptions, options, progress,
-                  start) -> Exported:
-    """:func:`export_lods` of a glTF scene kept whole: each glTF mesh built once into a
-    progressive mesh, the levels of all of them chosen together (``budget.chain_levels``)
-    and written in place of them (``io.scene_glb``).
-
-    ``Exported.faces`` counts each source mesh once per level (not per instance),
-    ``Exported.drawn`` once per instance; ``errors`` is the worst world error of
-    each level. ``base_faces`` sums the meshes' coarsest reachable levels;
-    ``clustered`` lists the levels that clustering made for at least one mesh:
-    with ``reach="cluster"``, a level whose drawn triangles overshoot its budget
-    by more than ``REACH_SLACK`` has each mesh that stopped at its base made by
-    clustering at its share (the level's ratio of its faces), if that has fewer
-    faces. Meshes kept as they are (``scene.as_is``) are drawn at every level
-    and are outside the budget: the ratios are of the simplified meshes' triangles.
-    """
-    from .budget import chain_levels, coverage_from_errors, scene_instances, world_errors
-    from .io.scene_glb import encode_scene
-    if chain.naming != "msft":
-        raise MeshError(f"{source.name} is a glTF scene, whose levels are linked by MSFT_lod: "
-                        f"--lod-naming {chain.naming} applies to single meshes")
-    if not scene.meshes and not scene.as_is:
-        raise MeshError(f"cannot load {source.name}: it has no faces (no node of it places "
-                        "a mesh)")
-    pms = _build_parts(scene, source, options, progress)
-    instances, diagonal = scene_instances(scene, pms)
-    lods, per_mesh = chain.lods, chain.per_mesh
-    count = len(chain.errors if chain.errors is not None else lods)
-    chosen_levels = chain_levels(pms, instances, lods=lods, errors=chain.errors,
-                                 per_mesh=per_mesh, diagonal=diagonal)
-    levels = {index: [pm.at(chosen[index]) for chosen in chosen_levels]
-              for index, pm in pms.items()}
-    worst = [max(world_errors(pms, instances, chosen).values(), default=0.0)
-             for chosen in chosen_levels]
-    drawn = [sum(len(instances[index]) * levels[index][k].face_count for index in pms)
-             for k in range(count)]
-    clustered = set()
-    if chain.reach == "cluster":
-        full_drawn = sum(len(instances[index]) * pm.face_count for index, pm in pms.items())
-        for k, ratio in enumerate(lods):
-            # per mesh: each mesh over its own budget; scene: the meshes stopped at their
-            # base, when the scene is over its budget
-            if per_mesh or drawn[k] > REACH_SLACK * max(1, ratio * full_drawn):
-                replaced = _cluster_stuck(pms, chosen_levels[k], levels, k, ratio, per_mesh)
-                if replaced:
-                    clustered.add(k)
-                    # a clustered level has no collapse error: its measured distance
-                    # to the full mesh stands in (world units, for the hints)
-                    worst[k] = max(worst[k], *(max(instances[index], default=0.0) * error
-                                               for index, error in replaced.items()))
-        drawn = [sum(len(instances[index]) * levels[index][k].face_count for index in pms)
-                 for k in range(count)]
-    kept_drawn = sum(scene.as_is_faces[index] * len(scene.mesh_nodes.get(index, ()))
-                     for index in scene.as_is)
-    coverage = coverage_from_errors(worst, diagonal) if count else []
-    if chain.separate:
-        outputs = [output.with_name(f"{output.stem}_lod{i}{output.suffix}") for i in range(count)]
-        blobs = [encode_scene(scene, levels, coverage, level=i, compress=chain.compress)
-                 for i in range(count)]
-    else:
-        outputs, blobs = [output], [encode_scene(scene, levels, coverage,
-                                                 compress=chain.compress)]
-    output.parent.mkdir(parents=True, exist_ok=True)
-    for path, blob in zip(outputs, blobs):
-        write_atomic(path, blob)
-    kept = sum(scene.as_is_faces.values())
-    faces = [kept + sum(chain_[k].face_count for chain_ in levels.values()) for k in range(count)]
-    base = sum(pm.faces_at_level(pm.base_vertices) for pm in pms.values())
-    # base_faces: the coarsest the simplified meshes reach, with the kept ones beside them
-    # (0 when nothing was simplified: no "simplifies no further" for a skinned asset)
-    return Exported(source, outputs, faces, coverage, time.perf_counter() - start,
-                    base + kept if levels else 0, sorted(clustered), list(scene.notes),
-                    [kept_drawn + d for d in drawn], worst)
-
-
-def _cluster_stuck(pms: dict, chosen: dict, levels: dict, k: int, ratio: float,
-                   per_mesh: bool) -> dict:
-    """Replace level ``k`` of the meshes edge collapse left short, by clustering of
-    the full mesh at ``ratio`` of its faces where that has fewer faces. Short: over
-    ``REACH_SLACK`` times its own budget (``per_mesh``, as :func:`lod_chain` does),
-    else stopped at its base. Returns mesh index -> the clustered level's error,
-    mesh units: its sampled two-sided Hausdorff distance to the full mesh."""
-    from .metrics.surface import surface_distance
-    from .simplify.cluster import cluster
-
-    replaced = {}
-    for index, pm in pms.items():
-        budget = max(1, round(ratio * pm.face_count))
-        short = (levels[index][k].face_count > REACH_SLACK * budget if per_mesh
-                 else chosen[index] == pm.base_vertices)
-        if not short:
-            continue
-        full = pm.at(pm.vertex_count)
-        full = Mesh(full.positions, full.faces)
-        try:
-            joined = cluster(full, target_faces=budget)
-        except MeshError:
-            continue    # clustering cannot bring a tiny part (a few faces) to its budget
-        if joined.face_count < levels[index][k].face_count:
-            levels[index][k] = joined
-            try:
-                distance = surface_distance(full, joined, samples=20_000)
-                replaced[index] = distance["hausdorff"] * distance["diagonal"]
-            except ValueError:      # a flat or degenerate part: no area to sample
-                replaced[index] = pm.error_at_level(pm.base_vertices)
-    return replaced
 
 
 @dataclass

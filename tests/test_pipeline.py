@@ -269,7 +269,7 @@ def test_scene_level_choice_is_part_of_the_manifest(tmp_path):
 
 
 def test_chain_options_are_checked_when_made_and_passed_whole(tmp_path):
-    from lodserver.pipeline import DEFAULT_LODS, ChainOptions
+    from lodserver.chains import DEFAULT_LODS, ChainOptions
     assert ChainOptions().lods == DEFAULT_LODS and ChainOptions().errors is None
     assert ChainOptions(errors=[0, 0.01]).errors == (0.0, 0.01)
     assert ChainOptions(errors=[0]).lods is None

@@ -1,4 +1,4 @@
-"""One triangle budget for a whole scene (lodserver.budget, export_lods of a scene).
+"""One triangle budget for a whole scene (lodserver.scene.budget, export_lods of a scene).
 
 The scene the tests build: a tiny, finely tessellated bolt and a large hull
 placed twice (scales 3 and 5). Per mesh, every part gives up the same share of
@@ -21,7 +21,7 @@ import pytest
 import trimesh
 
 from lodserver import build
-from lodserver.budget import (chain_levels, coverage_from_errors, part_diagonal, scene_faces,
+from lodserver.scene.budget import (chain_levels, coverage_from_errors, part_diagonal, scene_faces,
                               scene_instances, scene_levels, world_errors)
 from lodserver.cli import main
 from lodserver.io.scene import load_scene

@@ -96,7 +96,8 @@ VersionQuery = Annotated[str | None, Query(pattern=VERSION_PATTERN, description=
 
 
 def load_versioned(store, mesh_id: str, version: str | None):
-    """(pm, digest, Cache-Control) of a ready mesh of ``store``, ``version`` (the
+    """(asset, digest, Cache-Control) of a ready mesh of ``store`` (its
+    ``scene.asset.SceneAsset``), ``version`` (the
     request's ``v=``, or None) checked by :func:`cache_control`.
 
     The row is read before and after the load: when both name one digest, the
@@ -108,9 +109,9 @@ def load_versioned(store, mesh_id: str, version: str | None):
         if digest is None:
             store.load(mesh_id=mesh_id)        # not ready: its NotReadyError (409)
         policy = cache_control(digest, mesh_id, version)   # a wrong v: 404, nothing loaded
-        pm = store.load(mesh_id=mesh_id)
+        asset = store.load(mesh_id=mesh_id)
         if store.get(mesh_id=mesh_id).digest == digest:
-            return pm, digest, policy
+            return asset, digest, policy
     raise HTTPException(503, f"mesh {mesh_id} is being rebuilt; retry in a moment",
                         headers={"Retry-After": "1"})
 

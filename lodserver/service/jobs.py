@@ -40,10 +40,11 @@ from ..io.fileset import FileSetLimits
 from ..io.limits import DEFAULT_MAX_TRIANGLES, LoadLimits
 from ..io.scene import Scene
 from ..mesh import Mesh, MeshError
+from ..scene.build import build_asset
+from ..scene.load import SceneReport
 from .catalog import CatalogUnavailable
 from .errors import StoreUnavailable
 from .parsing import ParsePool, ParserClosed, check_mesh_file
-from .scenes import SceneReport, build_scene
 from .store import (Claim, LeaseLostError, MeshRecord, Store, StorageFullError, StoreError,
                     UnknownMeshError, is_disk_full)
 
@@ -88,9 +89,8 @@ def _prepare_packets(store: Store, mesh_id: str) -> None:
     from ..packets import encode_records
 
     try:
-        artefact = store.load(mesh_id=mesh_id)
-        for part in getattr(artefact, "parts", None) or [None]:
-            encode_records(artefact if part is None else part.pm)
+        for part in store.load(mesh_id=mesh_id).parts:
+            encode_records(part.pm)
     except Exception:       # the mesh is served either way; its first packet is just slower
         log.exception("could not prepare the packets of mesh %s", mesh_id)
 
@@ -152,7 +152,7 @@ class JobRunner:
         # a million-face file is not parsed twice. Only a few are kept (memory),
         # the oldest dropped (another process may have built it); the others,
         # and builds of uploads to other processes, parse their file again.
-        self._parsed: OrderedDict[str, tuple[Mesh, LoadReport]] = OrderedDict()
+        self._parsed: OrderedDict[str, tuple] = OrderedDict()   # id -> what parse returned
         self._keep_parsed = max(1, self.workers) + 1
         self._lock = threading.Lock()
         self._wake = threading.Condition(self._lock)
@@ -220,7 +220,7 @@ class JobRunner:
     def parse(self, source: Path, *, file_type: str, name: str, root=None,
               admit: bool = True) -> tuple[Mesh | Scene, LoadReport | SceneReport]:
         """Parse and check ``source`` (in the parse pool when there is one): a
-        glTF scene (``scenes.scene_reason``) as ``(Scene, SceneReport)``.
+        glTF scene (``scene.load.scene_reason``) as ``(Scene, SceneReport)``.
 
         Messages name ``name``, never ``source``, ``root`` or the data directory.
         """
@@ -403,7 +403,7 @@ class JobRunner:
                 except (StoreError, OSError, sqlite3.Error):
                     pass    # deleted, taken over, or unreachable: the lease runs out
 
-    def _parse_stored(self, record: MeshRecord) -> tuple[Mesh, LoadReport]:
+    def _parse_stored(self, record: MeshRecord) -> tuple[Mesh | Scene, LoadReport | SceneReport]:
         """Parse a stored source again (a build of an upload to another process, or
         resumed after a restart), by the upload's rule: alone in a folder of its own."""
         folder = self.store.scratch(prefix="build-")
@@ -421,7 +421,7 @@ class JobRunner:
         with self._lock:
             parsed = self._parsed.pop(mesh_id, None)
         try:
-            mesh, report = parsed or self._parse_stored(record)
+            source, report = parsed or self._parse_stored(record)
         except (MeshError, StoreError) as exc:
             if isinstance(exc, (UnknownMeshError, LeaseLostError, StoreUnavailable)):
                 raise
@@ -445,46 +445,22 @@ class JobRunner:
                 log.warning("could not record the progress of mesh %s: %s", mesh_id, exc)
 
         options = dict(record.options)
-        if isinstance(mesh, Scene):
-            return self._build_scene(running, mesh, report, options, progress)
-        locked = None
-        if options.pop("lock_border", False):
-            from ..simplify.topology import census
-            locked = np.zeros(mesh.vertex_count, dtype=bool)
-            locked[census(mesh.faces, mesh.vertex_count).on_boundary] = True
-        try:
-            pm = build(mesh, locked=locked, progress=progress, cancel=cancel, **options)
-        except MeshError as exc:
-            store.mark_failed(mesh_id=mesh_id, reason=str(exc), attempt=attempt)
-            return True
-        if cancel.is_set():
-            return False  # a cut-short decimation is not the mesh's progressive mesh
-        pm.metadata["source"] = record.name
-        pm.metadata["load_report"] = report.as_dict()
-        store.put_artefact(mesh_id=mesh_id, pm=pm, attempt=attempt,
-                           patience=self.lease_seconds)
-        _prepare_packets(store, mesh_id)
-        return True
-
-    def _build_scene(self, running: _Build, scene: Scene, report: SceneReport, options: dict,
-                     progress) -> bool:
-        """Build every part of a scene, then store them as one artefact (so a part
-        that fails, or a cancel, leaves nothing stored); as :meth:`_build`."""
-        store, record, cancel = self.store, running.claim.record, running.cancel
-        mesh_id, attempt = record.id, running.claim.attempt
         lock_border = bool(options.pop("lock_border", False))
         try:
-            asset = build_scene(scene, build=build, options=options, lock_border=lock_border,
+            # every part built before anything is stored: a part that fails, or a
+            # cancel, leaves nothing
+            asset = build_asset(source, build=build, options=options, lock_border=lock_border,
                                 progress=progress, cancel=cancel)
         except MeshError as exc:
             store.mark_failed(mesh_id=mesh_id, reason=str(exc), attempt=attempt)
             return True
         if asset is None or cancel.is_set():
-            return False
+            return False  # a cut-short decimation is not the mesh's progressive mesh
+        # a single mesh's metadata is its progressive mesh's, which has its options
         asset.metadata.update(source=record.name, load_report=report.as_dict(),
                               options=asset.parts[0].pm.metadata.get("options",
                                                                      dict(record.options)))
-        store.put_artefact(mesh_id=mesh_id, pm=asset, attempt=attempt,
+        store.put_artefact(mesh_id=mesh_id, asset=asset, attempt=attempt,
                            patience=self.lease_seconds)
         _prepare_packets(store, mesh_id)
         return True

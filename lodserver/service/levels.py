@@ -254,7 +254,7 @@ def scene_bytes(asset, chain: list) -> int:
     is (animations, skins, instancing, meshes kept without levels: its accessors'
     bytes), the images and the document.
 
-    ``asset`` is a ``scenes.SceneAsset``.
+    ``asset`` is a ``scene.asset.SceneAsset``.
     """
     pms = asset.pms
     geometry = sum(_glb_geometry(pms[p], level) for levels in chain

@@ -30,12 +30,6 @@ from ..packets import cached_records, record_cache, records_ready
 LOADED_BYTES_PER_TRIANGLE = 170
 
 
-def _parts(artefact) -> list:
-    """The progressive meshes of a ProgressiveMesh (itself) or of a SceneAsset."""
-    parts = getattr(artefact, "parts", None)
-    return [part.pm for part in parts] if parts is not None else [artefact]
-
-
 def _arrays_nbytes(arrays, seen: set) -> int:
     """Bytes of ``arrays`` not counted yet: views of one buffer are counted once
     (by the memory they span, ``seen`` holding the spans already counted)."""
@@ -50,28 +44,29 @@ def _arrays_nbytes(arrays, seen: set) -> int:
     return total
 
 
-def fixed_nbytes(artefact) -> int:
-    """The bytes of ``artefact`` that never change once it is loaded: every part's
-    arrays (stored and derived), the images once, a scene's carried accessors and
-    its document (as JSON text: the least its objects take)."""
+def fixed_nbytes(asset) -> int:
+    """The bytes of ``asset`` (a ``scene.asset.SceneAsset``) that never change once
+    it is loaded: every part's arrays (stored and derived), the images once, a
+    scene's carried accessors and its document (as JSON text: the least its
+    objects take)."""
     seen: set = set()
     total = 0
-    for pm in _parts(artefact):
-        total += _arrays_nbytes(vars(pm).values(), seen)
-    materials = getattr(artefact, "materials", None)
+    for part in asset.parts:
+        total += _arrays_nbytes(vars(part.pm).values(), seen)
+    materials = asset.materials
     if materials is not None:
         total += sum(len(image) for image in materials.images)
-    scene = getattr(artefact, "scene", None)
+    scene = asset.scene
     if scene is not None:
         total += _arrays_nbytes((values for values, _, _ in scene.carried.values()), seen)
         total += len(orjson.dumps(scene.document))
     return total
 
 
-def records_nbytes(artefact) -> int:
-    """Bytes of the packet records encoded so far for ``artefact``'s meshes."""
+def records_nbytes(asset) -> int:
+    """Bytes of the packet records encoded so far for ``asset``'s parts."""
     total = 0
-    for pm in _parts(artefact):
+    for pm in (part.pm for part in asset.parts):
         if pm not in record_cache:
             continue
         for forward in (True, False):
@@ -83,10 +78,10 @@ def records_nbytes(artefact) -> int:
     return total
 
 
-def loaded_nbytes(artefact) -> int:
-    """What ``artefact`` (a ProgressiveMesh or SceneAsset) holds in memory now, in
-    bytes: :func:`fixed_nbytes` plus :func:`records_nbytes`."""
-    return fixed_nbytes(artefact) + records_nbytes(artefact)
+def loaded_nbytes(asset) -> int:
+    """What ``asset`` holds in memory now, in bytes: :func:`fixed_nbytes` plus
+    :func:`records_nbytes`."""
+    return fixed_nbytes(asset) + records_nbytes(asset)
 
 
 class LoadedArtefacts:

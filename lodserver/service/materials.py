@@ -12,13 +12,15 @@ from __future__ import annotations
 from ..io.gltf import extension_names
 from ..io.images import image_type
 from ..progressive.mesh import ProgressiveMesh
+from ..scene.asset import SceneAsset
 
 
 class AbsentError(LookupError):
     """The mesh has no materials, or no image with that index."""
 
 
-def materials_document(pm: ProgressiveMesh, *, image_uri=lambda i: f"images/{i}") -> dict:
+def materials_document(pm: ProgressiveMesh | SceneAsset, *,
+                       image_uri=lambda i: f"images/{i}") -> dict:
     """The glTF ``materials``, ``textures``, ``samplers`` and ``images`` records of
     ``pm``, every image with its ``uri`` and ``mimeType``; ``extensionsUsed``
     naming the extensions these records use (``KHR_texture_transform``,
@@ -50,7 +52,7 @@ def materials_document(pm: ProgressiveMesh, *, image_uri=lambda i: f"images/{i}"
     return document
 
 
-def image_of(pm: ProgressiveMesh, index: int) -> tuple[bytes, str]:
+def image_of(pm: ProgressiveMesh | SceneAsset, index: int) -> tuple[bytes, str]:
     """The bytes of image ``index`` and its media type, sniffed from the bytes.
 
     Only image types are ever returned (PNG, JPEG, WebP, KTX2): the loaders

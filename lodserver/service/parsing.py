@@ -35,7 +35,7 @@ from ..mesh import Mesh, MeshError
 
 if TYPE_CHECKING:       # annotations only: the scene reader is imported when needed
     from ..io.scene import Scene
-    from .scenes import SceneReport
+    from ..scene.load import SceneReport
 
 # Address space of one parse worker by default: its imports (numpy, numba,
 # trimesh) take about 0.5 GB of it before any file is read.
@@ -89,8 +89,8 @@ def check_mesh_file(path, *, file_type: str, max_triangles: int, root=None,
     set_limits : FileSetLimits, optional
         What a set's archive may hold (default ``FileSetLimits()``).
     scenes : bool
-        Keep a glTF that is a scene (``scenes.scene_reason``) as one: the
-        result is then ``(io.scene.Scene, scenes.SceneReport)``.
+        Keep a glTF that is a scene (``scene.load.scene_reason``) as one: the
+        result is then ``(io.scene.Scene, scene.load.SceneReport)``.
 
     Returns
     -------
@@ -113,7 +113,7 @@ def check_mesh_file(path, *, file_type: str, max_triangles: int, root=None,
         finally:
             shutil.rmtree(unpacked, ignore_errors=True)
     if scenes and file_type in ("gltf", "glb"):
-        from .scenes import read_scene_upload
+        from ..scene.load import read_scene_upload
         scene = read_scene_upload(path, root=root, limits=limits,
                                   max_triangles=max_triangles)
         if scene is not None:

@@ -11,9 +11,9 @@ The data directory (one process's alone: it is locked while open) holds
 - ``catalogue.sqlite3`` : the default catalogue (``catalog.py``: one row per
   mesh and the build queue, with leases), in SQLite's WAL mode;
 - ``sources/<id>.<ext>`` : the uploaded file, kept until its build is done, and
-- ``artefacts/<id>.<sha256>.pm`` : the progressive mesh (a scene's: every part's
-  and its document in one file, ``scenes.py``), under a key naming its own
-  digest, written once (atomically) and never changed: both in the default
+- ``artefacts/<id>.<sha256>.pm`` : the asset (``scene/artefact.py``: a single
+  mesh's progressive mesh, a scene's every part and its document in one
+  file), under a key naming its own digest, written once (atomically) and never changed: both in the default
   blob store, the directory itself; with ``LODSERVER_STORE_URL`` they live there;
 - ``tmp/``                : scratch folders (an upload being received, a source
   being parsed, an artefact being written), emptied every time a store opens;
@@ -33,10 +33,10 @@ sources or artefacts no row names. An artefact that fails its checks when
 loaded is detected once: the mesh is marked failed with the reason and the
 file moved to ``quarantine/``, so later requests get that reason without a re-read.
 
-A loaded progressive mesh or scene is kept in memory (bounded by count and by
-bytes, ``loaded.py``), and served again only
-after the catalogue row says the mesh is still ready with the same digest
-(one indexed read), so a delete or failure on another server is seen at once.
+A loaded asset (``scene.asset.SceneAsset``) is kept in memory (bounded by
+count and by bytes, ``loaded.py``), and served again only after the catalogue
+row says the mesh is still ready with the same digest (one indexed read), so a
+delete or failure on another server is seen at once.
 
 Running out of disk space (``ENOSPC``/``EDQUOT``, SQLite's "disk is full",
 PostgreSQL's 53100) raises :class:`StorageFullError` and leaves the catalogue
@@ -62,8 +62,9 @@ from pathlib import Path
 
 from ..io.files import write_atomic
 from ..io.limits import DEFAULT_MAX_TRIANGLES
-from ..progressive import ArtefactError, load_progressive, save_progressive
-from ..progressive.mesh import ProgressiveMesh
+from ..progressive import ArtefactError
+from ..scene.artefact import load_artefact, save_asset
+from ..scene.asset import SceneAsset, artefact_summary
 from .blobs import (Blobs, BlobNotFoundError, LocalBlobs, delete_later, delete_patiently,
                     open_blobs, sha256_file)
 from .cache import DEFAULT_CACHE_BYTES, ArtefactCache
@@ -73,7 +74,6 @@ from .errors import (LeaseLostError, SourceLostError, StorageFullError, StoreErr
                      StoreUnavailable, UnknownMeshError, is_disk_full)
 from .errors import raise_if_full as _raise_if_full
 from .loaded import LOADED_BYTES_PER_TRIANGLE, LoadedArtefacts
-from .scenes import SceneAsset, artefact_summary, load_artefact, save_asset
 
 __all__ = ["CORRUPT_ARTEFACT", "ID_PATTERN", "LOADED_BYTES", "LOADED_BYTES_PER_TRIANGLE",
            "LOADED_CACHE_SIZE", "Claim", "LeaseLostError",
@@ -176,16 +176,16 @@ class Store(ABC):
     def mark_failed(self, *, mesh_id: str, reason: str, attempt: int | None = None) -> None: ...
 
     @abstractmethod
-    def put_artefact(self, *, mesh_id: str, pm: ProgressiveMesh | SceneAsset,
+    def put_artefact(self, *, mesh_id: str, asset: SceneAsset,
                      attempt: int | None = None, patience: float = 0.0) -> MeshRecord:
-        """Store the built artefact (a progressive mesh, or a scene's parts and
-        document as one file: ``scenes.SceneAsset``), mark the mesh ready and drop
-        its source. While the catalogue cannot be reached, marking it ready is
+        """Store the built asset as one artefact (``scene.artefact``: a single mesh's
+        ``.pm`` file, a scene's parts and document in one file), mark the mesh
+        ready and drop its source. While the catalogue cannot be reached, marking it ready is
         tried again for up to ``patience`` seconds (a builder gives its lease)."""
 
     @abstractmethod
-    def load(self, *, mesh_id: str) -> ProgressiveMesh | SceneAsset:
-        """The artefact of a ready mesh (a SceneAsset for a scene); :class:`NotReadyError`
+    def load(self, *, mesh_id: str) -> SceneAsset:
+        """The asset of a ready mesh; :class:`NotReadyError`
         otherwise (also for an artefact found corrupt, which is then quarantined and
         its mesh failed)."""
 
@@ -487,7 +487,7 @@ class LocalStore(Store):
                               lease_owner=None, lease_until=None)
         self.blobs.delete(source_key(record))
 
-    def put_artefact(self, *, mesh_id: str, pm: ProgressiveMesh | SceneAsset,
+    def put_artefact(self, *, mesh_id: str, asset: SceneAsset,
                      attempt: int | None = None, patience: float = 0.0) -> MeshRecord:
         record = self._row(mesh_id)
         folder = self.scratch(prefix="artefact-")
@@ -495,7 +495,7 @@ class LocalStore(Store):
             path = folder / "artefact.pm"
             try:
                 # atomic: nothing is left if it fails
-                (save_asset if isinstance(pm, SceneAsset) else save_progressive)(pm, path)
+                save_asset(asset, path)
                 digest = sha256_file(path)
                 key = artefact_key(mesh_id, digest)
                 self.blobs.put_file(key, path, move=True)
@@ -504,7 +504,7 @@ class LocalStore(Store):
                 raise
         finally:
             shutil.rmtree(folder, ignore_errors=True)
-        summary = artefact_summary(pm)
+        summary = artefact_summary(asset)
         try:
             ready = self._mark_ready(mesh_id, attempt, patience, status=Status.READY.value,
                                      progress=1.0, failure=None, summary=summary, digest=digest,
@@ -554,7 +554,7 @@ class LocalStore(Store):
                 pause = min(2 * pause, 2.0)
 
     # ---- loading -------------------------------------------------------------
-    def load(self, *, mesh_id: str) -> ProgressiveMesh:
+    def load(self, *, mesh_id: str) -> SceneAsset:
         # The row first, every time (one indexed read): another server may have
         # deleted or failed the mesh since it was loaded here.
         record = self._row(mesh_id)
@@ -570,16 +570,16 @@ class LocalStore(Store):
         # one object, and with it what is cached on it (its packet records).
         with loading:
             try:
-                pm = self._loaded.get(mesh_id, record.digest)
-                if pm is None:
-                    pm = self._read_artefact(record)
-                    self._loaded.put(mesh_id, record.digest, pm)
+                asset = self._loaded.get(mesh_id, record.digest)
+                if asset is None:
+                    asset = self._read_artefact(record)
+                    self._loaded.put(mesh_id, record.digest, asset)
             finally:
                 with self._lock:
                     self._loading.pop(mesh_id, None)
-        return pm
+        return asset
 
-    def _read_artefact(self, record: MeshRecord) -> ProgressiveMesh:
+    def _read_artefact(self, record: MeshRecord) -> SceneAsset:
         """Decode a ready mesh's artefact; a missing or corrupt one fails the mesh
         (once: the row then says why, and the file is moved to ``quarantine/``)."""
         key = artefact_key(record.id, record.digest)
@@ -592,9 +592,9 @@ class LocalStore(Store):
         except BlobNotFoundError:
             raise self._fail_artefact(record, key, "it is missing from the store") from None
 
-    def _decode(self, record: MeshRecord, key: str, path: Path) -> ProgressiveMesh:
+    def _decode(self, record: MeshRecord, key: str, path: Path) -> SceneAsset:
         try:
-            return load_artefact(path, single=load_progressive)
+            return load_artefact(path)
         except ArtefactError as exc:
             cause = exc.__cause__
             if isinstance(cause, OSError) and not isinstance(cause, FileNotFoundError):

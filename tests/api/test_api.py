@@ -350,7 +350,7 @@ def test_restart_serves_ready_meshes_and_resumes_interrupted_builds(tmp_path):
         store.mark_building(mesh_id=interrupted.id)
     with _client(tmp_path) as client:
         # after a restart nothing has encoded the mesh's packet records ...
-        pm = client.app.state.store.load(mesh_id=ready_id)
+        pm = client.app.state.store.load(mesh_id=ready_id).single
         assert pm not in packets.record_cache
         again = client.get(f"/meshes/{ready_id}/lod", params={"ratio": 0.2})
         assert again.status_code == 200 and again.content == lod.content

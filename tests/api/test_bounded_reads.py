@@ -272,7 +272,7 @@ def test_bodies_take_slots_by_their_estimated_bytes(serve):
     """A level estimated at one slot's bytes takes one slot; a chain estimated
     past every slot's bytes takes them all, and waits while one is held."""
     client, mesh_id, _ = serve()
-    pm = client.app.state.store.load(mesh_id=mesh_id)
+    pm = client.app.state.store.load(mesh_id=mesh_id).single
     level, ratios = pm.level_for(ratio=0.1), [1.0, 0.5, 0.25, 0.125]
     slot = level_bytes(pm, level, "json")
     chain = chain_bytes(pm, [pm.level_for(ratio=r) for r in ratios])

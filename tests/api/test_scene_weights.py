@@ -14,7 +14,7 @@ from lodserver.api.main import create_app
 from lodserver.api.routes import lods
 from lodserver.api.settings import Settings
 from lodserver.service.levels import carried_bytes, level_bytes, scene_bytes
-from lodserver.service.scenes import SceneAsset, scene_levels_for
+from lodserver.scene.asset import SceneAsset, scene_levels_for
 
 from ..hostile_files import animated_glb
 from ..server import upload, wait_ready

@@ -329,7 +329,7 @@ def test_disk_full_while_storing_is_507_and_leaves_nothing(tmp_path, monkeypatch
 
 
 def test_disk_full_while_building_says_so(tmp_path, monkeypatch):
-    monkeypatch.setattr(store_module, "save_progressive", _enospc)
+    monkeypatch.setattr(store_module, "save_asset", _enospc)
     with _client(tmp_path) as client:
         mesh_id = _upload(client).json()["id"]
         body = settled(client, mesh_id)
@@ -347,7 +347,7 @@ def test_a_corrupt_artefact_is_quarantined_once_and_answered_409(tmp_path, monke
     data = bytearray(artefact.read_bytes())
     data[len(data) // 2] ^= 0xFF
     artefact.write_bytes(bytes(data))
-    reads = record_calls(monkeypatch, store_module, "load_progressive")
+    reads = record_calls(monkeypatch, store_module, "load_artefact")
     with _client(tmp_path) as client:          # a restart: nothing loaded in memory
         for path in ("lod?ratio=0.5", "splits?from=4&to=10", "lod?vertices=100&format=glb",
                      "materials", "chain"):

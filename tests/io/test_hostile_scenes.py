@@ -568,7 +568,7 @@ def test_gpu_instances_count_against_the_triangle_total(tmp_path):
 
 
 def test_instance_scales_are_one_array_per_part_and_match_each_matrix(tmp_path):
-    from lodserver.budget import scene_instances
+    from lodserver.scene.budget import scene_instances
     from lodserver.io.gltf import _local_matrix
 
     count = 60_000
@@ -581,7 +581,7 @@ def test_instance_scales_are_one_array_per_part_and_match_each_matrix(tmp_path):
     columns = {name: scene.carried[index][0].astype(np.float64) for name, index in
                scene.document["nodes"][0]["extensions"]["EXT_mesh_gpu_instancing"][
                    "attributes"].items()}
-    from lodserver.budget import _instancing_matrices
+    from lodserver.scene.budget import _instancing_matrices
     ours = _instancing_matrices(columns, count)[chosen]
     theirs = np.stack([_local_matrix({n.lower(): columns[n][i].tolist() for n in columns})
                        for i in chosen])

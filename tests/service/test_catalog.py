@@ -12,6 +12,7 @@ from pathlib import Path
 
 import pytest
 
+from lodserver.scene.asset import SceneAsset
 from lodserver.service import store as store_module
 from lodserver.service.catalog import (
     MAX_LOST,
@@ -33,6 +34,11 @@ from lodserver.service.store import (
 
 from ..meshes import progressive
 from .conftest import DIALECTS
+
+
+def _grid() -> SceneAsset:
+    """The grid as the store keeps it: a scene of one part."""
+    return SceneAsset.of_mesh(progressive("grid"))
 
 
 def _open(url, tmp_path):
@@ -269,14 +275,14 @@ def test_two_stores_share_rows_artefacts_and_deletes(two_stores, tmp_path, monke
     assert staged.read_text().startswith("v 0 0 0")
     two.set_progress(mesh_id=record.id, progress=0.5, attempt=claim.attempt)
     assert one.get(mesh_id=record.id).progress == 0.5
-    ready = two.put_artefact(mesh_id=record.id, pm=progressive("grid"), attempt=claim.attempt)
+    ready = two.put_artefact(mesh_id=record.id, asset=_grid(), attempt=claim.attempt)
     artefact = tmp_path / "blobs" / "artefacts" / f"{record.id}.{ready.digest}.pm"
     assert artefact.is_file()
     assert not (tmp_path / "blobs" / "sources" / f"{record.id}.obj").exists()
 
     reads = []
-    real_load = store_module.load_progressive
-    monkeypatch.setattr(store_module, "load_progressive",
+    real_load = store_module.load_artefact
+    monkeypatch.setattr(store_module, "load_artefact",
                         lambda path: reads.append(path) or real_load(path))
     pm = one.load(mesh_id=record.id)
     assert one.load(mesh_id=record.id) is pm and len(reads) == 1   # kept in memory
@@ -298,20 +304,20 @@ def test_a_store_whose_claim_was_taken_over_records_nothing(two_stores, tmp_path
     with pytest.raises(LeaseLostError):
         one.set_progress(mesh_id=record.id, progress=0.9, attempt=stalled.attempt)
     with pytest.raises(LeaseLostError):
-        one.put_artefact(mesh_id=record.id, pm=progressive("grid"), attempt=stalled.attempt)
+        one.put_artefact(mesh_id=record.id, asset=_grid(), attempt=stalled.attempt)
     with pytest.raises(LeaseLostError):
         one.mark_failed(mesh_id=record.id, reason="no", attempt=stalled.attempt)
     assert one.get(mesh_id=record.id).status is Status.BUILDING
-    two.put_artefact(mesh_id=record.id, pm=progressive("grid"), attempt=taker.attempt)
+    two.put_artefact(mesh_id=record.id, asset=_grid(), attempt=taker.attempt)
     assert two.get(mesh_id=record.id).status is Status.READY
-    assert one.load(mesh_id=record.id).vertex_count == progressive("grid").vertex_count
+    assert one.load(mesh_id=record.id).single.vertex_count == progressive("grid").vertex_count
     # deleted while building: the builder's write is refused as an unknown mesh
     other = one.create(name="b", source=_source(tmp_path, "b.obj"), file_type="obj", options={})
     held = two.claim(lease_seconds=30)
     one.delete(mesh_id=other.id)
     assert not two.renew(claim=held, lease_seconds=30)
     with pytest.raises(UnknownMeshError):
-        two.put_artefact(mesh_id=other.id, pm=progressive("grid"), attempt=held.attempt)
+        two.put_artefact(mesh_id=other.id, asset=_grid(), attempt=held.attempt)
     assert list((tmp_path / "blobs" / "artefacts").glob(f"{other.id}*")) == []
 
 
@@ -370,11 +376,11 @@ def test_stores_sharing_a_remote_store_fetch_once_and_quarantine_a_bad_copy(tmp_
         claim = two.claim(lease_seconds=30)
         staged = two.stage_source(mesh_id=record.id, folder=two.scratch(prefix="t-"))
         assert staged.read_text().startswith("v 0 0 0")
-        ready = two.put_artefact(mesh_id=record.id, pm=progressive("grid"),
+        ready = two.put_artefact(mesh_id=record.id, asset=_grid(),
                                  attempt=claim.attempt)
         key = f"artefacts/{record.id}.{ready.digest}.pm"
         assert one.blobs.exists(key) and not one.blobs.exists(f"sources/{record.id}.obj")
-        assert one.load(mesh_id=record.id).vertex_count == progressive("grid").vertex_count
+        assert one.load(mesh_id=record.id).single.vertex_count == progressive("grid").vertex_count
         cached = list((tmp_path / "one" / "cache").iterdir())
         assert len(cached) == 1 and cached[0].stat().st_size == one.blobs.size(key)
 

@@ -12,9 +12,11 @@ from lodserver.build import build
 from lodserver.io.scene import load_scene
 from lodserver.service import store as store_module
 from lodserver.service.parsing import check_mesh_file
-from lodserver.service.scenes import (PartError, SceneAsset, build_scene, decode_asset,
-                                      encode_asset, instances_of, part_of, scene_glb,
-                                      scene_levels_for, scene_reason)
+from lodserver.scene.artefact import decode_asset, encode_asset
+from lodserver.scene.asset import PartError, SceneAsset, instances_of, part_of, scene_levels_for
+from lodserver.scene.build import build_scene
+from lodserver.scene.load import scene_reason
+from lodserver.scene.write import scene_glb
 from lodserver.service.store import LocalStore, NotReadyError, Status
 
 
@@ -204,7 +206,7 @@ def test_a_stored_scene_is_served_by_another_store_and_after_a_restart(asset, tm
     source = tmp_path / "two.glb"
     source.write_bytes(scene_file.read_bytes())
     record = first.create(name="two", source=source, file_type="glb", options={})
-    ready = first.put_artefact(mesh_id=record.id, pm=asset)
+    ready = first.put_artefact(mesh_id=record.id, asset=asset)
     assert ready.status is Status.READY and ready.summary["scene"] is True
     assert [p["nodes"] for p in ready.summary["parts"]] == [[1, 2], [3]]
     second = _stored(tmp_path, "b", **shared)
@@ -224,7 +226,7 @@ def test_a_corrupt_scene_artefact_fails_its_mesh_once(asset, tmp_path):
     source = tmp_path / "s.glb"
     source.write_bytes(b"x")
     record = store.create(name="s", source=source, file_type="glb", options={})
-    ready = store.put_artefact(mesh_id=record.id, pm=asset)
+    ready = store.put_artefact(mesh_id=record.id, asset=asset)
     path = store.artefacts / f"{record.id}.{ready.digest}.pm"
     data = bytearray(path.read_bytes())
     data[len(data) // 2] ^= 0xFF        # inside a stored member: its CRC-32 no longer matches
@@ -247,7 +249,7 @@ def test_a_failed_scene_write_stores_nothing(asset, tmp_path, monkeypatch):
 
     monkeypatch.setattr(store_module, "save_asset", full)
     with pytest.raises(store_module.StorageFullError):
-        store.put_artefact(mesh_id=record.id, pm=asset)
+        store.put_artefact(mesh_id=record.id, asset=asset)
     assert store.get(mesh_id=record.id).status is Status.QUEUED
     assert not list(store.artefacts.iterdir())
     assert not [p for p in store.tmp.iterdir()]

@@ -15,10 +15,15 @@ from lodserver.service.store import (
 from lodserver.io.scene import Scene
 from lodserver.packets import encode_records
 from lodserver.service.loaded import fixed_nbytes, loaded_nbytes, records_nbytes
-from lodserver.service.scenes import SceneAsset, ScenePart
+from lodserver.scene.asset import SceneAsset, ScenePart
 
 from ..conftest import record_calls
 from ..meshes import progressive
+
+
+def _grid() -> SceneAsset:
+    """The grid as the store keeps it: a scene of one part."""
+    return SceneAsset.of_mesh(progressive("grid"))
 
 
 def _source(tmp_path, name="cube.obj"):
@@ -64,7 +69,7 @@ def test_ready_artefact_is_served_after_reopening(tmp_path):
     store.mark_building(mesh_id=record.id)
     store.set_progress(mesh_id=record.id, progress=0.5)
     assert store.get(mesh_id=record.id).progress == 0.5
-    ready = store.put_artefact(mesh_id=record.id, pm=pm)
+    ready = store.put_artefact(mesh_id=record.id, asset=SceneAsset.of_mesh(pm))
     assert ready.status is Status.READY and ready.progress == 1.0 and len(ready.digest) == 64
     assert ready.summary["vertices"] == pm.vertex_count and ready.summary["error_curve"]
     assert not store.source_path(mesh_id=record.id).exists()  # the source goes once built
@@ -73,7 +78,7 @@ def test_ready_artefact_is_served_after_reopening(tmp_path):
 
     reopened = LocalStore(tmp_path / "data")
     assert reopened.recover() == []
-    loaded = reopened.load(mesh_id=record.id)
+    loaded = reopened.load(mesh_id=record.id).single
     assert np.array_equal(loaded.arrays_at(loaded.base_vertices + 5)[1],
                           pm.arrays_at(pm.base_vertices + 5)[1])
     reopened.close()
@@ -106,7 +111,7 @@ def test_artefact_of_a_mesh_deleted_while_building_is_dropped(store, tmp_path):
     record = store.create(name="a", source=_source(tmp_path), file_type="obj", options={})
     store.delete(mesh_id=record.id)
     with pytest.raises(UnknownMeshError):
-        store.put_artefact(mesh_id=record.id, pm=progressive("grid"))
+        store.put_artefact(mesh_id=record.id, asset=_grid())
     assert not list(store.artefacts.iterdir())
 
 
@@ -119,8 +124,8 @@ def test_racing_loads_of_one_mesh_share_one_object(tmp_path, monkeypatch):
 
     store = LocalStore(tmp_path / "data")
     record = store.create(name="grid", source=_source(tmp_path), file_type="obj", options={})
-    store.put_artefact(mesh_id=record.id, pm=progressive("grid"))
-    reads = record_calls(monkeypatch, store_module, "load_progressive")
+    store.put_artefact(mesh_id=record.id, asset=_grid())
+    reads = record_calls(monkeypatch, store_module, "load_artefact")
     start, found = threading.Barrier(6), []
 
     def load():
@@ -145,7 +150,7 @@ def test_loaded_meshes_are_bounded(tmp_path):
     for name in ("a", "b"):
         record = store.create(name=name, source=_source(tmp_path, f"{name}.obj"), file_type="obj",
                               options={})
-        store.put_artefact(mesh_id=record.id, pm=progressive("grid"))
+        store.put_artefact(mesh_id=record.id, asset=_grid())
         ids.append(record.id)
     first = store.load(mesh_id=ids[0])
     assert store.load(mesh_id=ids[0]) is first
@@ -159,13 +164,13 @@ def _two_meshes(store, tmp_path, pms):
     for name, pm in zip("ab", pms):
         record = store.create(name=name, source=_source(tmp_path, f"{name}.obj"), file_type="obj",
                               options={})
-        store.put_artefact(mesh_id=record.id, pm=pm)
+        store.put_artefact(mesh_id=record.id, asset=SceneAsset.of_mesh(pm))
         ids.append(record.id)
     return ids
 
 
 def test_loaded_meshes_are_bounded_by_bytes(tmp_path):
-    size = loaded_nbytes(progressive("grid"))
+    size = loaded_nbytes(_grid())
     # room for one grid and a half: the second load drops the first
     store = LocalStore(tmp_path / "data", loaded_meshes=8, loaded_bytes=size * 3 // 2)
     ids = _two_meshes(store, tmp_path, [progressive("grid"), progressive("grid")])
@@ -185,13 +190,13 @@ def test_loaded_meshes_are_bounded_by_bytes(tmp_path):
 def test_packet_records_count_once_encoded(tmp_path):
     """Records encoded after a mesh is kept are measured when it is used next: the
     bytes then pass the bound and the least recently used mesh is dropped."""
-    size = loaded_nbytes(progressive("grid"))
+    size = loaded_nbytes(_grid())
     store = LocalStore(tmp_path / "data", loaded_bytes=2 * size + 1)
     ids = _two_meshes(store, tmp_path, [progressive("grid"), progressive("grid")])
     first = store.load(mesh_id=ids[0])
     store.load(mesh_id=ids[1])
     assert len(store._loaded) == 2 and store._loaded.held == 2 * size
-    encode_records(first)
+    encode_records(first.single)
     assert records_nbytes(first) > 1
     assert store.load(mesh_id=ids[0]) is first          # measured again: too many bytes
     assert ids[1] not in store._loaded
@@ -206,7 +211,7 @@ def test_a_scene_counts_its_carried_bytes_once_however_aliased():
                2: (values[:10], {}, "OTHER")}          # a view inside the first
     asset = SceneAsset(Scene({"asset": {"version": "2.0"}}, carried=carried),
                        [ScenePart(0, 0, "grid", [0], pm)])
-    alone = fixed_nbytes(pm)
+    alone = fixed_nbytes(SceneAsset.of_mesh(pm))
     assert fixed_nbytes(asset) - alone - values.nbytes < 1000     # the document's JSON
     asset.scene.carried[3] = (values.copy(), {}, "OTHER")
     assert fixed_nbytes(asset) - alone - 2 * values.nbytes < 1000
@@ -215,7 +220,7 @@ def test_a_scene_counts_its_carried_bytes_once_however_aliased():
 def test_an_artefact_stored_before_keys_named_digests_is_renamed_and_served(tmp_path):
     store = LocalStore(tmp_path / "data")
     record = store.create(name="grid", source=_source(tmp_path), file_type="obj", options={})
-    ready = store.put_artefact(mesh_id=record.id, pm=progressive("grid"))
+    ready = store.put_artefact(mesh_id=record.id, asset=_grid())
     current = store.artefacts / f"{record.id}.{ready.digest}.pm"
     current.rename(store.artefacts / f"{record.id}.pm")       # the layout of older versions
     stray = store.artefacts / f"{record.id}.{'0' * 64}.pm"      # a build that lost its claim
@@ -223,5 +228,5 @@ def test_an_artefact_stored_before_keys_named_digests_is_renamed_and_served(tmp_
     store.close()
     reopened = LocalStore(tmp_path / "data")
     assert sorted(p.name for p in reopened.artefacts.iterdir()) == [current.name]
-    assert reopened.load(mesh_id=record.id).vertex_count == progressive("grid").vertex_count
+    assert reopened.load(mesh_id=record.id).single.vertex_count == progressive("grid").vertex_count
     reopened.close()

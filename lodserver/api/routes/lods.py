@@ -19,7 +19,7 @@ from fastapi import APIRouter, Query, Request, Response
 from ...io import SERVED_FORMATS
 from ...io.glb import COMPRESSIONS, coverage_from_ratios, encode_lod_chain
 from ...packets import MAX_BITS, MIN_BITS, packet_between, prepare_records, records_ready
-from ...pipeline import DEFAULT_LODS, lod_chain, parse_lods
+from ...chains import DEFAULT_LODS, lod_chain, parse_lods
 from ...service.levels import (
     LevelError,
     chain_bytes,
@@ -31,7 +31,8 @@ from ...service.levels import (
     resolve_level,
     scene_bytes,
 )
-from ...service.scenes import SceneAsset, scene_chain_glb, scene_glb, scene_levels_for
+from ...scene.asset import SceneAsset, scene_levels_for
+from ...scene.write import scene_chain_glb, scene_glb
 from ..bodies import BodiesDep
 from ..caching import VersionQuery, etag_for, load_versioned, version_of
 from ..deps import MeshId, StoreDep
@@ -76,13 +77,13 @@ def get_lod(mesh_id: MeshId, store: StoreDep, bodies: BodiesDep, request: Reques
     of its bounding-box diagonal); each part's glTF mesh says its part in
     ``extras.lodserver_part``. Its parts' levels: ``/meshes/{id}/parts/{p}/lod``.
     """
-    artefact, digest, policy = load_versioned(store, mesh_id, v)
-    if isinstance(artefact, SceneAsset):
+    asset, digest, policy = load_versioned(store, mesh_id, v)
+    if asset.single is None:
         _uncompressed_scene(compress)
-        return _scene_lod(artefact, digest, policy, request, bodies, mesh_id=mesh_id,
+        return _scene_lod(asset, digest, policy, request, bodies, mesh_id=mesh_id,
                           vertices=vertices, faces=faces, ratio=ratio, error=error,
                           format=format)
-    return level_response(artefact, digest, policy, request, bodies, mesh_id=mesh_id,
+    return level_response(asset.single, digest, policy, request, bodies, mesh_id=mesh_id,
                           criterion={"vertices": vertices, "faces": faces, "ratio": ratio,
                                      "error": error}, format=format, bits=bits, v=v,
                           compress=compress)
@@ -135,11 +136,11 @@ def get_splits(mesh_id: MeshId, store: StoreDep, bodies: BodiesDep, request: Req
     per direction; other ``bits`` are encoded for the packet (under the heavy
     limit), and each such packet once: its body is cached like a level's.
     A scene's packets are its parts': ``/meshes/{id}/parts/{p}/splits``."""
-    artefact, digest, policy = load_versioned(store, mesh_id, v)
-    if isinstance(artefact, SceneAsset):
-        raise LevelError(f"mesh {mesh_id} is a scene of {len(artefact.parts)} parts; its "
+    asset, digest, policy = load_versioned(store, mesh_id, v)
+    if asset.single is None:
+        raise LevelError(f"mesh {mesh_id} is a scene of {len(asset.parts)} parts; its "
                          f"packets are its parts': /meshes/{mesh_id}/parts/{{p}}/splits")
-    return splits_response(artefact, digest, policy, request, bodies, start=start, to=to,
+    return splits_response(asset.single, digest, policy, request, bodies, start=start, to=to,
                            bits=bits)
 
 
@@ -188,14 +189,15 @@ def get_chain(mesh_id: MeshId, store: StoreDep, bodies: BodiesDep, request: Requ
 
     A scene's chain is the scene with ``MSFT_lod`` on every node placing a part,
     level k of every part at scene ratio k (one budget over the parts)."""
-    pm, digest, policy = load_versioned(store, mesh_id, v)
+    asset, digest, policy = load_versioned(store, mesh_id, v)
     ratios = parse_lods(lods)
     if len(ratios) > MAX_CHAIN_LEVELS:
         raise LevelError(f"a chain holds at most {MAX_CHAIN_LEVELS} levels, got {len(ratios)}")
-    if isinstance(pm, SceneAsset):
+    pm = asset.single
+    if pm is None:
         _uncompressed_scene(compress)
-        return _scene_chain(pm, digest, policy, request, bodies, mesh_id=mesh_id, ratios=ratios,
-                            reach=reach)
+        return _scene_chain(asset, digest, policy, request, bodies, mesh_id=mesh_id,
+                            ratios=ratios, reach=reach)
     levels = [pm.level_for(ratio=ratio) for ratio in ratios]
     faces = sum(pm.faces_at_level(level) for level in levels)
     full = pm.faces_at_level(pm.vertex_count)

@@ -29,11 +29,11 @@ def get_materials(mesh_id: MeshId, store: StoreDep, request: Request,
     ``uri`` (``images/{i}``, relative to this document) is ``GET .../images/{i}``,
     at version ``v`` when it is given (``images/{i}?v=...``).
     404 when the mesh has no materials."""
-    pm, digest, policy = load_versioned(store, mesh_id, v)
+    asset, digest, policy = load_versioned(store, mesh_id, v)
     etag = etag_for(digest, "materials", *(["v"] if v else []))
     uri = (lambda i: f"images/{i}?v={v}") if v else (lambda i: f"images/{i}")
     return respond_cached(request, etag, policy, lambda: immutable(
-        orjson.dumps(materials_document(pm, image_uri=uri)), media_type="application/json",
+        orjson.dumps(materials_document(asset, image_uri=uri)), media_type="application/json",
         etag=etag))
 
 
@@ -44,8 +44,8 @@ def get_image(mesh_id: MeshId, store: StoreDep, request: Request,
               v: VersionQuery = None) -> Response:
     """Image ``index`` of the mesh's materials, byte for byte, with its media type
     (PNG, JPEG, WebP or KTX2; 404 for any other)."""
-    pm, digest, policy = load_versioned(store, mesh_id, v)
-    data, media = image_of(pm, index)
+    asset, digest, policy = load_versioned(store, mesh_id, v)
+    data, media = image_of(asset, index)
     if media not in IMAGE_TYPES:
         raise AbsentError(f"image {index} of this mesh is not a PNG, JPEG, WebP or KTX2 "
                           "image, so it is not served")

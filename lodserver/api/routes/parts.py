@@ -12,7 +12,7 @@ from typing import Annotated
 from fastapi import APIRouter, HTTPException, Path, Query, Request, Response
 
 from ...io import SERVED_FORMATS
-from ...service.scenes import PartError, SceneAsset, part_of
+from ...scene.asset import PartError, part_of
 from ..bodies import BodiesDep
 from ..caching import VersionQuery, load_versioned
 from ..deps import MeshId, StoreDep
@@ -32,12 +32,12 @@ PartIndex = Annotated[int, Path(ge=0, le=2**31 - 1, description="The part's inde
 def _part(store, mesh_id: str, index: int, v: str | None):
     """(the part's progressive mesh, digest, Cache-Control, part tag for ETags: None
     for a single mesh, whose part 0 shares the mesh's own ETags)."""
-    artefact, digest, policy = load_versioned(store, mesh_id, v)
+    asset, digest, policy = load_versioned(store, mesh_id, v)
     try:
-        pm = part_of(artefact, index)
+        pm = part_of(asset, index)
     except PartError as exc:
         raise HTTPException(404, f"mesh {mesh_id}: {exc}") from None
-    return pm, digest, policy, index if isinstance(artefact, SceneAsset) else None
+    return pm, digest, policy, None if asset.single is not None else index
 
 
 @router.get("/{mesh_id}/parts/{index}/lod", responses={**_ERRORS, 200: {"content": {

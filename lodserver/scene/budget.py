@@ -53,8 +53,8 @@ import math
 import numpy as np
 from numba import njit
 
-from .io.animation import node_worlds
-from .mesh import MeshError
+from ..io.animation import node_worlds
+from ..mesh import MeshError
 
 # the viewport height, in pixels, the screen coverage hints are made for (1080p)
 SCREEN_PIXELS = 1080
@@ -366,7 +366,7 @@ def _largest_scale(matrices: np.ndarray) -> np.ndarray:
 
 
 def _carried_float(scene, index):
-    from .io.gltf_attributes import as_float
+    from ..io.gltf_attributes import as_float
 
     values, record, _ = scene.carried[index]
     return as_float(np.asarray(values), record)

@@ -1,0 +1,213 @@
+"""Which levels of detail a chain holds: ratios or error bounds, checked once.
+
+The one place the chain's options live (:class:`ChainOptions`: ``lods``,
+``errors``, ``per_mesh``, ``separate``, ``reach``), with their parsers for the
+command line and the HTTP query (:func:`parse_lods`, :func:`parse_errors`) and
+the levels of one progressive mesh they pick (:func:`lod_chain`,
+:func:`error_chain`), and what an export wrote (:class:`Exported`). The pipeline (``pipeline.py``), the API's chain route
+and the command line take them from here; a scene's levels are chosen by the
+scene's budget (``scene.budget.chain_levels``).
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from .io.glb import LOD_NAMINGS, check_compress, coverage_from_ratios
+from .mesh import Mesh, MeshError
+from .progressive.mesh import ProgressiveMesh
+
+DEFAULT_LODS = (1.0, 0.5, 0.2, 0.05)
+
+
+def parse_lods(text: str) -> tuple[float, ...]:
+    """Face ratios from ``"1,0.5,0.2"``: finest first, each in (0, 1], decreasing."""
+    return check_lods(_numbers(text, "LOD ratios", "1,0.5,0.2"))
+
+
+def _numbers(text: str, what: str, example: str) -> tuple[float, ...]:
+    """The comma-separated numbers of ``text``; MeshError naming ``what`` otherwise."""
+    try:
+        return tuple(float(part) for part in text.split(","))
+    except ValueError:
+        raise MeshError(f"{what} must be comma-separated numbers like {example}, "
+                        f"got {text!r}") from None
+
+
+def check_lods(ratios) -> tuple[float, ...]:
+    ratios = tuple(float(r) for r in ratios)
+    if not all(0 < ratio <= 1 for ratio in ratios):
+        raise MeshError(f"every LOD ratio must be in (0, 1], got {list(ratios)}")
+    coverage_from_ratios(ratios)        # and strictly decreasing
+    return ratios
+
+
+def parse_errors(text: str) -> tuple[float, ...]:
+    """Error bounds from ``"0.001,0.01"``: finest first, each >= 0, increasing."""
+    return check_errors(_numbers(text, "LOD errors", "0.001,0.01"))
+
+
+def check_errors(errors) -> tuple[float, ...]:
+    """Error bounds (fractions of the bounding-box diagonal) of the levels, finest
+    first: each finite and >= 0, strictly increasing."""
+    errors = tuple(float(e) for e in errors)
+    if not errors or not all(math.isfinite(e) and e >= 0 for e in errors):
+        raise MeshError(f"every LOD error must be a non-negative number (a fraction of the "
+                        f"bounding-box diagonal), got {list(errors)}")
+    if any(b <= a for a, b in itertools.pairwise(errors)):
+        raise MeshError(f"LOD errors must be strictly increasing, finest first, "
+                        f"got {list(errors)}")
+    return errors
+
+
+@dataclass
+class Exported:
+    """One source's levels of detail, as written."""
+
+    source: Path                # a str URL for an object-store folder
+    outputs: list[Path]
+    faces: list[int]            # per level, finest first
+    coverage: list[float]       # MSFT_screencoverage per level
+    seconds: float
+    base_faces: int = 0         # the coarsest edge collapse reaches: ratios below it stop there
+    clustered: list[int] = field(default_factory=list)   # levels made by clustering (reach)
+    notes: list[str] = field(default_factory=list)       # what a scene's export did not keep
+    # a scene's: triangles drawn per level (each part once per instance) and the
+    # worst world error of each level (world units); empty for a single mesh
+    drawn: list[int] = field(default_factory=list)
+    errors: list[float] = field(default_factory=list)
+
+
+# A level whose edge-collapse mesh overshoots its face budget by more than this is
+# out of reach of edge collapse (locked, non-manifold or separate parts).
+REACH_SLACK = 1.1
+REACH_METHODS = ("none", "cluster")
+
+
+def check_reach(reach: str) -> str:
+    if reach not in REACH_METHODS:
+        raise MeshError(f"reach must be one of {', '.join(REACH_METHODS)}, got {reach!r}")
+    return reach
+
+
+def lod_chain(pm: ProgressiveMesh, lods=DEFAULT_LODS, *, reach: str = "none"):
+    """The levels of ``pm`` at face ratios ``lods`` (finest first).
+
+    Returns ``(meshes, coverage, clustered)``: the meshes, their screen coverage
+    hints (:func:`gltf.coverage_from_ratios`) and the indices of the levels made
+    by clustering (``reach``, as :class:`ChainOptions` says). Raises
+    :class:`MeshError` on bad ratios or ``reach``.
+    """
+    ratios = check_lods(lods)
+    check_reach(reach)
+    meshes, clustered, full = [], [], None
+    for ratio in ratios:
+        mesh = pm.at(pm.level_for(ratio=ratio))
+        budget = max(1, round(ratio * pm.face_count))
+        if reach == "cluster" and mesh.face_count > REACH_SLACK * budget:
+            from .simplify.cluster import cluster
+            if full is None:
+                full = pm.at(pm.vertex_count)
+                full = Mesh(full.positions, full.faces)
+            joined = cluster(full, target_faces=budget)
+            if joined.face_count < mesh.face_count:
+                mesh = joined
+                clustered.append(len(meshes))
+        meshes.append(mesh)
+    return meshes, coverage_from_ratios(ratios), clustered
+
+
+def error_chain(pm: ProgressiveMesh, errors):
+    """The levels of ``pm`` within error bounds ``errors`` (fractions of its
+    bounding-box diagonal, finest first): ``(meshes, coverage)``, the hints from
+    the levels' measured errors (:func:`budget.coverage_from_errors`)."""
+    from .scene.budget import coverage_from_errors, part_diagonal
+
+    diagonal = part_diagonal(pm)
+    levels = [pm.level_for(error=e * diagonal) for e in check_errors(errors)]
+    coverage = coverage_from_errors([pm.error_at_level(v) for v in levels], diagonal)
+    return [pm.at(v) for v in levels], coverage
+
+
+@dataclass(frozen=True)
+class ChainOptions:
+    """Which levels an export writes, and how: the options of the chain of levels,
+    checked when made (``MeshError``, one sentence) and held checked.
+
+    Attributes
+    ----------
+    lods : tuple of float
+        Face ratios of the levels, finest first, strictly decreasing, in (0, 1];
+        ``DEFAULT_LODS`` when neither ``lods`` nor ``errors`` is given, None with
+        ``errors``. For a scene, ratios of the whole scene's triangles, each part
+        once per instance, with one budget for all parts (:func:`budget.scene_levels`).
+    errors : tuple of float, optional
+        Instead of ``lods``: error bounds of the levels, finest first, strictly
+        increasing, >= 0, as fractions of the bounding-box diagonal (a scene's
+        world box); each mesh at its coarsest level within the bound (world
+        error for a scene: the mesh's error times its largest instance scale).
+    per_mesh : bool
+        A scene's ``lods`` are each mesh's own face ratios instead of one
+        budget for the whole scene. The same for a single mesh. Not with
+        ``errors``.
+    separate : bool
+        Write ``OUT_lod0.glb``, ``OUT_lod1.glb``, ... instead of one file.
+    compress : str
+        How the GLB files store the levels (``io.glb.COMPRESSIONS``): ``"none"``
+        (float32, the progressive mesh's order: lossless, the library's default),
+        ``"quantize"`` (the command line's default, ``io.glb.DEFAULT_COMPRESS``) or
+        ``"meshopt"``.
+    naming : str
+        How one file's levels are told apart (``io.glb.LOD_NAMINGS``): ``"msft"``
+        (the ``MSFT_lod`` extension, nodes ``LOD0``...), ``"suffix"`` (nodes
+        ``STEM_LOD0``... under a root ``STEM``, all in the scene) or ``"both"``. With
+        ``separate`` each file's node is ``STEM_LODi`` whatever it says. A scene's
+        levels are linked by ``MSFT_lod`` only.
+    reach : str
+        ``"none"``: a level edge collapse cannot bring down to its budget stays
+        at the coarsest it reaches. ``"cluster"``: such a level is made by vertex
+        clustering of the full mesh instead (``cluster.cluster``), which joins
+        parts and meets the budget but keeps positions only (no UVs, normals or
+        materials: a textured asset's far level is drawn untextured). Not with
+        ``errors``.
+    """
+
+    lods: tuple[float, ...] | None = None
+    errors: tuple[float, ...] | None = None
+    per_mesh: bool = False
+    separate: bool = False
+    reach: str = "none"
+    compress: str = "none"
+    naming: str = "msft"
+
+    def __post_init__(self):
+        check_reach(self.reach)
+        check_compress(self.compress)
+        if self.naming not in LOD_NAMINGS:
+            raise MeshError(f"LOD naming must be one of {', '.join(LOD_NAMINGS)}, "
+                            f"got {str(self.naming)[:40]!r}")
+        if self.lods is not None and self.errors is not None:
+            raise MeshError("give LOD ratios or LOD errors, not both")
+        if self.errors is not None:
+            if self.per_mesh:
+                raise MeshError("per-mesh levels are chosen by ratio; levels by error are "
+                                "per mesh already")
+            if self.reach != "none":
+                raise MeshError("reach meets face budgets, and levels by error have none")
+            object.__setattr__(self, "errors", check_errors(self.errors))
+        else:
+            lods = DEFAULT_LODS if self.lods is None else self.lods
+            object.__setattr__(self, "lods", check_lods(lods))
+
+    @classmethod
+    def of(cls, chain: ChainOptions | None, keywords: dict) -> ChainOptions:
+        """``chain``, or one made of ``keywords`` (the fields by name, as
+        ``export_lods`` and ``export_folder`` also take them); not both."""
+        if chain is None:
+            return cls(**keywords)
+        if keywords:
+            raise TypeError(f"give chain or {', '.join(sorted(keywords))}, not both")
+        return chain

@@ -1,0 +1,146 @@
+"""A glTF scene exported whole: its meshes built once, levels chosen together, written as GLB.
+
+``pipeline.export_lods`` of a ``.gltf`` or ``.glb`` source: each glTF mesh is
+built into its own progressive mesh, the levels of all of them are chosen by
+one budget (``budget.chain_levels``) or per mesh, levels edge collapse cannot
+reach are made by clustering if asked (``ChainOptions.reach``), and the input
+document is written back with every mesh replaced by its levels
+(``io.scene_glb``).
+"""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+from ..chains import REACH_SLACK, ChainOptions, Exported
+from ..io import write_atomic
+from ..mesh import Mesh, MeshError
+
+__all__ = ["export_scene"]
+
+
+def _build_parts(scene, source: Path, options, progress) -> dict:
+    """glTF mesh index -> its progressive mesh, each built once; a skinned or morphed
+    mesh with its error measured in the poses it is seen in (``simplify.poses``)."""
+    from ..build import build
+    from ..simplify.poses import scene_poses
+
+    pms = {}
+    for index, mesh in scene.meshes.items():
+        try:
+            pms[index] = build(mesh, options, progress=progress,
+                               poses=scene_poses(scene, index, mesh))
+        except ValueError as exc:       # argument checks deep in the build
+            raise MeshError(str(exc)) from exc
+        except MeshError as exc:
+            raise MeshError(f"cannot build mesh {index} of {source.name}: {exc}") from exc
+    return pms
+
+
+def export_scene(scene, source: Path, output: Path, chain: ChainOptions, options, progress,
+                  start) -> Exported:
+    """:func:`export_lods` of a glTF scene kept whole: each glTF mesh built once into a
+    progressive mesh, the levels of all of them chosen together (``budget.chain_levels``)
+    and written in place of them (``io.scene_glb``).
+
+    ``Exported.faces`` counts each source mesh once per level (not per instance),
+    ``Exported.drawn`` once per instance; ``errors`` is the worst world error of
+    each level. ``base_faces`` sums the meshes' coarsest reachable levels;
+    ``clustered`` lists the levels that clustering made for at least one mesh:
+    with ``reach="cluster"``, a level whose drawn triangles overshoot its budget
+    by more than ``REACH_SLACK`` has each mesh that stopped at its base made by
+    clustering at its share (the level's ratio of its faces), if that has fewer
+    faces. Meshes kept as they are (``scene.as_is``) are drawn at every level
+    and are outside the budget: the ratios are of the simplified meshes' triangles.
+    """
+    from .budget import chain_levels, coverage_from_errors, scene_instances, world_errors
+    from ..io.scene_glb import encode_scene
+    if chain.naming != "msft":
+        raise MeshError(f"{source.name} is a glTF scene, whose levels are linked by MSFT_lod: "
+                        f"--lod-naming {chain.naming} applies to single meshes")
+    if not scene.meshes and not scene.as_is:
+        raise MeshError(f"cannot load {source.name}: it has no faces (no node of it places "
+                        "a mesh)")
+    pms = _build_parts(scene, source, options, progress)
+    instances, diagonal = scene_instances(scene, pms)
+    lods, per_mesh = chain.lods, chain.per_mesh
+    count = len(chain.errors if chain.errors is not None else lods)
+    chosen_levels = chain_levels(pms, instances, lods=lods, errors=chain.errors,
+                                 per_mesh=per_mesh, diagonal=diagonal)
+    levels = {index: [pm.at(chosen[index]) for chosen in chosen_levels]
+              for index, pm in pms.items()}
+    worst = [max(world_errors(pms, instances, chosen).values(), default=0.0)
+             for chosen in chosen_levels]
+    drawn = [sum(len(instances[index]) * levels[index][k].face_count for index in pms)
+             for k in range(count)]
+    clustered = set()
+    if chain.reach == "cluster":
+        full_drawn = sum(len(instances[index]) * pm.face_count for index, pm in pms.items())
+        for k, ratio in enumerate(lods):
+            # per mesh: each mesh over its own budget; scene: the meshes stopped at their
+            # base, when the scene is over its budget
+            if per_mesh or drawn[k] > REACH_SLACK * max(1, ratio * full_drawn):
+                replaced = _cluster_stuck(pms, chosen_levels[k], levels, k, ratio, per_mesh)
+                if replaced:
+                    clustered.add(k)
+                    # a clustered level has no collapse error: its measured distance
+                    # to the full mesh stands in (world units, for the hints)
+                    worst[k] = max(worst[k], *(max(instances[index], default=0.0) * error
+                                               for index, error in replaced.items()))
+        drawn = [sum(len(instances[index]) * levels[index][k].face_count for index in pms)
+                 for k in range(count)]
+    kept_drawn = sum(scene.as_is_faces[index] * len(scene.mesh_nodes.get(index, ()))
+                     for index in scene.as_is)
+    coverage = coverage_from_errors(worst, diagonal) if count else []
+    if chain.separate:
+        outputs = [output.with_name(f"{output.stem}_lod{i}{output.suffix}") for i in range(count)]
+        blobs = [encode_scene(scene, levels, coverage, level=i, compress=chain.compress)
+                 for i in range(count)]
+    else:
+        outputs, blobs = [output], [encode_scene(scene, levels, coverage,
+                                                 compress=chain.compress)]
+    output.parent.mkdir(parents=True, exist_ok=True)
+    for path, blob in zip(outputs, blobs):
+        write_atomic(path, blob)
+    kept = sum(scene.as_is_faces.values())
+    faces = [kept + sum(chain_[k].face_count for chain_ in levels.values()) for k in range(count)]
+    base = sum(pm.faces_at_level(pm.base_vertices) for pm in pms.values())
+    # base_faces: the coarsest the simplified meshes reach, with the kept ones beside them
+    # (0 when nothing was simplified: no "simplifies no further" for a skinned asset)
+    return Exported(source, outputs, faces, coverage, time.perf_counter() - start,
+                    base + kept if levels else 0, sorted(clustered), list(scene.notes),
+                    [kept_drawn + d for d in drawn], worst)
+
+
+def _cluster_stuck(pms: dict, chosen: dict, levels: dict, k: int, ratio: float,
+                   per_mesh: bool) -> dict:
+    """Replace level ``k`` of the meshes edge collapse left short, by clustering of
+    the full mesh at ``ratio`` of its faces where that has fewer faces. Short: over
+    ``REACH_SLACK`` times its own budget (``per_mesh``, as :func:`lod_chain` does),
+    else stopped at its base. Returns mesh index -> the clustered level's error,
+    mesh units: its sampled two-sided Hausdorff distance to the full mesh."""
+    from ..metrics.surface import surface_distance
+    from ..simplify.cluster import cluster
+
+    replaced = {}
+    for index, pm in pms.items():
+        budget = max(1, round(ratio * pm.face_count))
+        short = (levels[index][k].face_count > REACH_SLACK * budget if per_mesh
+                 else chosen[index] == pm.base_vertices)
+        if not short:
+            continue
+        full = pm.at(pm.vertex_count)
+        full = Mesh(full.positions, full.faces)
+        try:
+            joined = cluster(full, target_faces=budget)
+        except MeshError:
+            continue    # clustering cannot bring a tiny part (a few faces) to its budget
+        if joined.face_count < levels[index][k].face_count:
+            levels[index][k] = joined
+            try:
+                distance = surface_distance(full, joined, samples=20_000)
+                replaced[index] = distance["hausdorff"] * distance["diagonal"]
+            except ValueError:      # a flat or degenerate part: no area to sample
+                replaced[index] = pm.error_at_level(pm.base_vertices)
+    return replaced
