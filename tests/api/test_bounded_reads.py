@@ -387,7 +387,8 @@ def test_the_viewer_runs_under_its_policy_in_chromium(tmp_path):
         page.on("console", lambda message: console.append(f"{message.type}: {message.text}"))
         page.on("pageerror", lambda error: errors.append(str(error)))
         page.on("requestfinished", lambda request: loaded.append(request.url))
-        response = page.goto(f"{client.base_url}/viewer/?mesh={mesh['id']}")
+        full = mesh["vertices"]     # full detail asked for: the default stops at 1 px
+        response = page.goto(f"{client.base_url}/viewer/?mesh={mesh['id']}&level={full}")
         assert "script-src 'self' 'sha256-" in response.all_headers()["content-security-policy"]
         page.wait_for_function("() => window.lodViewer?.status().level != null")
         status = page.evaluate("lodViewer.settled()")
