@@ -44,8 +44,9 @@ ROOT = BENCH.parent
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(BENCH))
 
+from codec_meshes import bunny_loop2  # noqa: E402
 from lodserver import build  # noqa: E402
-from lodserver.io import clean_mesh, load_mesh  # noqa: E402
+from lodserver.io import load_mesh  # noqa: E402
 from lodserver.mesh import Mesh  # noqa: E402
 from lodserver.metrics import surface_distance  # noqa: E402
 from lodserver.progressive.batches import (ATTRIBUTE_WINDOW, ERROR_RATIO, WINDOW,  # noqa: E402
@@ -73,28 +74,11 @@ SIMPLIFY_MESHES = {
 }
 
 
-def loop2(mesh_dir: Path, out: Path):
-    """The Stanford bunny Loop-subdivided twice, as bench/simplify.py makes
-    (and caches in bench/out/bunny_loop2.npz) it."""
-    path = out / "bunny_loop2.npz"
-    if path.exists():
-        data = np.load(path)
-        return clean_mesh(data["positions"], data["faces"])[0]
-    import trimesh
-
-    bunny, _ = load_mesh(mesh_dir / "stanford-bunny.obj")
-    positions, faces = trimesh.remesh.subdivide_loop(bunny.positions, bunny.faces, iterations=2)
-    mesh = clean_mesh(positions, faces)[0]
-    out.mkdir(parents=True, exist_ok=True)
-    np.savez(path, positions=mesh.positions, faces=mesh.faces)
-    return mesh
-
-
 def built(key: str, relative, mesh_dir: Path, out: Path, geometry: bool = False):
     """(reference mesh, progressive mesh) of one bench mesh; ``geometry``:
     positions and faces only, as bench/simplify.py builds."""
     if relative is None:
-        mesh = loop2(mesh_dir, out)
+        mesh = bunny_loop2(mesh_dir, out)
         return mesh, build(mesh)
     path = mesh_dir / relative
     if path.parent.name == "scenes":

@@ -26,22 +26,27 @@ SOURCES = {
 }
 
 
-def source_mesh(name: str):
-    """The full-detail :class:`~lodserver.mesh.Mesh` of ``name``."""
+def bunny_loop2(mesh_dir: Path = SHARED, out: Path = REPO / "bench" / "out"):
+    """The Stanford bunny Loop-subdivided twice (1.1M faces), as bench/simplify.py
+    makes it, cached in ``out``/bunny_loop2.npz."""
     from lodserver.io import clean_mesh, load_mesh
-    if name != "bunny_loop2":
-        return load_mesh(SOURCES[name])[0]
-    npz = REPO / "bench" / "out" / "bunny_loop2.npz"
+    npz = out / "bunny_loop2.npz"
     if npz.exists():
         data = np.load(npz)
         return clean_mesh(data["positions"], data["faces"])[0]
     import trimesh
-    bunny, _ = load_mesh(SHARED / "stanford-bunny.obj")
+    bunny, _ = load_mesh(mesh_dir / "stanford-bunny.obj")
     positions, faces = trimesh.remesh.subdivide_loop(bunny.positions, bunny.faces, iterations=2)
     mesh = clean_mesh(positions, faces)[0]
-    npz.parent.mkdir(parents=True, exist_ok=True)
+    out.mkdir(parents=True, exist_ok=True)
     np.savez(npz, positions=mesh.positions, faces=mesh.faces)
     return mesh
+
+
+def source_mesh(name: str):
+    """The full-detail :class:`~lodserver.mesh.Mesh` of ``name``."""
+    from lodserver.io import load_mesh
+    return bunny_loop2() if name == "bunny_loop2" else load_mesh(SOURCES[name])[0]
 
 
 def progressive(name: str):

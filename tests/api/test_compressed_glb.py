@@ -11,6 +11,7 @@ from lodserver.io import load_mesh
 from lodserver.io.glb import encode_glb
 
 from ..meshes import DATA
+from ..server import upload, wait_ready
 from ..io.test_gltf_compressed_output import split_glb
 from . import settled
 
@@ -20,12 +21,10 @@ def served(tmp_path_factory):
     """A client with spot uploaded as a meshopt-compressed GLB, built."""
     folder = tmp_path_factory.mktemp("compressed")
     mesh, _ = load_mesh(DATA / "spot.obj")
-    upload = encode_glb(mesh, "meshopt")
+    encoded = encode_glb(mesh, "meshopt")
     with TestClient(create_app(Settings(data_dir=folder / "data", warm_kernels=False))) as client:
-        created = client.post("/meshes", files={"file": ("spot.glb", upload)})
-        assert created.status_code == 202, created.text
-        mesh_id = created.json()["id"]
-        assert settled(client, mesh_id)["status"] == "ready"
+        mesh_id = upload(client, "spot.glb", encoded)
+        wait_ready(client, mesh_id)
         yield client, mesh_id
 
 
