@@ -1,0 +1,333 @@
+"""The browser's version 4 decoder (static/packet_v4.js, static/rans.js) in headless
+Chromium: a Python-encoded version 4 packet, read by ``readPacket`` and applied by
+``LodState.apply`` to the json level state, lands byte for byte (positions, faces,
+wedges, corner wedges, face materials) on the state the Python reference decoder
+gives (``decode_v4``, ``reference.apply_packet``) and on the state the browser's
+version 3 path gives; a damaged or truncated packet is a ``PacketError``.
+
+The page is served from the repository's ``static/`` through Playwright's request
+routing (no server process); results come back as SHA-256 digests of each array's
+bytes, compared with the digests of the reference's arrays in the same dtypes.
+"""
+
+from __future__ import annotations
+
+import base64
+import hashlib
+import struct
+import zlib
+from functools import cache
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from lodserver import build
+from lodserver.packets import (
+    PacketError,
+    apply_packet,
+    encode_packet,
+    grid_of,
+    quantized_level,
+)
+from lodserver.packets.decode_v4 import decode_packet_v4
+from lodserver.packets.encode_v4 import encode_packet_v4
+from lodserver.packets.format import EDGE_POSITIONS, MAGNITUDE_CONTEXTS
+
+from ..meshes import mesh as input_mesh
+from ..packets.test_attributes import _built as every_attribute_pm
+
+STATIC = Path(__file__).resolve().parents[2] / "static"
+ORIGIN = "http://localhost:8765"   # localhost: a secure context, for crypto.subtle
+TYPES = {".js": "text/javascript", ".html": "text/html", ".css": "text/css"}
+E, M = EDGE_POSITIONS, MAGNITUDE_CONTEXTS
+SHARED = Path(__file__).resolve().parents[3] / "shared" / "meshes"
+
+# The state's arrays as the browser keeps them (levelstate.js), by the Python
+# LodState's field: the dtype its bytes are compared in.
+ARRAYS = {"positions": "<i4", "faces": "<u4", "wedges": "<i4", "corners": "<u4",
+          "face_material": "<i4"}
+
+APPLY_JS = """async ({ document, capacity, chains }) => {
+  const { LodState } = await import('/vsplit.js');
+  const bytesOf = (b64) => Uint8Array.from(atob(b64), (c) => c.charCodeAt(0));
+  const digest = async (array, count) => {
+    const bytes = new Uint8Array(array.buffer, array.byteOffset, 4 * count);
+    const hash = new Uint8Array(await crypto.subtle.digest('SHA-256', bytes));
+    return Array.from(hash, (b) => b.toString(16).padStart(2, '0')).join('');
+  };
+  const snapshot = async (state) => {
+    const k = state.components || 0;
+    const out = {
+      level: state.vertexCount,
+      positions: await digest(state.positions, 3 * state.vertexCount),
+      faces: await digest(state.faces, 3 * state.faceCount),
+    };
+    if (state.attributes.length) {
+      out.wedges = await digest(state.wedges, k * state.wedgeCount);
+      out.corners = await digest(state.corners, 3 * state.faceCount);
+    }
+    if (state.faceMaterial) out.face_material = await digest(state.faceMaterial, state.faceCount);
+    return out;
+  };
+  const results = [];
+  for (const packets of chains) {
+    const state = LodState.fromJson(document, capacity);
+    const reached = [];
+    for (const packet of packets) {
+      try {
+        state.apply(await LodState.readPacket(bytesOf(packet)));
+        reached.push(await snapshot(state));
+      } catch (error) {
+        reached.push({ error: error.name, message: error.message });
+        break;
+      }
+    }
+    results.push(reached);
+  }
+  return results;
+}"""
+
+# Each damaged packet on a fresh state: its outcome, a PacketError or the state reached.
+DAMAGED_JS = """async ({ document, capacity, packets }) => {
+  const { LodState } = await import('/vsplit.js');
+  const bytesOf = (b64) => Uint8Array.from(atob(b64), (c) => c.charCodeAt(0));
+  const out = [];
+  for (const packet of packets) {
+    const state = LodState.fromJson(document, capacity);
+    try {
+      state.apply(await LodState.readPacket(bytesOf(packet)));
+      const bytes = new Uint8Array(state.positions.buffer, 0, 12 * state.vertexCount);
+      const hash = new Uint8Array(await crypto.subtle.digest('SHA-256', bytes));
+      out.push({ applied: Array.from(hash, (b) => b.toString(16).padStart(2, '0')).join('') });
+    } catch (error) {
+      out.push({ error: error.name, message: error.message });
+    }
+  }
+  return out;
+}"""
+
+
+@pytest.fixture(scope="module")
+def page(chromium):
+    """A page of the fake origin whose every request is answered from ``static/``."""
+    page = chromium.new_page()
+
+    def answer(route):
+        path = route.request.url[len(ORIGIN):].split("?")[0].lstrip("/") or "index.html"
+        file = (STATIC / path).resolve()
+        if STATIC not in file.parents or not file.is_file():
+            route.fulfill(status=404, body="not found")
+            return
+        route.fulfill(status=200, body=file.read_bytes(),
+                      headers={"Content-Type": TYPES.get(file.suffix, "application/octet-stream")})
+
+    page.route(f"{ORIGIN}/**", answer)
+    page.goto(f"{ORIGIN}/packet.js")
+    yield page
+    page.close()
+
+
+# ---- meshes -----------------------------------------------------------------------
+
+def _shared(name):
+    if not (SHARED / name).exists():
+        pytest.skip(f"shared mesh {name} not found under {SHARED}")
+    return SHARED / name
+
+
+def _scene_pm(name, index=None):
+    from lodserver.io.scene import load_scene
+    from lodserver.simplify.poses import scene_poses
+    loaded = load_scene(_shared(f"scenes/{name}"))
+    index = index if index is not None else next(iter(loaded.meshes))
+    mesh = loaded.meshes[index]
+    return build(mesh, poses=scene_poses(loaded, index, mesh))
+
+
+@cache
+def _pm(name):
+    if name == "every_attribute":
+        return every_attribute_pm()
+    if name in ("Fox.glb", "AnimatedMorphCube.glb"):
+        return _scene_pm(name)
+    if name != "spot":
+        _shared(name)
+    return build(input_mesh(name))
+
+
+def _ascending_runs(pm, longest):
+    """A batch id per split, consecutive splits sharing one while their vs ascend (at
+    most ``longest`` per batch), as tests/packets/test_v4.py's."""
+    s = pm.parent[pm.base_vertices:]
+    ids = np.zeros(len(s), dtype=np.int64)
+    size = 1
+    for i in range(1, len(s)):
+        same = s[i] > s[i - 1] and size < longest
+        ids[i] = ids[i - 1] + (0 if same else 1)
+        size = size + 1 if same else 1
+    return ids
+
+
+def _document(state, wedge_capacity):
+    """The json level document of a quantized state (docs/packets.md, "Exactness")."""
+    document = {"level": int(state.level), "grid": {"origin": list(state.grid.origin),
+                                                     "step": state.grid.step,
+                                                     "bits": state.grid.bits},
+                "positions": state.positions.tolist(), "faces": state.faces.tolist()}
+    if state.attribute_grids:
+        document["layout"] = [[g.name, g.width] for g in state.attribute_grids]
+        document["attribute_grid"] = {g.name: {"encoding": g.encoding, "origin": list(g.origin),
+                                               "step": g.step, "bits": g.bits}
+                                      for g in state.attribute_grids}
+        document["wedge_capacity"] = wedge_capacity
+        document["wedges"] = state.wedges.tolist()
+        document["corners"] = state.corners.tolist()
+    if state.face_material is not None:
+        document["face_material"] = state.face_material.tolist()
+    return document
+
+
+def _digests(state):
+    out = {"level": int(state.level)}
+    for name, dtype in ARRAYS.items():
+        array = getattr(state, name)
+        if array is not None:
+            out[name] = hashlib.sha256(np.ascontiguousarray(array, dtype=dtype).tobytes()).hexdigest()
+    return out
+
+
+def _b64(data):
+    return base64.b64encode(bytes(data)).decode()
+
+
+def _run(page, pm, steps):
+    """Apply the chain ``steps`` ((a, b, flags, batch), each starting where the last
+    ended) as v4 packets and as v3 packets in the browser; both land, step by step,
+    on the states the Python reference decoder reaches."""
+    grid = grid_of(pm)
+    start = quantized_level(pm, steps[0][0], grid)
+    full = quantized_level(pm, pm.vertex_count, grid)
+    capacity = {"vertexCapacity": pm.vertex_count, "faceCapacity": int(pm.face_counts[-1])}
+    v4, v3, expected = [], [], []
+    state = start
+    for a, b, flags, batch in steps:
+        assert state.level == a
+        data = encode_packet_v4(pm, a, b, flags=flags, batch=batch)
+        state = apply_packet(state, decode_packet_v4(data))
+        expected.append(_digests(state))
+        v4.append(_b64(data))
+        v3.append(_b64(encode_packet(pm, a, b)))
+    wedge_capacity = 0 if full.wedges is None else len(full.wedges)
+    by_v4, by_v3 = page.evaluate(APPLY_JS, {"document": _document(start, wedge_capacity),
+                                            "capacity": capacity, "chains": [v4, v3]})
+    for i, (step, want) in enumerate(zip(steps, expected)):
+        assert by_v4[i] == want, f"v4 step {i} {step[:3]}: {by_v4[i]}"
+        assert by_v3[i] == want, f"v3 step {i} {step[:3]}: {by_v3[i]}"
+        # the reference itself lands on the level's quantized form
+        assert want == _digests(quantized_level(pm, step[1], grid))
+
+
+def _chain(pm, flag_cycle=(E, 0, E | M, M)):
+    """Base -> full -> base, then mid levels both ways, the flags cycling."""
+    n0, n = pm.base_vertices, pm.vertex_count
+    levels = [n0, n, n0, (n0 + n) // 2, n0 + 1, n - 1, (n0 + 2 * n) // 3, n0]
+    return [(a, b, flag_cycle[i % len(flag_cycle)], None)
+            for i, (a, b) in enumerate(zip(levels, levels[1:]))]
+
+
+@pytest.mark.parametrize("name", ["spot", "stanford-bunny.obj", "Duck.glb", "Fox.glb",
+                                  "AnimatedMorphCube.glb", "every_attribute"])
+def test_v4_packets_land_where_the_reference_and_v3_do(page, name):
+    pm = _pm(name)
+    _run(page, pm, _chain(pm))
+
+
+def test_every_flag_combination_both_ways(page):
+    pm = _pm("spot")
+    n0, n = pm.base_vertices, pm.vertex_count
+    steps = []
+    for flags in (0, E, M, E | M):
+        steps += [(n0, n, flags, None), (n, n0, flags, None)]
+    _run(page, pm, steps)
+
+
+@pytest.mark.parametrize("longest", [1, 3, 1000])
+def test_batch_runs(page, longest):
+    pm = _pm("spot")
+    n0, n = pm.base_vertices, pm.vertex_count
+    batch = _ascending_runs(pm, longest)
+    steps = [(n0, n, E, batch), (n, n0 + 5, E, batch), (n0 + 5, n - 9, E | M, batch),
+             (n - 9, n0, 0, batch)]
+    _run(page, pm, steps)
+
+
+def test_segments_of_a_long_packet(page):
+    """Packets past 8192 records come in several segments (bunny: 34819 splits)."""
+    pm = _pm("stanford-bunny.obj")
+    n0, n = pm.base_vertices, pm.vertex_count
+    assert n - n0 > 2 * 8192
+    _run(page, pm, [(n0, n0 + 8191, E, None), (n0 + 8191, n, M | E, None),
+                    (n, n0 + 8193, E, None)])
+
+
+# ---- damage ---------------------------------------------------------------------------
+
+@cache
+def _damage_subject():
+    pm = _pm("every_attribute")
+    a, b = pm.base_vertices + 3, pm.vertex_count - 20
+    grid = grid_of(pm)
+    state = quantized_level(pm, a, grid)
+    full = quantized_level(pm, pm.vertex_count, grid)
+    capacity = {"vertexCapacity": pm.vertex_count, "faceCapacity": int(pm.face_counts[-1])}
+    return pm, state, _document(state, len(full.wedges)), capacity, encode_packet_v4(pm, a, b)
+
+
+def _python_outcome(state, data):
+    try:
+        reached = apply_packet(state, decode_packet_v4(data))
+    except PacketError:
+        return "PacketError"
+    return hashlib.sha256(np.ascontiguousarray(reached.positions, "<i4").tobytes()).hexdigest()
+
+
+def test_damaged_or_truncated_packets_are_packet_errors(page):
+    """Random truncations and byte flips (seeded): the checksum refuses every one, as a
+    PacketError and nothing else."""
+    pm, state, document, capacity, packet = _damage_subject()
+    rng = np.random.default_rng(4)
+    damaged = []
+    for _ in range(300):
+        data = bytearray(packet)
+        if rng.random() < 0.5:
+            data = data[:rng.integers(0, len(packet))]
+        else:
+            data[rng.integers(0, len(packet))] ^= int(rng.integers(1, 256))
+        assert _python_outcome(state, bytes(data)) == "PacketError"
+        damaged.append(_b64(data))
+    outcomes = page.evaluate(DAMAGED_JS, {"document": document, "capacity": capacity,
+                                          "packets": damaged})
+    assert [o.get("error") for o in outcomes] == ["PacketError"] * len(damaged), \
+        [o for o in outcomes if o.get("error") != "PacketError"][:3]
+
+
+def test_damage_behind_a_valid_checksum_is_refused_or_applied_as_the_reference_does(page):
+    """Byte flips with the checksum made to match reach the symbol decoder: each ends
+    (no hang) in a PacketError exactly when the reference refuses it, and otherwise on
+    the reference's state."""
+    pm, state, document, capacity, packet = _damage_subject()
+    rng = np.random.default_rng(44)
+    damaged, expected = [], []
+    for _ in range(200):
+        data = bytearray(packet[:-4])
+        data[rng.integers(0, len(data))] ^= int(rng.integers(1, 256))
+        data += struct.pack("<I", zlib.crc32(bytes(data)))
+        damaged.append(_b64(data))
+        expected.append(_python_outcome(state, bytes(data)))
+    outcomes = page.evaluate(DAMAGED_JS, {"document": document, "capacity": capacity,
+                                          "packets": damaged})
+    got = [o.get("error") or o["applied"] for o in outcomes]
+    mismatched = [(i, expected[i], outcomes[i]) for i in range(len(got)) if got[i] != expected[i]]
+    assert not mismatched, mismatched[:3]
+    assert expected.count("PacketError") > len(expected) // 2
