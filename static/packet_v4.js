@@ -23,6 +23,9 @@ const RUN_CONTEXTS = 2, FACE_CONTEXTS = PATTERNS + 1;
 // A damaged packet's work is bounded by its records: at most this many symbols per
 // record and this many more in any stream but the position's.
 const SYMBOLS_PER_RECORD = 64, SYMBOLS_SLACK = 2 ** 16;
+// Varint bytes of a symbol (below 2^44), and of any value the split edge can give
+// from symbols (below 2^90).
+const SYMBOL_VARINT_BYTES = 7, VARINT_BYTES = 13;
 
 // ---- the checksum ----------------------------------------------------------------
 
@@ -72,36 +75,41 @@ class StreamWriter {
     this.data = bigger;
   }
 
-  // Unsigned LEB128; values past 2^31 by division (bit operators truncate to 32 bits).
-  varint(v) {
-    this.reserve(16);
+  // Every value of `values`, as varints: one reservation, the loop on locals.
+  varints(values) {
+    this.reserve(SYMBOL_VARINT_BYTES * values.length);
     const { data } = this;
     let n = this.length;
-    while (v >= 0x80000000) {
-      data[n++] = (v % 128) | 128;
-      v = Math.floor(v / 128);
+    for (let i = 0; i < values.length; i++) {
+      const v = values[i];
+      if (v < 128) data[n++] = v;
+      else n = putVarint(data, n, v);
     }
-    while (v >= 128) {
-      data[n++] = (v & 127) | 128;
-      v >>>= 7;
-    }
-    data[n++] = v;
     this.length = n;
-  }
-
-  // Zigzagged, as version 3's signed varints.
-  signed(d) {
-    this.varint(d >= 0 ? 2 * d : -2 * d - 1);
-  }
-
-  byte(v) {
-    this.reserve(1);
-    this.data[this.length++] = v;
   }
 
   view() {
     return this.data.subarray(0, this.length);
   }
+}
+
+// `v` as a varint into data[n ..]; returns its end.
+function putVarint(data, n, v) {
+  while (v >= 0x80000000) {
+    data[n++] = (v % 128) | 128;
+    v = Math.floor(v / 128);
+  }
+  while (v >= 128) {
+    data[n++] = (v & 127) | 128;
+    v >>>= 7;
+  }
+  data[n++] = v;
+  return n;
+}
+
+// `d` zigzagged, as version 3's signed varints.
+function putSigned(data, n, d) {
+  return putVarint(data, n, d >= 0 ? 2 * d : -2 * d - 1);
 }
 
 function unzigzag(u) {
@@ -281,12 +289,17 @@ function writeFields(decoded, out, t0, flags) {
       writeEdgePositions(values, writer);
     } else if (BYTE_STREAMS.includes(k)) {
       writer.reserve(values.length);
-      for (const v of values) {
-        if (v > 255) throw new PacketError('the packet holds a pattern, fan or mask symbol above 255');
-        writer.data[writer.length++] = v;
+      const { data } = writer;
+      let n = writer.length;
+      for (let i = 0; i < values.length; i++) {
+        if (values[i] > 255) {
+          throw new PacketError('the packet holds a pattern, fan or mask symbol above 255');
+        }
+        data[n++] = values[i];
       }
+      writer.length = n;
     } else {
-      for (const v of values) writer.varint(v);
+      writer.varints(values);
     }
   }
 }
@@ -294,31 +307,44 @@ function writeFields(decoded, out, t0, flags) {
 // Version 3's vertex codes t - 1 - vs from the runs: a run's first gap is its vs,
 // each next one vs - previous vs - 1.
 function writeVertexCodes(runs, gaps, t0, writer) {
-  let i = 0;
+  writer.reserve(SYMBOL_VARINT_BYTES * gaps.length);
+  const { data } = writer;
+  let n = writer.length, i = 0;
   for (const length of runs) {
     let s = -1;
     for (let k = 0; k <= length; k++, i++) {
       s = k === 0 ? gaps[i] : s + 1 + gaps[i];
       const t = t0 + i;
       if (s >= t) throw new PacketError(`split ${t} names vertex ${s}, which does not exist yet`);
-      writer.varint(t - 1 - s);
+      n = putVarint(data, n, t - 1 - s);
     }
   }
+  writer.length = n;
 }
 
 // Per split: the edge E (3, zigzagged), the place l, the rest r (3, zigzagged);
-// d1 = r - floor((l E + 8) / 16), d2 = E + 2 d1.
+// d1 = r - floor((l E + 8) / 16), d2 = E + 2 d1, written zigzagged.
 function writeEdgePositions(symbols, writer) {
-  const d2 = [0, 0, 0];
+  writer.reserve(VARINT_BYTES * 6 * (symbols.length / 7));
+  const { data } = writer;
+  let n = writer.length;
   for (let at = 0; at < symbols.length; at += 7) {
     const place = symbols[at + PLACE_COLUMN];
-    for (let axis = 0; axis < 3; axis++) {
-      const edge = unzigzag(symbols[at + axis]);
-      const d1 = unzigzag(symbols[at + 4 + axis]) -
-                 Math.floor((place * edge + PLACES / 2) / PLACES);
-      writer.signed(d1);
-      d2[axis] = edge + 2 * d1;
-    }
-    for (let axis = 0; axis < 3; axis++) writer.signed(d2[axis]);
+    const ex = unzigzag(symbols[at]), ey = unzigzag(symbols[at + 1]),
+          ez = unzigzag(symbols[at + 2]);
+    const x = moved(symbols[at + 4], place, ex), y = moved(symbols[at + 5], place, ey),
+          z = moved(symbols[at + 6], place, ez);
+    n = putSigned(data, n, x);
+    n = putSigned(data, n, y);
+    n = putSigned(data, n, z);
+    n = putSigned(data, n, ex + 2 * x);
+    n = putSigned(data, n, ey + 2 * y);
+    n = putSigned(data, n, ez + 2 * z);
   }
+  writer.length = n;
+}
+
+// d1 on one axis from its rest symbol, the place and the edge.
+function moved(rest, place, edge) {
+  return unzigzag(rest) - Math.floor((place * edge + PLACES / 2) / PLACES);
 }

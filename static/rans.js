@@ -25,6 +25,15 @@ const SHARED = PROB_SCALE - ALPHABET;   // every bucket keeps a frequency of 1
 // 2^k as a float, for values past 32 bits.
 const POWERS = Float64Array.from({ length: MAX_BIT_LENGTH + 1 }, (_, k) => 2 ** k);
 
+// floor(a / b) of integers a >= 0, b > 0 whose product a can pass 2^31: exact in
+// a float, floored, then corrected for the division's rounding.
+function floorDiv(a, b) {
+  let q = Math.floor(a / b);
+  if (q * b > a) q--;
+  else if ((q + 1) * b <= a) q++;
+  return q;
+}
+
 // One context's adaptive model: counts, and the frequencies and starts rebuilt
 // from them on rans.py's schedule. A slot's bucket is found by binary search over
 // the starts: a slot -> bucket table would be refilled at every rebuild.
@@ -47,15 +56,13 @@ class Model {
       total += counts[b];
       if (counts[b] > counts[top]) top = b;
     }
+    // most buckets keep their count of 1: their share is computed once
+    const one = 1 + floorDiv(SHARED, total);
     let used = 0;
     for (let b = 0; b < ALPHABET; b++) {
-      // counts * SHARED can pass 2^31: exact in a float, floored then corrected
-      const a = counts[b] * SHARED;
-      let q = Math.floor(a / total);
-      if (q * total > a) q--;
-      else if ((q + 1) * total <= a) q++;
-      freq[b] = 1 + q;
-      used += freq[b];
+      const f = counts[b] === 1 ? one : 1 + floorDiv(counts[b] * SHARED, total);
+      freq[b] = f;
+      used += f;
     }
     freq[top] += PROB_SCALE - used;
     for (let b = 0; b < ALPHABET; b++) start[b + 1] = start[b] + freq[b];
