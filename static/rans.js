@@ -21,6 +21,7 @@ const ALPHABET = DIRECT + 2 * (MAX_BIT_LENGTH - 5);
 const RAW_CHUNK = 16;               // extra bits come at most this many at a time
 const FIRST_REBUILD = 16, REBUILD_EVERY = 64, INCREMENT = 32;
 const SHARED = PROB_SCALE - ALPHABET;   // every bucket keeps a frequency of 1
+const COARSE_BITS = 6;              // the coarse table has a bucket per 64 slots
 
 // 2^k as a float, for values past 32 bits.
 const POWERS = Float64Array.from({ length: MAX_BIT_LENGTH + 1 }, (_, k) => 2 ** k);
@@ -35,13 +36,16 @@ function floorDiv(a, b) {
 }
 
 // One context's adaptive model: counts, and the frequencies and starts rebuilt
-// from them on rans.py's schedule. A slot's bucket is found by binary search over
-// the starts: a slot -> bucket table would be refilled at every rebuild.
+// from them on rans.py's schedule. A slot's bucket is found from a coarse table
+// (the bucket at every 64th slot) and a scan over the starts from there: a full
+// slot -> bucket table would be refilled (4096 entries) at every rebuild, and a
+// binary search takes seven unpredictable steps where the scan mostly takes none.
 class Model {
   constructor() {
     this.counts = new Int32Array(ALPHABET).fill(1);
     this.freq = new Int32Array(ALPHABET);
     this.start = new Int32Array(ALPHABET + 1);
+    this.coarse = new Uint8Array(PROB_SCALE >> COARSE_BITS);
     this.coded = 0;
     this.rebuild = FIRST_REBUILD;
     this.build();
@@ -66,18 +70,19 @@ class Model {
     }
     freq[top] += PROB_SCALE - used;
     for (let b = 0; b < ALPHABET; b++) start[b + 1] = start[b] + freq[b];
+    const { coarse } = this;
+    for (let i = 0, b = 0; i < coarse.length; i++) {
+      while (start[b + 1] <= i << COARSE_BITS) b++;
+      coarse[i] = b;
+    }
   }
 
   // The bucket whose [start, start + freq) holds `slot`.
   bucket(slot) {
     const { start } = this;
-    let lo = 0, hi = ALPHABET - 1;
-    while (lo < hi) {
-      const mid = (lo + hi + 1) >> 1;
-      if (start[mid] <= slot) lo = mid;
-      else hi = mid - 1;
-    }
-    return lo;
+    let b = this.coarse[slot >> COARSE_BITS];
+    while (start[b + 1] <= slot) b++;
+    return b;
   }
 
   update(b) {
