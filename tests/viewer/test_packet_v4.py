@@ -36,6 +36,7 @@ from lodserver.packets.format import EDGE_POSITIONS, MAGNITUDE_CONTEXTS
 
 from ..meshes import mesh as input_mesh
 from ..packets.test_attributes import _built as every_attribute_pm
+from ..packets.test_v4 import _ascending_runs
 
 STATIC = Path(__file__).resolve().parents[2] / "static"
 ORIGIN = "http://localhost:8765"   # localhost: a secure context, for crypto.subtle
@@ -169,36 +170,12 @@ def _pm(name):
     return build(input_mesh(name))
 
 
-def _ascending_runs(pm, longest):
-    """A batch id per split, consecutive splits sharing one while their vs ascend (at
-    most ``longest`` per batch), as tests/packets/test_v4.py's."""
-    s = pm.parent[pm.base_vertices:]
-    ids = np.zeros(len(s), dtype=np.int64)
-    size = 1
-    for i in range(1, len(s)):
-        same = s[i] > s[i - 1] and size < longest
-        ids[i] = ids[i - 1] + (0 if same else 1)
-        size = size + 1 if same else 1
-    return ids
+def _document(pm, level):
+    """The json level document as the server serves it (``/lod?format=json``)."""
+    import orjson
 
-
-def _document(state, wedge_capacity):
-    """The json level document of a quantized state (docs/packets.md, "Exactness")."""
-    document = {"level": int(state.level), "grid": {"origin": list(state.grid.origin),
-                                                     "step": state.grid.step,
-                                                     "bits": state.grid.bits},
-                "positions": state.positions.tolist(), "faces": state.faces.tolist()}
-    if state.attribute_grids:
-        document["layout"] = [[g.name, g.width] for g in state.attribute_grids]
-        document["attribute_grid"] = {g.name: {"encoding": g.encoding, "origin": list(g.origin),
-                                               "step": g.step, "bits": g.bits}
-                                      for g in state.attribute_grids}
-        document["wedge_capacity"] = wedge_capacity
-        document["wedges"] = state.wedges.tolist()
-        document["corners"] = state.corners.tolist()
-    if state.face_material is not None:
-        document["face_material"] = state.face_material.tolist()
-    return document
+    from lodserver.service.levels import encode_level
+    return orjson.loads(bytes(encode_level(pm, level, file_type="json")))
 
 
 def _digests(state):
@@ -220,7 +197,6 @@ def _run(page, pm, steps):
     on the states the Python reference decoder reaches."""
     grid = grid_of(pm)
     start = quantized_level(pm, steps[0][0], grid)
-    full = quantized_level(pm, pm.vertex_count, grid)
     capacity = {"vertexCapacity": pm.vertex_count, "faceCapacity": int(pm.face_counts[-1])}
     v4, v3, expected = [], [], []
     state = start
@@ -231,8 +207,7 @@ def _run(page, pm, steps):
         expected.append(_digests(state))
         v4.append(_b64(data))
         v3.append(_b64(encode_packet(pm, a, b)))
-    wedge_capacity = 0 if full.wedges is None else len(full.wedges)
-    by_v4, by_v3 = page.evaluate(APPLY_JS, {"document": _document(start, wedge_capacity),
+    by_v4, by_v3 = page.evaluate(APPLY_JS, {"document": _document(pm, steps[0][0]),
                                             "capacity": capacity, "chains": [v4, v3]})
     for i, (step, want) in enumerate(zip(steps, expected)):
         assert by_v4[i] == want, f"v4 step {i} {step[:3]}: {by_v4[i]}"
@@ -292,9 +267,8 @@ def _damage_subject():
     a, b = pm.base_vertices + 3, pm.vertex_count - 20
     grid = grid_of(pm)
     state = quantized_level(pm, a, grid)
-    full = quantized_level(pm, pm.vertex_count, grid)
     capacity = {"vertexCapacity": pm.vertex_count, "faceCapacity": int(pm.face_counts[-1])}
-    return pm, state, _document(state, len(full.wedges)), capacity, encode_packet_v4(pm, a, b)
+    return pm, state, _document(pm, a), capacity, encode_packet_v4(pm, a, b)
 
 
 def _python_outcome(state, data):
