@@ -130,21 +130,19 @@ function magnitudeClass(v) {
 // `faces` the pattern stream of splits.
 function shapes(packet, forward, flags) {
   const classed = (flags & MAGNITUDE_CONTEXTS) !== 0;
-  const plain = { period: 1, classed: false, runs: false, faces: false };
-  const out = [plain, { ...plain, runs: forward }, plain, { ...plain, faces: forward },
-               plain, plain, plain,
-               { ...plain, period: forward ? (flags & EDGE_POSITIONS ? 7 : 6) : 3, classed }];
+  const shape = (period = 1, withClasses = false, runs = false, faces = false) => ({
+    period, classed: withClasses, runs, faces,
+    contexts: runs ? RUN_CONTEXTS : faces ? FACE_CONTEXTS
+      : period * (withClasses ? CLASSES : 1),
+  });
+  const out = [shape(), shape(1, false, forward), shape(), shape(1, false, false, forward),
+               shape(), shape(), shape(),
+               shape(forward ? (flags & EDGE_POSITIONS ? 7 : 6) : 3, classed)];
   if (packet.attributes.length) {
-    out.push(plain, plain, plain);
-    for (const a of packet.attributes) {
-      out.push({ ...plain, period: (forward ? 2 : 1) * a.components, classed });
-    }
+    out.push(shape(), shape(), shape());
+    for (const a of packet.attributes) out.push(shape((forward ? 2 : 1) * a.components, classed));
   }
-  if (packet.hasMaterials) out.push(plain);
-  for (const shape of out) {
-    shape.contexts = shape.runs ? RUN_CONTEXTS : shape.faces ? FACE_CONTEXTS
-      : shape.period * (shape.classed ? CLASSES : 1);
-  }
+  if (packet.hasMaterials) out.push(shape());
   return out;
 }
 
@@ -196,7 +194,7 @@ function readSegment(table, names, layout, size, forward) {
       throw new PacketError(`the packet's ${name} stream holds more symbols than its ` +
                             'records can read');
     }
-    const values = new Float64Array(count);
+    const values = symbolArray(count, name);
     if (shape.runs) {
       if (count !== size) {
         throw new PacketError("the packet's vertex stream does not hold one gap per split");
@@ -223,6 +221,17 @@ function readSegment(table, names, layout, size, forward) {
     decoded.push(values);
   }
   return decoded;
+}
+
+// Room for a stream's symbols: a damaged count can ask for more than a browser
+// will allocate (rans.js bounds it by the stream's bytes, not below that).
+function symbolArray(count, name) {
+  try {
+    return new Float64Array(count);
+  } catch {
+    throw new PacketError(`the packet's ${name} stream holds more symbols (${count}) than ` +
+                          'can be decoded here');
+  }
 }
 
 // Which splits of a segment start a batch run, from the runs' lengths less one.

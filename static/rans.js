@@ -21,6 +21,10 @@ const ALPHABET = DIRECT + 2 * (MAX_BIT_LENGTH - 5);
 const RAW_CHUNK = 16;               // extra bits come at most this many at a time
 const FIRST_REBUILD = 16, REBUILD_EVERY = 64, INCREMENT = 32;
 const SHARED = PROB_SCALE - ALPHABET;   // every bucket keeps a frequency of 1
+// A symbol takes at least log2(4096 / 3987) bits of the state (3987: the largest
+// frequency, every other bucket keeping 1), so a stream of L bytes codes fewer than
+// 210 L symbols: a count past this bound is refused before anything is allocated.
+const MAX_SYMBOLS_PER_BYTE = 256;
 const COARSE_BITS = 6;              // the coarse table has a bucket per 64 slots
 
 // 2^k as a float, for values past 32 bits.
@@ -111,6 +115,10 @@ export class SymbolReader {
     const data = table.bytes(table.varint());
     if (data.length < 4) {
       throw new PacketError(`the packet's ${name} stream is shorter than its state`);
+    }
+    if (this.count > MAX_SYMBOLS_PER_BYTE * data.length) {
+      throw new PacketError(`the packet's ${name} stream holds more symbols than its bytes ` +
+                            'can code');
     }
     const x = (data[0] | (data[1] << 8) | (data[2] << 16) | (data[3] << 24)) >>> 0;
     if (x < STATE_LOW || x >= STATE_HIGH) {

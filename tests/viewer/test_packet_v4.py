@@ -334,3 +334,36 @@ def test_damage_behind_a_valid_checksum_decodes_as_the_reference_does(page):
             assert outcome["applied"] in allowed, (i, outcome, expected[i][1])
     refused = sum(o.get("read") == "PacketError" for o in outcomes)
     assert 0 < refused < len(outcomes)      # both kinds of outcome were exercised
+
+
+def _varint(n):
+    out = bytearray()
+    while n >= 128:
+        out.append(n & 127 | 128)
+        n >>= 7
+    out.append(n)
+    return bytes(out)
+
+
+def test_a_symbol_count_past_what_its_bytes_code_is_a_packet_error(page):
+    """A checksum-valid packet declaring 2^32 - 1 - A records and a batch stream of
+    more symbols than its bytes can code (2^36 or 5000 in 8 bytes) is refused before
+    anything is allocated for them; one of 10^6 in 4 KiB, within that bound, ends
+    inside a symbol. Each is a PacketError, as the reference's outcome is."""
+    pm, state, document, capacity, packet = _damage_subject()
+    header = bytearray(packet[:60])
+    start = struct.unpack_from("<I", header, 8)[0]
+    struct.pack_into("<I", header, 12, 2**32 - 1)
+    crafted = []
+    for count, size in ((2**36, 8), (10**6, 2**12), (5000, 8)):
+        body = (_varint(1) + _varint(2**32 - 1 - start) + _varint(count) + _varint(size)
+                + struct.pack("<I", 2**30) + bytes(size - 4))
+        struct.pack_into("<I", header, 56, len(body))
+        data = bytes(header) + packet[60:60 + (len(packet) - 64 - struct.unpack_from(
+            "<I", packet, 56)[0])] + body
+        data += struct.pack("<I", zlib.crc32(data))
+        assert _python_outcome(state, data) == ("PacketError", None)
+        crafted.append(_b64(data))
+    outcomes = page.evaluate(DAMAGED_JS, {"document": document, "capacity": capacity,
+                                          "packets": crafted})
+    assert [o.get("read") for o in outcomes] == ["PacketError"] * len(crafted), outcomes
