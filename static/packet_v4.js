@@ -180,7 +180,6 @@ export function readBodyV4(body, bodyLength, packet, flags) {
 // Every stream of one segment of `size` records, as arrays of symbols.
 function readSegment(table, names, layout, size, forward) {
   const decoded = [];
-  let firstOfRun = null;
   for (let k = 0; k < names.length; k++) {
     const shape = layout[k], name = names[k];
     const stream = new SymbolReader(table, shape.contexts, name);
@@ -199,7 +198,7 @@ function readSegment(table, names, layout, size, forward) {
       if (count !== size) {
         throw new PacketError("the packet's vertex stream does not hold one gap per split");
       }
-      for (let i = 0; i < size; i++) values[i] = stream.read(firstOfRun[i] ? 0 : 1);
+      readGaps(stream, decoded[0], values);
     } else if (shape.faces) {
       readPatterns(stream, decoded[1 + COUNT], values);
     } else if (shape.classed) {
@@ -216,7 +215,7 @@ function readSegment(table, names, layout, size, forward) {
       if (!forward && count) {
         throw new PacketError("the packet's batch stream holds runs, but it collapses");
       }
-      if (forward) firstOfRun = runStarts(values, size);
+      if (forward) checkRuns(values, size);
     }
     decoded.push(values);
   }
@@ -234,19 +233,30 @@ function symbolArray(count, name) {
   }
 }
 
-// Which splits of a segment start a batch run, from the runs' lengths less one.
-function runStarts(runs, size) {
-  const first = new Uint8Array(size);
-  let at = 0;
+// The batch runs (lengths less one) must cover the segment's splits exactly.
+function checkRuns(runs, size) {
+  let covered = 0;
   for (const length of runs) {
-    if (at + 1 + length > size) {
+    covered += 1 + length;
+    if (covered > size) {
       throw new PacketError("the packet's batch runs hold more splits than its segment");
     }
-    first[at] = 1;
-    at += 1 + length;
   }
-  if (at !== size) throw new PacketError("the packet's batch runs do not cover its segment");
-  return first;
+  if (covered !== size) throw new PacketError("the packet's batch runs do not cover its segment");
+}
+
+// One gap per split, in context 0 for the first of its run and 1 for the others
+// (the runs walked as they go: a damaged segment size allocates nothing here).
+function readGaps(stream, runs, values) {
+  for (let i = 0, run = 0, left = 0; i < values.length; i++) {
+    let context = 1;
+    if (left === 0) {
+      left = runs[run++] + 1;
+      context = 0;
+    }
+    values[i] = stream.read(context);
+    left--;
+  }
 }
 
 // Patterns, each in the context of its place: 0 for a record's first new face,

@@ -367,3 +367,28 @@ def test_a_symbol_count_past_what_its_bytes_code_is_a_packet_error(page):
     outcomes = page.evaluate(DAMAGED_JS, {"document": document, "capacity": capacity,
                                           "packets": crafted})
     assert [o.get("read") for o in outcomes] == ["PacketError"] * len(crafted), outcomes
+
+
+def test_one_batch_run_over_a_huge_declared_segment_is_a_packet_error(page):
+    """A checksum-valid packet declaring 2^32 - 1 - A records in one segment, its batch
+    stream one run over all of them (a valid coded symbol), then a short vertex
+    stream: a PacketError, with nothing allocated per declared split. (Not run
+    through the reference, whose batch runs become a Python list per split.)"""
+    from lodserver.packets.rans import encode_symbols
+
+    pm, state, document, capacity, packet = _damage_subject()
+    header = bytearray(packet[:60])
+    start = struct.unpack_from("<I", header, 8)[0]
+    size = 2**32 - 1 - start
+    struct.pack_into("<I", header, 12, 2**32 - 1)
+    body = bytearray(_varint(1) + _varint(size))
+    encode_symbols(body, np.array([size - 1]), np.zeros(1, dtype=np.int64), 1)
+    body += _varint(5) + _varint(8) + struct.pack("<I", 2**30) + bytes(4)
+    struct.pack_into("<I", header, 56, len(body))
+    records = packet[60:len(packet) - 4 - struct.unpack_from("<I", packet, 56)[0]]
+    data = bytes(header) + records + bytes(body)
+    data += struct.pack("<I", zlib.crc32(data))
+    outcome, = page.evaluate(DAMAGED_JS, {"document": document, "capacity": capacity,
+                                          "packets": [_b64(data)]})
+    assert outcome.get("read") == "PacketError", outcome
+    assert "vertex stream" in outcome["message"], outcome
