@@ -11,10 +11,14 @@
 // dequantize(), the float value of a wedge's grid values (docs/packets.md,
 // "Exactness").
 
+import { readBodyV4, withoutChecksum } from './packet_v4.js';
+
 const MAGIC = 0x56444f4c;          // "LODV" read as a little-endian u32
 // Version 1: a geometry-only packet of version 2; version 2: attribute records with
-// one of four kind codes; version 3: attribute records that name the attribute.
-const READABLE_VERSIONS = [1, 2, 3];
+// one of four kind codes; version 3: attribute records that name the attribute;
+// version 4: version 3's header and records, the body rANS-coded (packet_v4.js).
+const READABLE_VERSIONS = [1, 2, 3, 4];
+const VERSION_4 = 4;
 const HEADER_BYTES = 60;
 const STREAM_NAMES = ['vertex', 'count', 'pattern', 'other', 'fan', 'mask', 'position'];
 const HAS_MATERIALS = 1;           // header flag
@@ -261,7 +265,9 @@ function readAttributeGrid(bytes, view, at, name, width, code, bits, step,
 // startFaces, stopFaces, attributes, hasMaterials, streams (Uint8Array views
 // into the body, in streamNames() order) }.
 export async function readPacket(buffer) {
-  const bytes = new Uint8Array(buffer);
+  let bytes = new Uint8Array(buffer);
+  // version 4 ends in a CRC-32, checked before anything else is read
+  if (bytes.length > 4 && bytes[4] === VERSION_4) bytes = withoutChecksum(bytes);
   if (bytes.length < HEADER_BYTES) {
     throw new PacketError(`the packet is truncated: ${bytes.length} bytes is shorter than ` +
                           'the header');
@@ -308,6 +314,10 @@ export async function readPacket(buffer) {
     streams: [],
   };
   const bodyLength = view.getUint32(56, true);
+  if (version === VERSION_4) {
+    packet.streams = readBodyV4(bytes.subarray(at), bodyLength, packet, flags);
+    return packet;
+  }
   let body;
   try {
     body = await inflate(bytes.subarray(at));
