@@ -4,6 +4,8 @@
 // state_from_json), which it must match exactly; its parts, one module each:
 //
 //   packet.js      the header, the streams, varints, attribute grids
+//   packet_v4.js   a version 4 packet read into version 3's streams
+//   rans.js        version 4's entropy coder (rANS)
 //   levelstate.js  LodState: the level's arrays, dirty ranges, apply()
 //   splits.js      split records, and their wedge parts
 //   collapses.js   collapse records, and their wedge parts
