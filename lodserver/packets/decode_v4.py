@@ -99,7 +99,7 @@ def decode_packet_v4(data: bytes) -> Packet:
 def _segment(reader: Reader, names, layout, size: int, forward: bool, flags: int) -> list:
     """Every stream of one segment of ``size`` records, as lists of symbols."""
     decoded = []
-    first_of_run: list = []
+    run_starts: list = []      # the first split of each batch run, ascending
     for k, (name, shape) in enumerate(zip(names, layout)):
         stream = SymbolReader(reader, shape.contexts, name)
         period = shape.period
@@ -114,8 +114,13 @@ def _segment(reader: Reader, names, layout, size: int, forward: bool, flags: int
         if shape.runs:
             if stream.count != size:
                 raise PacketError("the packet's vertex stream does not hold one gap per split")
+            starts = iter(run_starts)
+            start = next(starts, None)
             for i in range(size):
-                values.append(stream.read(0 if first_of_run[i] else 1))
+                first = i == start
+                if first:
+                    start = next(starts, None)
+                values.append(stream.read(0 if first else 1))
         elif shape.faces:               # patterns: by their place in their record
             if stream.count != sum(decoded[1 + COUNT]):
                 raise PacketError("the packet's pattern stream does not hold one pattern per "
@@ -133,11 +138,15 @@ def _segment(reader: Reader, names, layout, size: int, forward: bool, flags: int
         if k == 0 and not forward and values:
             raise PacketError("the packet's batch stream holds runs, but it collapses")
         if k == 0 and forward:           # batch runs: which splits start a run
+            # kept as the runs' starts, not a flag per split: a damaged segment can
+            # declare billions of splits in a few bytes
+            covered = 0
             for length in values:
-                if len(first_of_run) + 1 + length > size:
+                if covered + 1 + length > size:
                     raise PacketError("the packet's batch runs hold more splits than its segment")
-                first_of_run += [True] + [False] * length
-            if len(first_of_run) != size:
+                run_starts.append(covered)
+                covered += 1 + length
+            if covered != size:
                 raise PacketError("the packet's batch runs do not cover its segment")
         decoded.append(values)
     return decoded

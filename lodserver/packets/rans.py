@@ -43,6 +43,11 @@ DIRECT = 32                         # values below this are their own bucket
 MAX_BIT_LENGTH = 44                 # larger values are refused (no record writes them)
 ALPHABET = DIRECT + 2 * (MAX_BIT_LENGTH - 5)
 RAW_CHUNK = 16                      # flat bits are coded at most this many at a time
+# A symbol takes at least log2(4096 / 3987) bits of the state (3987: the largest
+# frequency, every other bucket keeping 1), so a stream of L bytes codes fewer than
+# 210 L symbols: a count past this bound is refused before it is read, as the
+# browser's reader (static/rans.js) refuses it.
+MAX_SYMBOLS_PER_BYTE = 256
 
 
 @njit(cache=True, nogil=True)
@@ -242,6 +247,9 @@ class SymbolReader:
             self.data = reader.take(reader.varint())
             if len(self.data) < 4:
                 raise PacketError(f"the packet's {self.name} stream is shorter than its state")
+            if self.count > MAX_SYMBOLS_PER_BYTE * len(self.data):
+                raise PacketError(f"the packet's {self.name} stream holds more symbols than "
+                                  "its bytes can code")
             self.x = int.from_bytes(self.data[:4], "little")
             self.at = 4
             if not STATE_LOW <= self.x < 2**31:

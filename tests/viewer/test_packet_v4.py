@@ -372,8 +372,8 @@ def test_a_symbol_count_past_what_its_bytes_code_is_a_packet_error(page):
 def test_one_batch_run_over_a_huge_declared_segment_is_a_packet_error(page):
     """A checksum-valid packet declaring 2^32 - 1 - A records in one segment, its batch
     stream one run over all of them (a valid coded symbol), then a short vertex
-    stream: a PacketError, with nothing allocated per declared split. (Not run
-    through the reference, whose batch runs become a Python list per split.)"""
+    stream: a PacketError, with nothing allocated per declared split, in the
+    browser as in the reference."""
     from lodserver.packets.rans import encode_symbols
 
     pm, state, document, capacity, packet = _damage_subject()
@@ -388,6 +388,7 @@ def test_one_batch_run_over_a_huge_declared_segment_is_a_packet_error(page):
     records = packet[60:len(packet) - 4 - struct.unpack_from("<I", packet, 56)[0]]
     data = bytes(header) + records + bytes(body)
     data += struct.pack("<I", zlib.crc32(data))
+    assert _python_outcome(state, data) == ("PacketError", None)
     outcome, = page.evaluate(DAMAGED_JS, {"document": document, "capacity": capacity,
                                           "packets": [_b64(data)]})
     assert outcome.get("read") == "PacketError", outcome
