@@ -39,7 +39,8 @@ __version__ = _version()
 from .build import build  # noqa: E402  (after __version__: the CLI imports it from here)
 from .mesh import Mesh, MeshError  # noqa: E402
 from .options import BuildOptions  # noqa: E402
-from .progressive.mesh import Cursor, ProgressiveMesh
+from .progressive.mesh import ProgressiveMesh
+from .progressive.replay import Cursor
 
 __all__ = ["build", "BuildOptions", "Mesh", "MeshError", "ProgressiveMesh", "Cursor",
            "__version__"]

@@ -48,8 +48,8 @@ from .render_vertices import (render_attributes, render_primitives,  # noqa: F40
 # MeshoptDecoder, glTFast, Babylon.js): gltfpack -cc's form.
 COMPRESSIONS = ("none", "quantize", "meshopt")
 # What `lodserver export` writes unless told: quantized, as gltfpack writes by default
-# (its compression is opt-in, -c/-cc, and so is ours): a level takes about half the
-# bytes, and every mainstream engine reads it without a decoder.
+# (its compression is opt-in, -c/-cc, and so is ours): smaller than floats, and every
+# mainstream engine reads it without a decoder.
 DEFAULT_COMPRESS = "quantize"
 
 # How a chain's levels are told apart (encode_lod_chain): the MSFT_lod extension

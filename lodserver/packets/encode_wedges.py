@@ -13,7 +13,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from ..progressive.mesh import ancestor_below
+from ..progressive.replay import ancestor_below
 from ..simplify.quadrics import symmetric_cofactors
 from .corners import HELD, distinct_prefix, put, search, sort_prefix, zz
 from .format import GRADIENT_DAMPING, MAX_SPLIT_RATIO

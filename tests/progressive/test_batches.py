@@ -84,7 +84,7 @@ def _same(a, b):
 
 
 def _split(pm, state, t):
-    """Split ``t`` alone on the mutable ``state`` (as ``mesh._apply_splits`` and
+    """Split ``t`` alone on the mutable ``state`` (as ``replay._apply_splits`` and
     ``_apply_wedge_splits`` do for a range)."""
     positions, faces, values, corners = state
     j = t - pm.base_vertices
