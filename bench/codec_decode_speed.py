@@ -29,7 +29,6 @@ from lodserver.packets import encode_v4 as v4  # noqa: E402
 from lodserver.packets.format import stream_names  # noqa: E402
 from lodserver.packets.rans import (  # noqa: E402
     ALPHABET,
-    FIRST_REBUILD,
     INCREMENT,
     PROB_BITS,
     PROB_SCALE,
@@ -37,6 +36,7 @@ from lodserver.packets.rans import (  # noqa: E402
     STATE_LOW,
     encode_symbols,
     frequencies,
+    new_models,
     next_rebuild,
 )
 from lodserver.packets.format import Reader  # noqa: E402
@@ -49,20 +49,11 @@ SEARCH = True
 
 @njit(cache=True)
 def _decode(data, contexts, n_contexts, out):
-    counts = np.ones((n_contexts, ALPHABET), dtype=np.int64)
-    freq = np.empty((n_contexts, ALPHABET), dtype=np.int64)
-    start = np.zeros((n_contexts, ALPHABET), dtype=np.int64)
+    counts, freq, start, coded, rebuild = new_models(n_contexts)
     lookup = np.empty((n_contexts, PROB_SCALE), dtype=np.uint8)
-    coded = np.zeros(n_contexts, dtype=np.int64)
-    rebuild = np.full(n_contexts, FIRST_REBUILD, dtype=np.int64)
     for c in range(n_contexts):
-        frequencies(counts[c], freq[c])
-        slot = 0
         for b in range(ALPHABET):
-            start[c, b] = slot
-            for _ in range(freq[c, b]):
-                lookup[c, slot] = b
-                slot += 1
+            lookup[c, start[c, b]:start[c, b] + freq[c, b]] = b
     x = data[0] | (data[1] << 8) | (data[2] << 16) | (np.int64(data[3]) << 24)
     at = 4
     for i in range(out.shape[0]):

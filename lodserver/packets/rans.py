@@ -125,8 +125,10 @@ def _emit(out, used, x, x_max):
 
 
 @njit(cache=True, nogil=True)
-def _model(values, contexts, n_contexts):
-    """The (start, freq) each symbol is coded with, running the adaptive model forward."""
+def new_models(n_contexts):
+    """The adaptive model of ``n_contexts`` contexts before any symbol: (counts,
+    freq, start) each (n_contexts, ALPHABET), and per context the symbols coded and
+    the count at which its frequencies are next rebuilt."""
     counts = np.ones((n_contexts, ALPHABET), dtype=np.int64)
     freq = np.empty((n_contexts, ALPHABET), dtype=np.int64)
     start = np.empty((n_contexts, ALPHABET), dtype=np.int64)
@@ -137,6 +139,13 @@ def _model(values, contexts, n_contexts):
         start[c, 0] = 0
         for b in range(1, ALPHABET):
             start[c, b] = start[c, b - 1] + freq[c, b - 1]
+    return counts, freq, start, coded, rebuild
+
+
+@njit(cache=True, nogil=True)
+def _model(values, contexts, n_contexts):
+    """The (start, freq) each symbol is coded with, running the adaptive model forward."""
+    counts, freq, start, coded, rebuild = new_models(n_contexts)
     out = np.empty((values.shape[0], 2), dtype=np.int64)
     for i in range(values.shape[0]):
         c = contexts[i]

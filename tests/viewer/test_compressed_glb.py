@@ -7,6 +7,7 @@ import pytest
 from ..io.gltf_tools import TOOLS
 from ..meshes import SHARED
 from ..server import upload_and_wait
+from .pages import settled_and_evaluated
 from ..conftest import need
 from lodserver.io import load_mesh
 from lodserver.io.glb import encode_glb
@@ -70,17 +71,9 @@ def duck(server, tmp_path_factory):
 def test_compressed_levels_draw_as_the_float_level(chromium, server, duck):
     if not DECODER.is_file():
         need("meshoptimizer's decoder is not installed: npm ci --prefix tests/tools")
-    page = chromium.new_page(viewport=VIEWPORT, bypass_csp=True)
-    failures = []
-    page.on("pageerror", lambda error: failures.append(error))
-    try:
-        page.goto(f"{server.base_url}/viewer?mesh={duck['id']}")
-        page.wait_for_function("() => window.lodViewer?.status().level != null")
-        page.evaluate("lodViewer.settled()")
-        found = page.evaluate(DRAW_JS, {"id": duck["id"], "decoder": DECODER.read_text()})
-    finally:
-        page.close()
-    assert not failures, failures
+    _, found = settled_and_evaluated(
+        chromium, f"{server.base_url}/viewer?mesh={duck['id']}", DRAW_JS,
+        {"id": duck["id"], "decoder": DECODER.read_text()}, viewport=VIEWPORT)
     plain = found["none"]
     assert plain["triangles"] == duck["faces"] and plain["drawn"] > 0.02
     size = max(b - a for a, b in zip(plain["min"], plain["max"]))

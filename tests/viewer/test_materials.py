@@ -19,6 +19,7 @@ from lodserver.mesh import Materials, Mesh
 
 from ..meshes import SHARED, textured_sphere
 from ..server import upload_and_wait
+from .pages import settled_and_evaluated
 
 VIEWPORT = {"width": 640, "height": 480}
 
@@ -181,23 +182,11 @@ def _source(name, tmp_path):
 
 
 def _compare(chromium, server, mesh, tmp_path):
-    # GLTFLoader fetches the GLB's embedded images from blob: URLs, which the
-    # viewer's connect-src 'self' forbids (the viewer itself needs no such
-    # fetch: tests/viewer/test_viewer.py checks it breaks none of its policy)
-    page = chromium.new_page(viewport=VIEWPORT, bypass_csp=True)
-    failures = []
-    page.on("pageerror", lambda error: failures.append(error))
-    try:
-        page.goto(f"{server.base_url}/viewer?mesh={mesh['id']}&level={mesh['vertices']}")
-        page.wait_for_function("() => window.lodViewer?.status().level != null")
-        status = page.evaluate("lodViewer.settled()")
-        assert status["level"] == mesh["vertices"] and status["error"] is None, status
-        result = page.evaluate(COMPARE_JS, {"id": mesh["id"], "channels": CHANNELS})
-        png = page.screenshot()
-        (tmp_path / "viewer.png").write_bytes(png)
-    finally:
-        page.close()
-    assert not failures, failures
+    status, result = settled_and_evaluated(
+        chromium, f"{server.base_url}/viewer?mesh={mesh['id']}&level={mesh['vertices']}",
+        COMPARE_JS, {"id": mesh["id"], "channels": CHANNELS}, viewport=VIEWPORT,
+        screenshot=tmp_path / "viewer.png")
+    assert status["level"] == mesh["vertices"] and status["error"] is None, status
     return result
 
 
