@@ -15,7 +15,9 @@ from pathlib import Path
 
 from ..chains import REACH_SLACK, ChainOptions, Exported
 from ..io import write_atomic
+from ..io.scene_glb import encode_scene
 from ..mesh import Mesh, MeshError
+from .budget import chain_levels, coverage_from_errors, scene_instances, world_errors
 
 __all__ = ["export_scene"]
 
@@ -54,8 +56,6 @@ def export_scene(scene, source: Path, output: Path, chain: ChainOptions, options
     faces. Meshes kept as they are (``scene.as_is``) are drawn at every level
     and are outside the budget: the ratios are of the simplified meshes' triangles.
     """
-    from .budget import chain_levels, coverage_from_errors, scene_instances, world_errors
-    from ..io.scene_glb import encode_scene
     if chain.naming != "msft":
         raise MeshError(f"{source.name} is a glTF scene, whose levels are linked by MSFT_lod: "
                         f"--lod-naming {chain.naming} applies to single meshes")
