@@ -104,6 +104,21 @@ class _Build:
     cancel: threading.Event = field(default_factory=threading.Event)
     renewed: float = field(default_factory=time.monotonic)
     lost: bool = False
+    _losing: threading.Lock = field(default_factory=threading.Lock, repr=False, compare=False)
+
+    def lose(self) -> None:
+        """Stop this build: its lease is gone (the mesh deleted, or taken over).
+
+        Said once, by whichever thread learns it first: the heartbeat, or the
+        progress callback whose fenced write was refused. A build stopped without
+        a word is indistinguishable, in the log, from one that stalled.
+        """
+        with self._losing:
+            first, self.lost = not self.lost, True
+        if first:
+            log.warning("the build of mesh %s lost its lease (deleted, or taken over); "
+                        "stopping it", self.claim.mesh_id)
+        self.cancel.set()
 
 
 class JobRunner:
@@ -344,11 +359,8 @@ class JobRunner:
                 else:
                     if held:
                         running.renewed = time.monotonic()
-                if not held and not running.lost:
-                    log.warning("the build of mesh %s lost its lease (deleted, or taken over); "
-                                "stopping it", running.claim.mesh_id)
-                    running.lost = True
-                    running.cancel.set()
+                if not held:
+                    running.lose()
 
     def _run(self, claim: Claim) -> None:
         mesh_id = claim.mesh_id
@@ -439,8 +451,7 @@ class JobRunner:
                 store.set_progress(mesh_id=mesh_id, progress=min(done / max(expected, 1), 0.99),
                                    attempt=attempt)
             except (UnknownMeshError, LeaseLostError):
-                running.lost = True     # deleted, or taken over: stop at once
-                cancel.set()
+                running.lose()          # deleted, or taken over: stop at once
             except Exception as exc:     # a progress bar is not worth a build
                 log.warning("could not record the progress of mesh %s: %s", mesh_id, exc)
 

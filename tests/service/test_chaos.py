@@ -266,7 +266,7 @@ def test_a_worker_killed_and_another_paused_past_its_lease(postgres_url, tmp_pat
 
     catalog = open_catalog(postgres_url, data_dir=tmp_path)
     catalog._run("DELETE FROM meshes")
-    nodes, noticed = {}, True
+    nodes = {}
     try:
         with server_process(tmp_path / "web", timeout=120, log=tmp_path / "web.log",
                             env={k: v for k, v in env.items() if k.startswith("LODSERVER_")}
@@ -297,13 +297,12 @@ def test_a_worker_killed_and_another_paused_past_its_lease(postgres_url, tmp_pat
             assert record.attempt == 3, record.attempt
             workers[paused].send_signal(signal.SIGCONT)
             # resumed mid-build, it learns it lost the lease at its next heartbeat
-            # or, at the latest, when its fenced commit is refused: the build's time
-            noticed = _noticed(logs[paused], BUILD_TIMEOUT)
+            # or progress write, at the latest when its fenced commit is refused
+            assert _noticed(logs[paused], BUILD_TIMEOUT), logs[paused].read_text()
             workers["c"].send_signal(signal.SIGTERM)
             assert workers["c"].wait(timeout=60) == 0, logs["c"].read_text()
             workers[paused].send_signal(signal.SIGTERM)
-            if noticed:
-                assert workers[paused].wait(timeout=60) == 0, logs[paused].read_text()
+            assert workers[paused].wait(timeout=60) == 0, logs[paused].read_text()
             final = catalog.get(mesh_id=mesh_id)
             assert (final.status.value, final.attempt, final.digest) == \
                 ("ready", 3, record.digest)
@@ -320,11 +319,6 @@ def test_a_worker_killed_and_another_paused_past_its_lease(postgres_url, tmp_pat
                 process.kill()
                 process.wait()
         catalog.close()
-    if not noticed:
-        # everything stored is right (asserted above); what is not is the resumed
-        # worker's own account: seen in some full runs, not yet explained
-        pytest.xfail("the resumed worker did not say it lost its lease within the "
-                     "build's time (a known fault, under investigation)")
 
 
 def _noticed(log, timeout: float) -> bool:

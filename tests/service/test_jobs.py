@@ -98,8 +98,10 @@ def test_a_build_reuses_the_mesh_its_upload_check_parsed(store, tmp_path, monkey
 
 
 @pytest.mark.parametrize("catalog_url", DIALECTS, indirect=True)
-def test_a_delete_on_one_server_stops_the_build_on_another(two_stores, tmp_path, monkeypatch):
+def test_a_delete_on_one_server_stops_the_build_on_another(two_stores, tmp_path, monkeypatch,
+                                                           caplog):
     one, two = two_stores
+    caplog.set_level("WARNING", logger=jobs_module.__name__)
     started, stopped = threading.Event(), threading.Event()
 
     def endless_build(mesh, *, cancel, progress, **options):
@@ -120,9 +122,13 @@ def test_a_delete_on_one_server_stops_the_build_on_another(two_stores, tmp_path,
     deleted = time.monotonic()
     one.delete(mesh_id=mesh_id)              # another server's delete
     assert stopped.wait(10)
-    # its next progress write found the row gone (well before a lease renewal)
+    # its next progress write found the row gone (well before a lease renewal),
+    # and the log says so once, although no heartbeat has run into it yet
     assert time.monotonic() - deleted < 2
     builder.shutdown()
+    said = [r.getMessage() for r in caplog.records if "lost its lease" in r.getMessage()]
+    assert said == [f"the build of mesh {mesh_id} lost its lease (deleted, or taken over); "
+                    "stopping it"]
     assert list((tmp_path / "blobs" / "artefacts").iterdir()) == []
 
 
