@@ -28,9 +28,10 @@ one that refuses.
 
 Every object-store call is bounded: botocore's connection and read timeouts
 (:data:`CONNECT_SECONDS`, :data:`READ_SECONDS`) and few retries, botocore's
-and s3fs's own, so a store that stops answering is a
-:class:`StoreUnavailable` within about a minute at worst rather than a
-request that hangs past its client's patience.
+and s3fs's own, and a write's whole deadline (:data:`CALL_SECONDS` and
+:data:`MIN_BYTES_PER_SECOND`), so a store that stops answering or reading is
+a :class:`StoreUnavailable` within about a minute at worst (more for a large
+body) rather than a request that hangs past its client's patience.
 """
 
 from __future__ import annotations
@@ -72,6 +73,12 @@ READ_SECONDS = 15.0
 # its own, which would multiply the wait on a store that stalls).
 BOTO_ATTEMPTS = 2
 S3FS_RETRIES = 1
+# A write's whole deadline (seconds), over those timeouts: they bound each wait
+# for an answer, never the sending of a body, so a store that stops reading
+# mid-upload would hold a put, and the build or request behind it, for ever.
+# Generous, so that a body sent at MIN_BYTES_PER_SECOND still goes up.
+CALL_SECONDS = 60.0
+MIN_BYTES_PER_SECOND = 2**20
 
 
 class BlobKeyError(StoreError, ValueError):
@@ -399,12 +406,22 @@ class FsspecBlobs(Blobs):
         # s3fs sends a file of at least twice part_bytes as a multipart upload;
         # S3 shows the object only once the upload completes, never in part.
         self._call("storing", key, self.fs.put_file, os.fspath(path), self._path(key),
-                   **self._put_options)
+                   **self._put_options, **self._deadline(os.stat(path).st_size))
         if move:
             Path(path).unlink(missing_ok=True)
 
     def put_bytes(self, key: str, data) -> None:
-        self._call("storing", key, self.fs.pipe_file, self._path(key), bytes(data))
+        data = bytes(data)
+        self._call("storing", key, self.fs.pipe_file, self._path(key), data,
+                   **self._deadline(len(data)))
+
+    def _deadline(self, nbytes: int) -> dict:
+        """The keyword that bounds a write of ``nbytes`` (fsspec's ``timeout=`` of an
+        asynchronous file system such as s3fs, which cancels the call; none for
+        others, whose writes are local)."""
+        if not getattr(self.fs, "async_impl", False):
+            return {}
+        return {"timeout": CALL_SECONDS + nbytes / MIN_BYTES_PER_SECOND}
 
     def open(self, key: str) -> BinaryIO:
         # s3fs reads in ranged GETs pinned to the object's ETag: should the object

@@ -5,6 +5,7 @@ from __future__ import annotations
 import hashlib
 import os
 import threading
+import time
 
 import pytest
 
@@ -214,3 +215,34 @@ def test_s3_objects_are_shared_between_instances(s3_url):
     assert second.exists("artefacts/a.pm") and list(second.keys()) == ["artefacts/a.pm"]
     first.delete("artefacts/a.pm")
     assert not second.exists("artefacts/a.pm") and list(second.keys()) == []
+
+
+def test_s3_a_store_that_stops_reading_an_upload_is_unavailable_in_bounded_time(
+        s3_endpoint, s3_url, tmp_path, monkeypatch):
+    """botocore's read timeout bounds the wait for an answer, not the writing of a
+    body: a store that stops reading mid-upload would hold the put (and the build
+    or request behind it) for ever. The call's own deadline ends it."""
+    from urllib.parse import urlsplit
+
+    from lodserver.service import blobs as blobs_module
+    from lodserver.service.errors import StoreUnavailable
+    from tests.services.gate import Gate
+
+    where = urlsplit(s3_endpoint)
+    gate = Gate((where.hostname, where.port))
+    try:
+        monkeypatch.setenv("AWS_ENDPOINT_URL", gate.endpoint)
+        monkeypatch.setattr(blobs_module, "CALL_SECONDS", 3.0)
+        blobs = FsspecBlobs(s3_url, part_bytes=5 * 2**20,
+                            config_kwargs={"retries": {"max_attempts": 1}})
+        source = tmp_path / "big.bin"
+        source.write_bytes(os.urandom(12 * 2**20))     # above any loopback socket buffer
+        gate.stall_requests_to(b"PUT /")
+        started = time.monotonic()
+        with pytest.raises(StoreUnavailable) as caught:
+            blobs.put_file("artefacts/big.pm", source)
+        assert gate.seen.is_set()
+        assert time.monotonic() - started < 60, "the deadline did not end the put"
+        assert "'artefacts/big.pm'" in str(caught.value) and "127.0.0.1" not in str(caught.value)
+    finally:
+        gate.close()

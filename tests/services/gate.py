@@ -10,7 +10,12 @@ every connection to the service, and on demand
   next bytes the service sends back on that connection wait until the test
   releases them (an interim ``100 Continue`` passes). The client is then paused at a known point (its request done
   on the service, its answer not read), observed from outside, without any
-  hook in the code under test.
+  hook in the code under test;
+- **stops reading a request** (:meth:`Gate.stall_requests_to`): once a client
+  sent bytes containing a pattern, the gate reads nothing more from it and
+  forwards nothing, as a store whose disk or network stalls mid-upload does.
+  A body larger than the sockets' buffers then blocks the client's writes,
+  which a read timeout alone never ends.
 
 One thread per direction per connection; for tests only.
 """
@@ -33,6 +38,7 @@ class Gate:
         self._open: set[socket.socket] = set()
         self._cut = False
         self._pattern: bytes | None = None
+        self._stall: bytes | None = None
         self.seen = threading.Event()        # the held request was sent
         self._release = threading.Event()
         self.refused = 0                     # connections reset while cut off
@@ -66,9 +72,17 @@ class Gate:
             self.seen.clear()
             self._release.clear()
 
+    def stall_requests_to(self, pattern: bytes) -> None:
+        """Stop reading from any client that sends ``pattern`` (``seen`` is set when
+        one did), until :meth:`release`."""
+        with self._lock:
+            self._stall = pattern
+            self.seen.clear()
+            self._release.clear()
+
     def release(self) -> None:
         with self._lock:
-            self._pattern = None
+            self._pattern = self._stall = None
         self._release.set()
 
     def close(self) -> None:
@@ -111,7 +125,10 @@ class Gate:
             while data := source.recv(65536):
                 if asking:
                     with self._lock:
-                        pattern = self._pattern
+                        pattern, stall = self._pattern, self._stall
+                    if stall and stall in tail + data:
+                        self.seen.set()
+                        self._release.wait()    # nothing read, nothing forwarded
                     if pattern and not held.is_set() and pattern in tail + data:
                         held.set()
                         self.seen.set()
