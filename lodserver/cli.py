@@ -379,8 +379,10 @@ def _cmd_serve(args) -> int:
     if problem:
         print(f"lodserver serve: {problem}", file=sys.stderr)
         return 1
+    from .api.protocol import head_deadline_protocol
+
     uvicorn.run("lodserver.api.main:create_app", factory=True, host=args.host, port=args.port,
-                log_level=args.log_level)
+                log_level=args.log_level, http=head_deadline_protocol(settings.header_seconds))
     return 0
 
 

@@ -37,6 +37,10 @@ class Settings(BaseSettings):
     token: SecretStr | None = Field(None, validate_default=True, description="Bearer token "
                                     "required by write endpoints; unset or empty: no token "
                                     "needed.")
+    header_seconds: float = Field(10.0, gt=0, le=600, description="A request whose line and "
+                                  "headers have not all arrived this many seconds after its "
+                                  "connection opened (or its first byte) is answered 408 and "
+                                  "its connection closed (lodserver serve).")
     max_upload_bytes: int = Field(256 * 2**20, gt=0, description="Largest request body "
                                   "accepted by POST /meshes, in bytes.")
     upload_idle_seconds: float = Field(30.0, gt=0, le=3600, description="An upload whose "

@@ -1,4 +1,5 @@
-"""Slow and idle upload bodies against a real ``lodserver serve`` process: a
+"""Slow and idle upload bodies, and request heads that never complete, against a
+real ``lodserver serve`` process: a
 client that sends its headers and then nothing, and one that trickles bytes,
 are both cut (408, the connection closed) and leave nothing in ``tmp/``; past
 ``LODSERVER_CONCURRENT_UPLOADS`` bodies at once, an upload is a 503 with
@@ -143,3 +144,46 @@ def test_uploads_past_the_concurrent_limit_are_503_with_retry_after(tmp_path):
                     "the abandoned uploads' folders were not removed")
         created = httpx.post(f"{base}/meshes", files={"file": ("spot.obj", SPOT)}, timeout=60)
         assert created.status_code == 202, created.text
+
+
+def test_a_request_whose_headers_trickle_is_answered_408_and_closed(tmp_path):
+    """uvicorn bounds the wait between kept-alive requests, not the arrival of a
+    request's head: without lodserver's deadline (api/protocol.py) each of these
+    connections would be held for ever."""
+    env = {"LODSERVER_HEADER_SECONDS": "1"}
+    with server_process(tmp_path / "data", env=env) as (base, _):
+        where = urlsplit(base)
+        silent = socket.create_connection((where.hostname, where.port), timeout=DEADLINE)
+        trickling = socket.create_connection((where.hostname, where.port), timeout=DEADLINE)
+        kept = socket.create_connection((where.hostname, where.port), timeout=DEADLINE)
+        try:
+            # a whole first request on a kept-alive connection is answered as usual
+            kept.sendall(f"GET /meshes HTTP/1.1\r\nHost: {where.netloc}\r\n\r\n".encode())
+            first = kept.recv(65536)
+            head, _, body = first.partition(b"\r\n\r\n")
+            length = int(next(line.split(b":")[1] for line in head.split(b"\r\n")
+                              if line.lower().startswith(b"content-length:")))
+            while len(body) < length:
+                body += kept.recv(65536)
+            assert first.startswith(b"HTTP/1.1 200") and len(body) == length, first
+            kept.sendall(b"GET /meshes HTTP/1.1\r\n")      # its next request stops halfway
+            trickling.sendall(f"GET /meshes HTTP/1.1\r\nHost: {where.netloc}\r\n".encode())
+            deadline = time.monotonic() + DEADLINE
+            trickled = 0
+            while trickled < 40 and time.monotonic() < deadline:
+                try:
+                    trickling.sendall(b"X")                 # one header byte at a time
+                except (BrokenPipeError, ConnectionResetError):
+                    break
+                trickled += 1
+                time.sleep(0.25)
+            for sock in (silent, trickling, kept):
+                answer = _answer_or_close(sock, deadline)
+                assert answer == b"" or answer.startswith(b"HTTP/1.1 408"), answer
+                assert answer == b"" or b"did not arrive in time" in answer
+            assert trickled < 40, "the trickling head was never cut"
+        finally:
+            for sock in (silent, trickling, kept):
+                sock.close()
+        # the server still answers whole requests
+        assert httpx.get(f"{base}/meshes").status_code == 200
