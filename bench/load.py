@@ -51,6 +51,7 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+from codec_meshes import bunny_loop2  # noqa: E402
 from machine import machine_info  # noqa: E402
 from tests.server import server_process  # noqa: E402
 
@@ -81,22 +82,10 @@ def _process_cpu_seconds(pid: int) -> float | None:
 def upload_file(key: str, work: Path) -> tuple[Path, dict]:
     """The file to upload for ``key`` and the welded mesh's counts (computed here,
     for the raw-array comparison)."""
-    from lodserver.io import clean_mesh, load_mesh, save_mesh
+    from lodserver.io import load_mesh, save_mesh
 
     if key == LARGE:
-        cache = OUT / f"{LARGE}.npz"   # the same arrays as bench/simplify.py uses
-        if cache.exists():
-            data = np.load(cache)
-            mesh, _ = clean_mesh(data["positions"], data["faces"])
-        else:
-            import trimesh
-
-            bunny, _ = load_mesh(MESH_DIR / MESHES["stanford-bunny"])
-            positions, faces = trimesh.remesh.subdivide_loop(bunny.positions, bunny.faces,
-                                                             iterations=2)
-            mesh, _ = clean_mesh(positions, faces)
-            cache.parent.mkdir(parents=True, exist_ok=True)
-            np.savez(cache, positions=mesh.positions, faces=mesh.faces)
+        mesh = bunny_loop2(MESH_DIR, OUT)     # the same arrays as bench/simplify.py uses
         path = work / f"{LARGE}.ply"
         save_mesh(mesh, path, file_type="ply")
     else:
