@@ -169,7 +169,7 @@ def _cmd_extract(args) -> int:
     except ValueError as exc:
         raise MeshError(str(exc)) from exc
     mesh = pm.at(level)
-    save_mesh(mesh, _output_file(args.output))
+    save_mesh(mesh, _output_file(args.output), compress=args.compress)
     print(f"{args.output}: level {level}, {mesh.vertex_count} vertices, {mesh.face_count} faces, "
           f"error {pm.error_at_level(level):.3g}", file=sys.stderr)
     return 0
@@ -472,6 +472,10 @@ def _parser() -> argparse.ArgumentParser:
     group.add_argument("--ratio", type=float, help="this fraction of the faces, in (0, 1]")
     group.add_argument("--error", type=float, help="coarsest level with at most this error (mesh units)")
     p.add_argument("-o", "--output", required=True, help=OUTPUT_HELP)
+    p.add_argument("--compress", choices=COMPRESSIONS, default="none",
+                   help="a .glb output's storage, as for export: none (float32, the "
+                        "progressive mesh's order; default, and the only one for other "
+                        "formats), quantize or meshopt (both in vertex cache and fetch order)")
     p.set_defaults(run=_cmd_extract)
 
     p = _command(sub, "simplify", "write one simplified copy of a mesh file (no .pm)",
