@@ -166,6 +166,11 @@ class ChainOptions:
         ``STEM_LOD0``... under a root ``STEM``, all in the scene) or ``"both"``. With
         ``separate`` each file's node is ``STEM_LODi`` whatever it says. A scene's
         levels are linked by ``MSFT_lod`` only.
+    texture_scale : str or tuple of float, optional
+        Texture levels (``scene.textures``): None keeps every image at full size
+        in every level; ``"auto"`` scales each level's images to its screen size
+        (the sides by ``sqrt`` of its share of the finest level's faces, a power
+        of two, at least 64 px); or one scale in (0, 1] per level.
     reach : str
         ``"none"``: a level edge collapse cannot bring down to its budget stays
         at the coarsest it reaches. ``"cluster"``: such a level is made by vertex
@@ -182,6 +187,7 @@ class ChainOptions:
     reach: str = "none"
     compress: str = "none"
     naming: str = "msft"
+    texture_scale: str | tuple[float, ...] | None = None
 
     def __post_init__(self):
         check_reach(self.reach)
@@ -201,6 +207,10 @@ class ChainOptions:
         else:
             lods = DEFAULT_LODS if self.lods is None else self.lods
             object.__setattr__(self, "lods", check_lods(lods))
+        from .scene.textures import check_texture_scale
+        levels = len(self.errors if self.errors is not None else self.lods)
+        object.__setattr__(self, "texture_scale",
+                           check_texture_scale(self.texture_scale, levels))
 
     @classmethod
     def of(cls, chain: ChainOptions | None, keywords: dict) -> ChainOptions:

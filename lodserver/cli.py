@@ -204,6 +204,15 @@ def _cmd_simplify(args) -> int:
     return 0
 
 
+def _texture_scale(text: str):
+    """argparse's type of --texture-scale (a usage error when malformed)."""
+    from .scene.textures import parse_texture_scale
+    try:
+        return parse_texture_scale(text)
+    except MeshError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+
+
 def _export_usage(args) -> str | None:
     """What is wrong with how ``export``'s level flags are combined (a usage error,
     exit code 2), or None."""
@@ -238,7 +247,8 @@ def _cmd_export(args) -> int:
         ratios, errors = parse_lods(args.lods or DEFAULT_LODS_TEXT), None
     chain = ChainOptions(lods=ratios, errors=errors, per_mesh=args.per_mesh,
                          separate=args.separate, reach=args.reach, compress=args.compress,
-                         naming=args.lod_naming)
+                         naming=args.lod_naming,
+                         texture_scale=args.texture_scale)
     options = options_from(args)
     if is_url(args.source) or Path(args.source).is_dir():
         if Path(args.output).suffix.lower() == ".glb":
@@ -533,6 +543,12 @@ def _parser() -> argparse.ArgumentParser:
                         f"gltfpack -cc's form; the viewer needs a decoder such as three.js's "
                         f"MeshoptDecoder); both in vertex cache and fetch order (default "
                         f"{DEFAULT_COMPRESS})")
+    p.add_argument("--texture-scale", metavar="auto|S1,S2,...", type=_texture_scale,
+                   help="texture levels: auto scales each level's images to its screen size "
+                        "(sides by the square root of its share of the finest level's faces, "
+                        "a power of two, at least 64 px), or give one scale in (0, 1] per "
+                        "level; PNG, JPEG and WebP stay in their format, KTX2 is kept as it "
+                        "is (default: every level keeps the full-size images)")
     p.add_argument("--reach", choices=("none", "cluster"), default="none",
                    help="levels edge collapse cannot bring down to their budget (locked, "
                         "non-manifold or separate parts): keep the coarsest it reaches (none, "

@@ -42,7 +42,7 @@ from .io import SUPPORTED_INPUT, write_atomic
 from .mesh import MeshError
 from .options import BuildOptions
 from .progressive.mesh import ProgressiveMesh
-from .scene.export import export_scene
+from .scene.export import export_scene, with_texture_levels
 
 SOURCE_SUFFIXES = tuple(f".{kind}" for kind in SUPPORTED_INPUT) + (".pm",)
 
@@ -109,13 +109,15 @@ def export_lods(source, output, chain: ChainOptions | None = None, *,
         (meshes, coverage), clustered = error_chain(pm, chain.errors), []
     else:
         meshes, coverage, clustered = lod_chain(pm, chain.lods, reach=chain.reach)
-    outputs = _write_chain(output, chain, meshes, coverage)
+    outputs, notes = _write_chain(output, chain, meshes, coverage)
     return Exported(source, outputs, [mesh.face_count for mesh in meshes], coverage,
                     time.perf_counter() - start, pm.faces_at_level(pm.base_vertices),
-                    clustered)
+                    clustered, notes)
 
 
-def _write_chain(output: Path, chain: ChainOptions, meshes, coverage) -> list[Path]:
+def _write_chain(output: Path, chain: ChainOptions, meshes, coverage):
+    """The chain's files written: (their paths, notes on what was not scaled)."""
+    meshes, notes = with_texture_levels(meshes, chain)
     if chain.separate:
         outputs = [output.with_name(f"{output.stem}_lod{i}{output.suffix}")
                    for i in range(len(meshes))]
@@ -127,7 +129,7 @@ def _write_chain(output: Path, chain: ChainOptions, meshes, coverage) -> list[Pa
     output.parent.mkdir(parents=True, exist_ok=True)
     for path, blob in zip(outputs, blobs):
         write_atomic(path, blob)
-    return outputs
+    return outputs, notes
 
 
 @dataclass
@@ -238,6 +240,9 @@ def export_folder(source, output, chain: ChainOptions | None = None, *, jobs: in
         recorded["compress"] = chain.compress
     if chain.naming != "msft":
         recorded["naming"] = chain.naming
+    if chain.texture_scale is not None:
+        recorded["texture_scale"] = (chain.texture_scale if chain.texture_scale == "auto"
+                                     else list(chain.texture_scale))
 
     def recorded_for(relative) -> dict:
         # a glTF scene's levels depend on whether they share one budget; other
