@@ -75,10 +75,15 @@ class Exported:
     base_faces: int = 0         # the coarsest edge collapse reaches: ratios below it stop there
     clustered: list[int] = field(default_factory=list)   # levels made by clustering (reach)
     notes: list[str] = field(default_factory=list)       # what a scene's export did not keep
-    # a scene's: triangles drawn per level (each part once per instance) and the
-    # worst world error of each level (world units); empty for a single mesh
+    # a scene's: triangles drawn per level (each part once per instance); empty for a
+    # single mesh
     drawn: list[int] = field(default_factory=list)
-    errors: list[float] = field(default_factory=list)
+    # each level's error: a scene's worst world error (world units), a single mesh's
+    # collapse error (mesh units; None for a level made by clustering, not measured)
+    errors: list = field(default_factory=list)
+    diagonal: float = 0.0       # of the bounding box the errors are fractions of
+    # seconds to encode and write each level's file (--separate; empty for one file)
+    level_seconds: list[float] = field(default_factory=list)
 
 
 # A level whose edge-collapse mesh overshoots its face budget by more than this is

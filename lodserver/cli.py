@@ -169,7 +169,12 @@ def _cmd_extract(args) -> int:
     except ValueError as exc:
         raise MeshError(str(exc)) from exc
     mesh = pm.at(level)
+    begun = time.perf_counter()
     save_mesh(mesh, _output_file(args.output), compress=args.compress)
+    if args.report is not None:
+        from .scene.report import extract_entry
+        _write_report(args.report, "extract", [extract_entry(
+            pm, level, Path(args.output), time.perf_counter() - begun)], begun)
     print(f"{args.output}: level {level}, {mesh.vertex_count} vertices, {mesh.face_count} faces, "
           f"error {pm.error_at_level(level):.3g}", file=sys.stderr)
     return 0
@@ -202,6 +207,17 @@ def _cmd_simplify(args) -> int:
     print(f"{args.output}: {lod.vertex_count} vertices, {lod.face_count} faces (target {target}) "
           f"by {args.method} in {time.perf_counter() - start:.2f} s", file=sys.stderr)
     return 0
+
+
+REPORT_HELP = ("write a JSON report of what was written: per asset and level its "
+               "triangles, vertices, error (mesh units and fraction of the diagonal), coverage "
+               "hints, bytes of geometry and images, seconds and warnings (docs/pipeline.md, "
+               "'The report'); - writes it to stdout")
+
+
+def _write_report(target: str, command: str, entries: list, begun: float) -> None:
+    from .scene.report import report_document, write_report
+    write_report(report_document(command, entries, time.perf_counter() - begun), target)
 
 
 def _texture_scale(text: str):
@@ -237,6 +253,7 @@ def _cmd_export(args) -> int:
     from .chains import ChainOptions, parse_errors, parse_lods
     from .pipeline import export_lods, is_url
 
+    begun = time.perf_counter()
     problem = _export_usage(args)
     if problem is not None:
         print(f"lodserver export: {problem}", file=sys.stderr)
@@ -254,7 +271,7 @@ def _cmd_export(args) -> int:
         if Path(args.output).suffix.lower() == ".glb":
             raise MeshError(f"{args.source} is a folder, so -o names the folder to write into, "
                             f"not a .glb file ({args.output})")
-        return _export_folder(args, chain, options)
+        return _export_folder(args, chain, options, begun)
     if args.scheduler is not None:
         raise MeshError("--scheduler runs the assets of a folder: name a folder, "
                         f"not a file ({args.source})")
@@ -270,6 +287,9 @@ def _cmd_export(args) -> int:
     finally:
         progress.close()
     print(f"{', '.join(map(str, done.outputs))}: {_levels(done)}", file=sys.stderr)
+    if args.report is not None:
+        from .scene.report import asset_entry
+        _write_report(args.report, "export", [asset_entry(done, done.outputs)], begun)
     return 0
 
 
@@ -295,7 +315,7 @@ def _levels(done) -> str:
     return text
 
 
-def _export_folder(args, chain, options) -> int:
+def _export_folder(args, chain, options, begun: float) -> int:
     """Every mesh file under ``args.source`` into the folder ``args.output``: a bar
     over the files on a terminal, a line per file, exit 1 if any failed (the same
     on a Dask cluster, ``--scheduler``)."""
@@ -339,6 +359,11 @@ def _export_folder(args, chain, options) -> int:
     print(f"{args.output}: {report.total} assets in {time.perf_counter() - start:.2f} s: "
           f"{len(report.written)} written, {len(report.up_to_date)} up to date, "
           f"{len(report.failed)} failed", file=sys.stderr)
+    if args.report is not None:
+        from .scene.report import folder_entries
+        _write_report(args.report, "export",
+                      folder_entries(report, args.source, local=not is_url(args.output)),
+                      begun)
     if report.failed:
         reasons = "; ".join(f"{path}: {reason}" for path, reason in report.failed.items())
         raise MeshError(f"{len(report.failed)} of {report.total} assets failed: {reasons}")
@@ -482,6 +507,7 @@ def _parser() -> argparse.ArgumentParser:
     group.add_argument("--ratio", type=float, help="this fraction of the faces, in (0, 1]")
     group.add_argument("--error", type=float, help="coarsest level with at most this error (mesh units)")
     p.add_argument("-o", "--output", required=True, help=OUTPUT_HELP)
+    p.add_argument("--report", metavar="FILE.json|-", help=REPORT_HELP)
     p.add_argument("--compress", choices=COMPRESSIONS, default="none",
                    help="a .glb output's storage, as for export: none (float32, the "
                         "progressive mesh's order; default, and the only one for other "
@@ -543,6 +569,7 @@ def _parser() -> argparse.ArgumentParser:
                         f"gltfpack -cc's form; the viewer needs a decoder such as three.js's "
                         f"MeshoptDecoder); both in vertex cache and fetch order (default "
                         f"{DEFAULT_COMPRESS})")
+    p.add_argument("--report", metavar="FILE.json|-", help=REPORT_HELP)
     p.add_argument("--texture-scale", metavar="auto|S1,S2,...", type=_texture_scale,
                    help="texture levels: auto scales each level's images to its screen size "
                         "(sides by the square root of its share of the finest level's faces, "

@@ -96,16 +96,24 @@ def export_scene(scene, source: Path, output: Path, chain: ChainOptions, options
                      for index in scene.as_is)
     coverage = coverage_from_errors(worst, diagonal) if count else []
     scenes, levels, notes = _scene_texture_levels(scene, levels, chain, drawn)
+    seconds = []
     if chain.separate:
         outputs = [output.with_name(f"{output.stem}_lod{i}{output.suffix}") for i in range(count)]
-        blobs = [encode_scene(scenes[i], levels, coverage, level=i, compress=chain.compress)
-                 for i in range(count)]
+        blobs = []
+        for i in range(count):
+            begun = time.perf_counter()
+            blobs.append(encode_scene(scenes[i], levels, coverage, level=i,
+                                      compress=chain.compress))
+            seconds.append(time.perf_counter() - begun)
     else:
         outputs, blobs = [output], [encode_scene(scenes[0], levels, coverage,
                                                  compress=chain.compress)]
     output.parent.mkdir(parents=True, exist_ok=True)
-    for path, blob in zip(outputs, blobs):
+    for i, (path, blob) in enumerate(zip(outputs, blobs)):
+        begun = time.perf_counter()
         write_atomic(path, blob)
+        if seconds:
+            seconds[i] += time.perf_counter() - begun
     kept = sum(scene.as_is_faces.values())
     faces = [kept + sum(chain_[k].face_count for chain_ in levels.values()) for k in range(count)]
     base = sum(pm.faces_at_level(pm.base_vertices) for pm in pms.values())
@@ -113,7 +121,7 @@ def export_scene(scene, source: Path, output: Path, chain: ChainOptions, options
     # (0 when nothing was simplified: no "simplifies no further" for a skinned asset)
     return Exported(source, outputs, faces, coverage, time.perf_counter() - start,
                     base + kept if levels else 0, sorted(clustered), [*scene.notes, *notes],
-                    [kept_drawn + d for d in drawn], worst)
+                    [kept_drawn + d for d in drawn], worst, diagonal, seconds)
 
 
 def _cluster_stuck(pms: dict, chosen: dict, levels: dict, k: int, ratio: float,

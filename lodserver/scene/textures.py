@@ -34,7 +34,7 @@ from ..io.images import image_type
 from ..mesh import Materials, Mesh, MeshError
 
 __all__ = ["MIN_SIDE", "TextureLevels", "check_texture_scale", "level_meshes",
-           "parse_texture_scale", "texture_levels", "texture_scales"]
+           "parse_texture_scale", "texture_levels", "texture_levels_bytes", "texture_scales"]
 
 # No image side of a scaled level goes below this (or below the original's own).
 MIN_SIDE = 64
@@ -267,6 +267,18 @@ def texture_levels(materials: Materials | None, scale, faces) -> TextureLevels |
     if all(value >= 1.0 for value in scales):
         return None
     return TextureLevels(materials, scales)
+
+
+def texture_levels_bytes(materials: Materials | None) -> int:
+    """What making the texture levels of ``materials`` holds in memory at most, in
+    bytes (a server's estimate): the largest image decoded as four float32 bands
+    twice over (source and filtered), and the scaled images, at most a third of
+    the originals (each size a quarter of the one before)."""
+    if materials is None:
+        return 0
+    pixels = [width * height for width, height in
+              filter(None, (image_size(data) for data in materials.images))]
+    return 32 * max(pixels, default=0) + sum(map(len, materials.images)) // 3
 
 
 def level_meshes(meshes: list[Mesh], levels: TextureLevels, *, separate: bool) -> list[Mesh]:

@@ -2,12 +2,17 @@
 
 from __future__ import annotations
 
+import dataclasses
+
+from ..chains import lod_chain
+from ..io.glb import encode_lod_chain
 from ..io.scene import Scene
 from ..io.scene_glb import encode_scene
 from .asset import SceneAsset, instances_and_diagonal
 from .budget import chain_levels
+from .textures import level_meshes, texture_levels
 
-__all__ = ["scene_chain_glb", "scene_glb"]
+__all__ = ["mesh_chain_glb", "scene_chain_glb", "scene_glb"]
 
 
 def _labelled(asset: SceneAsset) -> Scene:
@@ -36,11 +41,35 @@ def scene_glb(asset: SceneAsset, levels: dict) -> bytes:
     return encode_scene(_labelled(asset), meshes, [1.0], level=0)
 
 
-def scene_chain_glb(asset: SceneAsset, ratios, coverage) -> bytes:
-    """The ``MSFT_lod`` scene: level k of every part at scene ratio ``ratios[k]``."""
+def scene_chain_glb(asset: SceneAsset, ratios, coverage, *, texture_scale=None) -> bytes:
+    """The ``MSFT_lod`` scene: level k of every part at scene ratio ``ratios[k]``;
+    with ``texture_scale`` (``"auto"`` or one per level, ``textures.texture_levels``)
+    each level drawn with its own images, scaled by the triangles it draws (each
+    part once per instance)."""
     # each part only coarsens along the chain (budget.chain_levels)
     instances, diagonal = instances_and_diagonal(asset)
     chain = chain_levels(asset.pms, instances, lods=list(ratios), diagonal=diagonal)
     meshes = {part.mesh: [part.pm.at(levels[part.index]) for levels in chain]
               for part in asset.parts}
-    return encode_scene(_labelled(asset), meshes, list(coverage))
+    scene = _labelled(asset)
+    drawn = [sum(len(instances[part.index]) * meshes[part.mesh][k].face_count
+                 for part in asset.parts) for k in range(len(chain))]
+    found = texture_levels(scene.materials, texture_scale, drawn)
+    if found is not None:
+        meshes = {index: level_meshes(levels, found, separate=False)
+                  for index, levels in meshes.items()}
+        scene = dataclasses.replace(scene, materials=found.chain)
+    return encode_scene(scene, meshes, list(coverage))
+
+
+def mesh_chain_glb(pm, ratios, *, reach: str = "none", compress: str = "none",
+                   texture_scale=None) -> bytes:
+    """A single mesh's chain as one GLB (``chains.lod_chain`` at face ratios
+    ``ratios``, ``io.glb.encode_lod_chain``), with its texture levels when
+    ``texture_scale`` is given (``textures.texture_levels``)."""
+    meshes, coverage, _ = lod_chain(pm, ratios, reach=reach)
+    found = texture_levels(meshes[0].materials, texture_scale,
+                           [mesh.face_count for mesh in meshes])
+    if found is not None:
+        meshes = level_meshes(meshes, found, separate=False)
+    return encode_lod_chain(meshes, coverage, compress)

@@ -17,9 +17,9 @@ from typing import Annotated, Literal
 from fastapi import APIRouter, Query, Request, Response
 
 from ...io import SERVED_FORMATS
-from ...io.glb import COMPRESSIONS, coverage_from_ratios, encode_lod_chain
+from ...io.glb import COMPRESSIONS, coverage_from_ratios
 from ...packets import MAX_BITS, MIN_BITS, packet_between, prepare_records, records_ready
-from ...chains import DEFAULT_LODS, lod_chain, parse_lods
+from ...chains import DEFAULT_LODS, parse_lods
 from ...service.levels import (
     LevelError,
     chain_bytes,
@@ -32,7 +32,8 @@ from ...service.levels import (
     scene_bytes,
 )
 from ...scene.asset import SceneAsset, scene_levels_for
-from ...scene.write import scene_chain_glb, scene_glb
+from ...scene.textures import texture_levels_bytes
+from ...scene.write import mesh_chain_glb, scene_chain_glb, scene_glb
 from ..bodies import BodiesDep
 from ..caching import VersionQuery, etag_for, load_versioned, version_of
 from ..deps import MeshId, StoreDep
@@ -177,7 +178,11 @@ def get_chain(mesh_id: MeshId, store: StoreDep, bodies: BodiesDep, request: Requ
               reach: Annotated[Literal["none", "cluster"], Query(description=(
                   "cluster: levels edge collapse cannot bring down to their budget are made "
                   "by vertex clustering (positions only)."))] = "none",
-              compress: Compress = "none", v: VersionQuery = None) -> Response:
+              compress: Compress = "none",
+              texture_scale: Annotated[Literal["none", "auto"], Query(description=(
+                  "auto: each level's images scaled to its screen size, as lodserver "
+                  "export --texture-scale auto (KTX2 kept as it is)."))] = "none",
+              v: VersionQuery = None) -> Response:
     """A chain of levels of detail in one GLB, as ``lodserver export`` writes it:
     node 0 the finest level, ``MSFT_lod`` naming the others, with
     ``MSFT_screencoverage`` hints.
@@ -197,21 +202,25 @@ def get_chain(mesh_id: MeshId, store: StoreDep, bodies: BodiesDep, request: Requ
     if pm is None:
         _uncompressed_scene(compress)
         return _scene_chain(asset, digest, policy, request, bodies, mesh_id=mesh_id,
-                            ratios=ratios, reach=reach)
+                            ratios=ratios, reach=reach, texture_scale=texture_scale)
     levels = [pm.level_for(ratio=ratio) for ratio in ratios]
     faces = sum(pm.faces_at_level(level) for level in levels)
     full = pm.faces_at_level(pm.vertex_count)
     if faces > MAX_CHAIN_FACES * full:
         raise LevelError(f"a chain's levels hold at most {MAX_CHAIN_FACES} times the mesh's "
                          f"faces; these ratios add up to {faces / full:.2f} times")
+    scaled = texture_scale if texture_scale != "none" else None
     etag = etag_for(digest, "chain", ",".join(map(repr, ratios)), reach,
-                    *([compress] if compress != "none" else []))
+                    *([compress] if compress != "none" else []),
+                    *(["textures", scaled] if scaled else []))
     # clustering (reach) works on the full mesh: it takes every slot
     return bodies.cached(
         request, etag, policy,
-        lambda: encode_lod_chain(*lod_chain(pm, ratios, reach=reach)[:2], compress),
+        lambda: mesh_chain_glb(pm, ratios, reach=reach, compress=compress,
+                               texture_scale=scaled),
         media_type=_GLB, filename=f"{mesh_id}-lods.glb",
-        estimate=lambda: chain_bytes(pm, levels) if reach == "none" else bodies.heavy.budget)
+        estimate=lambda: bodies.heavy.budget if reach != "none" else chain_bytes(pm, levels)
+        + (texture_levels_bytes(pm.materials) if scaled else 0))
 
 
 def _scene_levels(asset: SceneAsset, **criterion) -> dict:
@@ -240,7 +249,7 @@ def _scene_lod(asset: SceneAsset, digest: str, policy: str, request: Request, bo
 
 
 def _scene_chain(asset: SceneAsset, digest: str, policy: str, request: Request, bodies, *,
-                 mesh_id: str, ratios, reach: str) -> Response:
+                 mesh_id: str, ratios, reach: str, texture_scale: str = "none") -> Response:
     """The ``MSFT_lod`` scene (``get_chain``)."""
     if reach != "none":
         raise LevelError("a scene's chain is made by edge collapse only (reach=none)")
@@ -251,7 +260,13 @@ def _scene_chain(asset: SceneAsset, digest: str, policy: str, request: Request, 
     if faces > MAX_CHAIN_FACES * full:
         raise LevelError(f"a chain's levels hold at most {MAX_CHAIN_FACES} times the mesh's "
                          f"faces; these ratios add up to {faces / full:.2f} times")
-    etag = etag_for(digest, "scene-chain", ",".join(map(repr, ratios)))
+    scaled = texture_scale if texture_scale != "none" else None
+    etag = etag_for(digest, "scene-chain", ",".join(map(repr, ratios)),
+                    *(["textures", scaled] if scaled else []))
     return bodies.cached(
-        request, etag, policy, lambda: scene_chain_glb(asset, ratios, coverage_from_ratios(ratios)),
-        media_type=_GLB, filename=f"{mesh_id}-lods.glb", estimate=lambda: scene_bytes(asset, chain))
+        request, etag, policy,
+        lambda: scene_chain_glb(asset, ratios, coverage_from_ratios(ratios),
+                                texture_scale=scaled),
+        media_type=_GLB, filename=f"{mesh_id}-lods.glb",
+        estimate=lambda: scene_bytes(asset, chain)
+        + (texture_levels_bytes(asset.materials) if scaled else 0))
