@@ -55,13 +55,20 @@ def image_size(data) -> tuple[int, int] | None:
 
 def scaled_image(data, size: tuple[int, int], role: str = "data") -> bytes:
     """``data`` (PNG, JPEG or WebP bytes) resampled to ``size`` = (width, height)
-    pixels, encoded in the same format.
+    pixels, encoded in the same format: :func:`scaled_images` of one size."""
+    return scaled_images(data, [size], role)[0]
 
-    PNG keeps its channels (a palette image is written as RGB or RGBA); JPEG keeps
-    its chroma subsampling and ICC profile, at :data:`LOSSY_QUALITY`; WebP stays
-    lossless when it was (a ``VP8L`` stream), else at :data:`LOSSY_QUALITY`.
-    Raises MeshError (one sentence) for another format, a ``role`` not in
-    :data:`ROLES`, more than :data:`MAX_PIXELS` pixels or bytes Pillow cannot decode.
+
+def scaled_images(data, sizes, role: str = "data") -> list[bytes]:
+    """``data`` (PNG, JPEG or WebP bytes) resampled to each of ``sizes`` ((width,
+    height) pixels), each encoded in the same format; the image is decoded once.
+
+    PNG keeps its channels (a palette image is filtered in RGB or RGBA and given a
+    palette of 256 colours again); JPEG keeps its chroma subsampling and ICC
+    profile, at :data:`LOSSY_QUALITY`; WebP stays lossless when it was (a ``VP8L``
+    stream), else at :data:`LOSSY_QUALITY`. Raises MeshError (one sentence) for
+    another format, a ``role`` not in :data:`ROLES`, more than :data:`MAX_PIXELS`
+    pixels or bytes Pillow cannot decode.
     """
     from PIL import Image, JpegImagePlugin
 
@@ -70,7 +77,6 @@ def scaled_image(data, size: tuple[int, int], role: str = "data") -> bytes:
         raise MeshError(f"only PNG, JPEG and WebP images can be resampled, not {kind}")
     if role not in ROLES:
         raise MeshError(f"an image's role is one of {', '.join(ROLES)}, got {role!r}")
-    width, height = (int(side) for side in size)
     try:
         with Image.open(io.BytesIO(bytes(data))) as image:
             if image.width * image.height > MAX_PIXELS:
@@ -87,12 +93,21 @@ def scaled_image(data, size: tuple[int, int], role: str = "data") -> bytes:
             if image.info.get("icc_profile"):
                 options["icc_profile"] = image.info["icc_profile"]
             image.load()
-            small = _resampled(_plain_mode(image), (width, height), role)
+            palette = image.mode == "P"
+            plain = _plain_mode(image)
+            bands = _bands(plain, role)
+            smalls = [_resampled(bands, plain.mode, (int(w), int(h)), role) for w, h in sizes]
     except (OSError, ValueError, Image.DecompressionBombError) as exc:
         raise MeshError(f"cannot resample a {kind} image: {exc}") from None
-    out = io.BytesIO()
-    small.save(out, _FORMATS[kind], **options)
-    return out.getvalue()
+    out = []
+    for small in smalls:
+        if palette:     # a palette PNG stays one: far fewer bytes than RGB
+            small = small.quantize(256, method=Image.Quantize.FASTOCTREE
+                                   if small.mode == "RGBA" else Image.Quantize.MEDIANCUT)
+        buffer = io.BytesIO()
+        small.save(buffer, _FORMATS[kind], **options)
+        out.append(buffer.getvalue())
+    return out
 
 
 def _plain_mode(image):
@@ -107,20 +122,28 @@ def _plain_mode(image):
     return image.convert("RGBA" if "A" in image.mode else "RGB")
 
 
-def _resampled(image, size: tuple[int, int], role: str):
-    """``image`` (a :func:`_plain_mode` mode) at ``size``, filtered as ``role`` says."""
-    from PIL import Image
-
+def _bands(image, role: str) -> list[np.ndarray]:
+    """The channels of ``image`` (a :func:`_plain_mode` mode) as (h, w) float32 in
+    [0, 1], colour channels in linear light for a ``"colour"`` image."""
     if image.mode == "I;16":
-        band = np.asarray(image, dtype=np.float32) / 65535.0
-        out = _filter(band, size)
-        return Image.fromarray(np.rint(np.clip(out, 0, 1) * 65535).astype(np.uint16), "I;16")
+        return [np.asarray(image, dtype=np.float32) / 65535.0]
     colours = 3 if image.mode in ("RGB", "RGBA") else 1
     # 8-bit channels: linear light by a table of the 256 values, not a power per texel
     linear = _to_linear(np.arange(256, dtype=np.float32) / 255.0).astype(np.float32)
-    bands = [linear[np.asarray(band)] if role == "colour" and k < colours
-             else np.asarray(band, dtype=np.float32) / 255.0
-             for k, band in enumerate(image.split())]
+    return [linear[np.asarray(band)] if role == "colour" and k < colours
+            else np.asarray(band, dtype=np.float32) / 255.0
+            for k, band in enumerate(image.split())]
+
+
+def _resampled(bands: list, mode: str, size: tuple[int, int], role: str):
+    """The image of mode ``mode`` at ``size`` from its :func:`_bands`, filtered as
+    ``role`` says."""
+    from PIL import Image
+
+    if mode == "I;16":
+        out = _filter(bands[0], size)
+        return Image.fromarray(np.rint(np.clip(out, 0, 1) * 65535).astype(np.uint16), "I;16")
+    colours = 3 if mode in ("RGB", "RGBA") else 1
     if role == "normal" and colours == 3:
         vectors = [_filter(band * 2.0 - 1.0, size) for band in bands[:3]]
         length = np.sqrt(sum(v * v for v in vectors))
@@ -134,7 +157,7 @@ def _resampled(image, size: tuple[int, int], role: str):
                 out[k] = _to_srgb(np.clip(out[k], 0.0, 1.0))
     planes = [Image.fromarray(np.rint(np.clip(band, 0, 1) * 255).astype(np.uint8), "L")
               for band in out]
-    return planes[0] if len(planes) == 1 else Image.merge(image.mode, planes)
+    return planes[0] if len(planes) == 1 else Image.merge(mode, planes)
 
 
 def _filter(band: np.ndarray, size: tuple[int, int]) -> np.ndarray:

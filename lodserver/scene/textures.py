@@ -29,7 +29,7 @@ import math
 
 import numpy as np
 
-from ..io.image_scale import image_size, scaled_image
+from ..io.image_scale import image_size, scaled_images
 from ..io.images import image_type
 from ..mesh import Materials, Mesh, MeshError
 
@@ -130,32 +130,31 @@ class TextureLevels:
                       if size is None and index not in kept]
         if unreadable:
             self.notes.append(f"{len(unreadable)} image(s) Pillow cannot read kept at full size")
+        targets = [[size if size is None else scaled_size(size, scale) for size in sizes]
+                   for scale in scales]
+        wanted = {}         # image -> the sizes some level needs, each made once
+        for level in targets:
+            for index, target in enumerate(level):
+                if target is not None and target != sizes[index]:
+                    wanted.setdefault(index, []).append(target)
         made, images, records = {}, list(materials.images), list(gltf.get("images", ()))
-        maps = []
-        for scale in scales:
-            mapping = []
-            for index, size in enumerate(sizes):
-                target = size if size is None else scaled_size(size, scale)
-                if target is None or target == size:
-                    mapping.append(index)
-                    continue
-                key = (index, target)
-                if key not in made:
-                    try:
-                        data = scaled_image(materials.images[index], target,
-                                            roles.get(index, "data"))
-                    except MeshError as exc:
-                        self.notes.append(f"image {index} kept at full size: {exc}")
-                        made[key] = index
-                    else:
-                        record = dict(records[index]) if index < len(records) else {}
-                        if record.get("name"):
-                            record["name"] = _sized_name(record["name"], target)
-                        made[key] = len(images)
-                        images.append(data)
-                        records.append(record)
-                mapping.append(made[key])
-            maps.append(tuple(mapping))
+        for index, needed in wanted.items():
+            needed = list(dict.fromkeys(needed))
+            try:
+                encoded = scaled_images(materials.images[index], needed,
+                                        roles.get(index, "data"))
+            except MeshError as exc:
+                self.notes.append(f"image {index} kept at full size: {exc}")
+                continue
+            for target, data in zip(needed, encoded):
+                record = dict(records[index]) if index < len(records) else {}
+                if record.get("name"):
+                    record["name"] = _sized_name(record["name"], target)
+                made[(index, target)] = len(images)
+                images.append(data)
+                records.append(record)
+        maps = [tuple(made.get((index, target), index) for index, target in enumerate(level))
+                for level in targets]
         self.separate = [_with_images(gltf, images, records, mapping) for mapping in maps]
         self.chain, self.offsets = _chained(gltf, images, records, maps)
 
