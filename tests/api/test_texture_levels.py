@@ -12,6 +12,7 @@ from lodserver.io.glb import encode_glb
 from lodserver.io.image_scale import image_size
 from lodserver.scene.textures import scaled_size, texture_scales
 
+from ..conftest import SHARED_MESHES
 from ..meshes import DATA
 from ..server import upload, wait_ready
 from ..io.test_gltf_compressed_output import split_glb
@@ -66,3 +67,49 @@ def test_unknown_texture_scale_is_refused(served):
     client, mesh_id = served
     response = client.get(f"/meshes/{mesh_id}/chain", params={"texture_scale": "half"})
     assert response.status_code == 422
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory):
+    """A client with Duck uploaded as it is: a scene (its node tree and camera kept)."""
+    source = SHARED_MESHES / "Duck.glb"
+    if not source.is_file():
+        pytest.skip(f"shared mesh not found at {source}")
+    folder = tmp_path_factory.mktemp("scene")
+    with TestClient(create_app(Settings(data_dir=folder / "data", warm_kernels=False))) as client:
+        mesh_id = upload(client, "Duck.glb", source.read_bytes())
+        wait_ready(client, mesh_id)
+        assert client.get(f"/meshes/{mesh_id}").json()["scene"] is True
+        yield client, mesh_id
+
+
+def test_a_scenes_level_and_chain_compress_and_scale_their_textures(scene, tmp_path):
+    from lodserver.io.scene import load_scene
+
+    client, mesh_id = scene
+    tags = set()
+    for compress in ("none", "meshopt"):
+        level = client.get(f"/meshes/{mesh_id}/lod", params={"ratio": 0.5, "format": "glb",
+                                                              "compress": compress})
+        assert level.status_code == 200, level.text
+        tags.add(level.headers["etag"])
+        document, _ = split_glb(level.content)
+        assert ("EXT_meshopt_compression" in document.get("extensionsRequired", [])) == \
+            (compress == "meshopt")
+        assert "cameras" in document
+    assert len(tags) == 2
+    chain = client.get(f"/meshes/{mesh_id}/chain", params={
+        "lods": "1,0.2,0.05", "compress": "meshopt", "texture_scale": "auto"})
+    assert chain.status_code == 200, chain.text
+    document, binary = split_glb(chain.content)
+    assert "EXT_meshopt_compression" in document["extensionsRequired"]
+    sizes = []
+    for image in document["images"]:
+        view = document["bufferViews"][image["bufferView"]]
+        start = view.get("byteOffset", 0)
+        sizes.append(image_size(binary[start:start + view["byteLength"]]))
+    # Duck's 512 px texture at each level's size (its 20% and 5% levels: 1/2 and 1/4)
+    assert sorted(sizes) == [(128, 128), (256, 256), (512, 512)]
+    path = tmp_path / "chain.glb"
+    path.write_bytes(chain.content)
+    assert load_scene(path).meshes
