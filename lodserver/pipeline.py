@@ -43,8 +43,9 @@ from .mesh import MeshError
 from .options import BuildOptions
 from .progressive.mesh import ProgressiveMesh
 from .scene.budget import part_diagonal
-from .scene.export import export_scene, with_texture_levels
+from .scene.export import export_scene
 from .scene.report import level_errors
+from .scene.textures import chain_with_texture_levels
 
 SOURCE_SUFFIXES = tuple(f".{kind}" for kind in SUPPORTED_INPUT) + (".pm",)
 
@@ -121,7 +122,8 @@ def export_lods(source, output, chain: ChainOptions | None = None, *,
 def _write_chain(output: Path, chain: ChainOptions, meshes, coverage):
     """The chain's files written: (their paths, notes on what was not scaled, the
     seconds each level's file took with ``separate``)."""
-    meshes, notes = with_texture_levels(meshes, chain)
+    meshes, notes = chain_with_texture_levels(meshes, chain.texture_scale,
+                                              separate=chain.separate)
     output.parent.mkdir(parents=True, exist_ok=True)
     if not chain.separate:
         write_atomic(output, encode_lod_chain(meshes, coverage, chain.compress,

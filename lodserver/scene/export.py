@@ -21,7 +21,7 @@ from ..mesh import Mesh, MeshError
 from .budget import chain_levels, coverage_from_errors, scene_instances, world_errors
 from .textures import level_meshes, texture_levels
 
-__all__ = ["export_scene", "with_texture_levels"]
+__all__ = ["export_scene"]
 
 
 def _build_parts(scene, source: Path, options, progress) -> dict:
@@ -155,17 +155,6 @@ def _cluster_stuck(pms: dict, chosen: dict, levels: dict, k: int, ratio: float,
             except ValueError:      # a flat or degenerate part: no area to sample
                 replaced[index] = pm.error_at_level(pm.base_vertices)
     return replaced
-
-
-def with_texture_levels(meshes: list, chain: ChainOptions) -> tuple[list, list[str]]:
-    """A single mesh's chain (levels finest first) with its texture levels
-    (``chain.texture_scale``, ``textures.texture_levels``): the levels with their
-    materials, and notes on the images kept at full size."""
-    found = texture_levels(meshes[0].materials, chain.texture_scale,
-                           [mesh.face_count for mesh in meshes])
-    if found is None:
-        return meshes, []
-    return level_meshes(meshes, found, separate=chain.separate), found.notes
 
 
 def _scene_texture_levels(scene, levels: dict, chain: ChainOptions, drawn: list):

@@ -33,8 +33,9 @@ from ..io.image_scale import image_size, scaled_images
 from ..io.images import image_type
 from ..mesh import Materials, Mesh, MeshError
 
-__all__ = ["MIN_SIDE", "TextureLevels", "check_texture_scale", "level_meshes",
-           "parse_texture_scale", "texture_levels", "texture_levels_bytes", "texture_scales"]
+__all__ = ["MIN_SIDE", "TextureLevels", "chain_with_texture_levels", "check_texture_scale",
+           "level_meshes", "parse_texture_scale", "texture_levels", "texture_levels_bytes",
+           "texture_scales"]
 
 # No image side of a scaled level goes below this (or below the original's own).
 MIN_SIDE = 64
@@ -299,3 +300,14 @@ def level_meshes(meshes: list[Mesh], levels: TextureLevels, *, separate: bool) -
             used = np.where(used >= 0, used + levels.offsets[k], used).astype(np.int32)
         out.append(Mesh(mesh.positions, mesh.faces, mesh.attributes, used, levels.chain))
     return out
+
+
+def chain_with_texture_levels(meshes: list[Mesh], scale, *,
+                              separate: bool) -> tuple[list[Mesh], list[str]]:
+    """A single mesh's chain (levels finest first) with its texture levels under
+    ``scale`` (None, ``"auto"`` or one per level): the levels with their materials
+    (:func:`level_meshes`), and notes on the images kept at full size."""
+    found = texture_levels(meshes[0].materials, scale, [mesh.face_count for mesh in meshes])
+    if found is None:
+        return meshes, []
+    return level_meshes(meshes, found, separate=separate), found.notes

@@ -4,15 +4,13 @@ from __future__ import annotations
 
 import dataclasses
 
-from ..chains import lod_chain
-from ..io.glb import encode_lod_chain
 from ..io.scene import Scene
 from ..io.scene_glb import encode_scene
 from .asset import SceneAsset, instances_and_diagonal
 from .budget import chain_levels
 from .textures import level_meshes, texture_levels
 
-__all__ = ["mesh_chain_glb", "scene_chain_glb", "scene_glb"]
+__all__ = ["scene_chain_glb", "scene_glb"]
 
 
 def _labelled(asset: SceneAsset) -> Scene:
@@ -62,16 +60,3 @@ def scene_chain_glb(asset: SceneAsset, ratios, coverage, *, compress: str = "non
                   for index, levels in meshes.items()}
         scene = dataclasses.replace(scene, materials=found.chain)
     return encode_scene(scene, meshes, list(coverage), compress=compress)
-
-
-def mesh_chain_glb(pm, ratios, *, reach: str = "none", compress: str = "none",
-                   texture_scale=None) -> bytes:
-    """A single mesh's chain as one GLB (``chains.lod_chain`` at face ratios
-    ``ratios``, ``io.glb.encode_lod_chain``), with its texture levels when
-    ``texture_scale`` is given (``textures.texture_levels``)."""
-    meshes, coverage, _ = lod_chain(pm, ratios, reach=reach)
-    found = texture_levels(meshes[0].materials, texture_scale,
-                           [mesh.face_count for mesh in meshes])
-    if found is not None:
-        meshes = level_meshes(meshes, found, separate=False)
-    return encode_lod_chain(meshes, coverage, compress)

@@ -190,3 +190,18 @@ def test_bad_texture_scales_are_usage_errors(tmp_path, capsys):
                  "--lods", "1,0.5", "--texture-scale", "1,0.5,0.25"]) == 1
     assert "2 levels need 2 texture scales, got 3" in capsys.readouterr().err
     assert not (tmp_path / "x.glb").exists()
+
+
+def test_a_folder_rebuilds_when_the_texture_scale_changes(tmp_path):
+    from lodserver.pipeline import export_folder
+
+    folder = tmp_path / "assets"
+    folder.mkdir()
+    for name in ("spot.obj", "spot.mtl", "spot_texture.png"):
+        (folder / name).write_bytes((DATA / name).read_bytes())
+    runs = [export_folder(folder, tmp_path / "lods", lods=(1, 0.1), texture_scale=scale)
+            for scale in (None, None, "auto", "auto")]
+    assert [len(run.written) for run in runs] == [1, 0, 1, 0]
+    document, binary = _document((tmp_path / "lods" / "spot.glb").read_bytes())
+    assert sorted(image_size(image) for image in _images(document, binary)) == \
+        [(256, 256), (1024, 1024)]

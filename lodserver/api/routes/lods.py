@@ -17,9 +17,9 @@ from typing import Annotated, Literal
 from fastapi import APIRouter, Query, Request, Response
 
 from ...io import SERVED_FORMATS
-from ...io.glb import COMPRESSIONS, coverage_from_ratios
+from ...io.glb import COMPRESSIONS, coverage_from_ratios, encode_lod_chain
 from ...packets import MAX_BITS, MIN_BITS, packet_between, prepare_records, records_ready
-from ...chains import DEFAULT_LODS, parse_lods
+from ...chains import DEFAULT_LODS, lod_chain, parse_lods
 from ...service.levels import (
     LevelError,
     chain_bytes,
@@ -32,8 +32,8 @@ from ...service.levels import (
     scene_bytes,
 )
 from ...scene.asset import SceneAsset, scene_levels_for
-from ...scene.textures import texture_levels_bytes
-from ...scene.write import mesh_chain_glb, scene_chain_glb, scene_glb
+from ...scene.textures import chain_with_texture_levels, texture_levels_bytes
+from ...scene.write import scene_chain_glb, scene_glb
 from ..bodies import BodiesDep
 from ..caching import VersionQuery, etag_for, load_versioned, version_of
 from ..deps import MeshId, StoreDep
@@ -209,11 +209,16 @@ def get_chain(mesh_id: MeshId, store: StoreDep, bodies: BodiesDep, request: Requ
     # clustering (reach) works on the full mesh: it takes every slot
     return bodies.cached(
         request, etag, policy,
-        lambda: mesh_chain_glb(pm, ratios, reach=reach, compress=compress,
-                               texture_scale=scaled),
+        lambda: encode_lod_chain(*_with_textures(*lod_chain(pm, ratios, reach=reach)[:2],
+                                                 scaled), compress),
         media_type=_GLB, filename=f"{mesh_id}-lods.glb",
-        estimate=lambda: bodies.heavy.budget if reach != "none" else chain_bytes(pm, levels)
-        + (texture_levels_bytes(pm.materials) if scaled else 0))
+        estimate=lambda: bodies.heavy.budget if reach != "none" else (
+            chain_bytes(pm, levels) + (texture_levels_bytes(pm.materials) if scaled else 0)))
+
+
+def _with_textures(meshes: list, coverage: list, texture_scale) -> tuple[list, list]:
+    """A mesh's chain (its levels and coverage hints) with its texture levels."""
+    return chain_with_texture_levels(meshes, texture_scale, separate=False)[0], coverage
 
 
 def _scene_levels(asset: SceneAsset, **criterion) -> dict:
