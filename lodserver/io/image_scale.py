@@ -98,7 +98,7 @@ def scaled_images(data, sizes, role: str = "data") -> list[bytes]:
             bands = _bands(plain, role)
             smalls = [_resampled(bands, plain.mode, (int(w), int(h)), role) for w, h in sizes]
     except (OSError, ValueError, Image.DecompressionBombError) as exc:
-        raise MeshError(f"cannot resample a {kind} image: {exc}") from None
+        raise MeshError(f"cannot resample this {kind} image: {exc}") from None
     out = []
     for small in smalls:
         if palette:     # a palette PNG stays one: far fewer bytes than RGB

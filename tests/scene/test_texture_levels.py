@@ -205,3 +205,19 @@ def test_a_folder_rebuilds_when_the_texture_scale_changes(tmp_path):
     document, binary = _document((tmp_path / "lods" / "spot.glb").read_bytes())
     assert sorted(image_size(image) for image in _images(document, binary)) == \
         [(256, 256), (1024, 1024)]
+
+
+def test_an_image_declaring_a_huge_size_is_kept_not_decoded():
+    import struct as bytes_layout
+    import zlib
+
+    png = bytearray(_encoded(Image.new("RGB", (512, 512)), "PNG"))
+    # IHDR (at byte 8: length, type, then width and height) rewritten to 60000 x 60000
+    header = bytes(png[12:16]) + bytes_layout.pack(">II", 60000, 60000) + bytes(png[24:29])
+    png[16:29] = header[4:]
+    png[29:33] = bytes_layout.pack(">I", zlib.crc32(header) & 0xFFFFFFFF)
+    bomb = bytes(png)
+    with pytest.raises(MeshError, match="image"):
+        scaled_image(bomb, (64, 64))
+    levels = TextureLevels(_materials([bomb]), [1.0, 0.25])
+    assert levels.separate[1].images == (bomb,) and levels.notes
