@@ -60,8 +60,7 @@ def _level(k: int, counts: dict, error, diagonal: float, coverage, seconds) -> d
             "seconds": seconds}
 
 
-def asset_entry(exported, files, *, source: str | None = None,
-                outputs: list[str] | None = None) -> dict:
+def asset_entry(exported, files) -> dict:
     """The report of one exported asset: ``exported`` (``chains.Exported``) and
     ``files``, the local paths of its outputs (None when they are not local, as for
     an object-store folder: the levels' counts and bytes are then left out)."""
@@ -84,13 +83,12 @@ def asset_entry(exported, files, *, source: str | None = None,
     warnings = list(exported.notes)
     if exported.clustered:
         warnings.append(f"levels {', '.join(map(str, exported.clustered))} made by vertex "
-                        f"clustering: positions only, error not measured")
+                        f"clustering: positions only")
     if count > 1 and not exported.clustered and exported.faces[-1] == exported.base_faces \
             and exported.faces[-2] == exported.faces[-1]:
         warnings.append(f"the mesh simplifies no further than {exported.base_faces} faces")
-    entry = {"source": source if source is not None else str(exported.source),
-             "status": "written",
-             "outputs": outputs if outputs is not None else [str(p) for p in exported.outputs],
+    entry = {"source": str(exported.source), "status": "written",
+             "outputs": [str(path) for path in exported.outputs],
              "seconds": exported.seconds, "diagonal": exported.diagonal,
              "warnings": warnings, "levels": levels}
     if exported.drawn:
