@@ -221,3 +221,25 @@ def test_an_image_declaring_a_huge_size_is_kept_not_decoded():
         scaled_image(bomb, (64, 64))
     levels = TextureLevels(_materials([bomb]), [1.0, 0.25])
     assert levels.separate[1].images == (bomb,) and levels.notes
+
+
+def test_a_webp_texture_with_its_png_fallback_is_scaled_in_both():
+    """EXT_texture_webp: the texture's extension names the WebP image, ``source`` its
+    PNG fallback; both are scaled, each level's texture naming its own pair."""
+    pixels = Image.new("RGB", (256, 256), (30, 120, 200))
+    png, webp = _encoded(pixels, "PNG"), _encoded(pixels, "WEBP", quality=80)
+    gltf = {"materials": [{"pbrMetallicRoughness": {"baseColorTexture": {"index": 0}}}],
+            "textures": [{"source": 0, "extensions": {"EXT_texture_webp": {"source": 1}}}],
+            "images": [{"mimeType": "image/png"}, {"mimeType": "image/webp"}]}
+    levels = TextureLevels(Materials(gltf, (png, webp)), [1.0, 0.5])
+    for k, materials in enumerate(levels.separate):
+        [texture] = materials.gltf["textures"]
+        fallback = materials.images[texture["source"]]
+        preferred = materials.images[texture["extensions"]["EXT_texture_webp"]["source"]]
+        assert image_type(fallback) == "image/png" and image_type(preferred) == "image/webp"
+        assert image_size(fallback) == image_size(preferred) == (256 >> k, 256 >> k)
+    chain = levels.chain.gltf
+    second = chain["textures"][chain["materials"][levels.offsets[1]]["pbrMetallicRoughness"]
+                               ["baseColorTexture"]["index"]]
+    assert image_size(levels.chain.images[second["extensions"]["EXT_texture_webp"]["source"]]) \
+        == (128, 128)
