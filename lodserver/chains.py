@@ -75,10 +75,15 @@ class Exported:
     base_faces: int = 0         # the coarsest edge collapse reaches: ratios below it stop there
     clustered: list[int] = field(default_factory=list)   # levels made by clustering (reach)
     notes: list[str] = field(default_factory=list)       # what a scene's export did not keep
-    # a scene's: triangles drawn per level (each part once per instance) and the
-    # worst world error of each level (world units); empty for a single mesh
+    # a scene's: triangles drawn per level (each part once per instance); empty for a
+    # single mesh
     drawn: list[int] = field(default_factory=list)
-    errors: list[float] = field(default_factory=list)
+    # each level's error: a scene's worst world error (world units), a single mesh's
+    # collapse error (mesh units; None for a level made by clustering, not measured)
+    errors: list = field(default_factory=list)
+    diagonal: float = 0.0       # of the bounding box the errors are fractions of
+    # seconds to encode and write each level's file (--separate; empty for one file)
+    level_seconds: list[float] = field(default_factory=list)
 
 
 # A level whose edge-collapse mesh overshoots its face budget by more than this is
@@ -166,6 +171,11 @@ class ChainOptions:
         ``STEM_LOD0``... under a root ``STEM``, all in the scene) or ``"both"``. With
         ``separate`` each file's node is ``STEM_LODi`` whatever it says. A scene's
         levels are linked by ``MSFT_lod`` only.
+    texture_scale : str or tuple of float, optional
+        Texture levels (``scene.textures``): None keeps every image at full size
+        in every level; ``"auto"`` scales each level's images to its screen size
+        (the sides by ``sqrt`` of its share of the finest level's faces, a power
+        of two, at least 64 px); or one scale in (0, 1] per level.
     reach : str
         ``"none"``: a level edge collapse cannot bring down to its budget stays
         at the coarsest it reaches. ``"cluster"``: such a level is made by vertex
@@ -182,6 +192,7 @@ class ChainOptions:
     reach: str = "none"
     compress: str = "none"
     naming: str = "msft"
+    texture_scale: str | tuple[float, ...] | None = None
 
     def __post_init__(self):
         check_reach(self.reach)
@@ -201,6 +212,10 @@ class ChainOptions:
         else:
             lods = DEFAULT_LODS if self.lods is None else self.lods
             object.__setattr__(self, "lods", check_lods(lods))
+        from .scene.textures import check_texture_scale
+        levels = len(self.errors if self.errors is not None else self.lods)
+        object.__setattr__(self, "texture_scale",
+                           check_texture_scale(self.texture_scale, levels))
 
     @classmethod
     def of(cls, chain: ChainOptions | None, keywords: dict) -> ChainOptions:

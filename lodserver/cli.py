@@ -169,7 +169,12 @@ def _cmd_extract(args) -> int:
     except ValueError as exc:
         raise MeshError(str(exc)) from exc
     mesh = pm.at(level)
-    save_mesh(mesh, _output_file(args.output))
+    begun = time.perf_counter()
+    save_mesh(mesh, _output_file(args.output), compress=args.compress)
+    if args.report is not None:
+        from .scene.report import extract_entry
+        _write_report(args.report, "extract", [extract_entry(
+            pm, level, Path(args.output), time.perf_counter() - begun)], begun)
     print(f"{args.output}: level {level}, {mesh.vertex_count} vertices, {mesh.face_count} faces, "
           f"error {pm.error_at_level(level):.3g}", file=sys.stderr)
     return 0
@@ -204,6 +209,26 @@ def _cmd_simplify(args) -> int:
     return 0
 
 
+REPORT_HELP = ("write a JSON report of what was written: per asset and level its "
+               "triangles, vertices, error (mesh units and fraction of the diagonal), coverage "
+               "hints, bytes of geometry and images, seconds and warnings (docs/pipeline.md, "
+               "'The report'); - writes it to stdout")
+
+
+def _write_report(target: str, command: str, entries: list, begun: float) -> None:
+    from .scene.report import report_document, write_report
+    write_report(report_document(command, entries, time.perf_counter() - begun), target)
+
+
+def _texture_scale(text: str):
+    """argparse's type of --texture-scale (a usage error when malformed)."""
+    from .scene.textures import parse_texture_scale
+    try:
+        return parse_texture_scale(text)
+    except MeshError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+
+
 def _export_usage(args) -> str | None:
     """What is wrong with how ``export``'s level flags are combined (a usage error,
     exit code 2), or None."""
@@ -228,6 +253,7 @@ def _cmd_export(args) -> int:
     from .chains import ChainOptions, parse_errors, parse_lods
     from .pipeline import export_lods, is_url
 
+    begun = time.perf_counter()
     problem = _export_usage(args)
     if problem is not None:
         print(f"lodserver export: {problem}", file=sys.stderr)
@@ -238,13 +264,14 @@ def _cmd_export(args) -> int:
         ratios, errors = parse_lods(args.lods or DEFAULT_LODS_TEXT), None
     chain = ChainOptions(lods=ratios, errors=errors, per_mesh=args.per_mesh,
                          separate=args.separate, reach=args.reach, compress=args.compress,
-                         naming=args.lod_naming)
+                         naming=args.lod_naming,
+                         texture_scale=args.texture_scale)
     options = options_from(args)
     if is_url(args.source) or Path(args.source).is_dir():
         if Path(args.output).suffix.lower() == ".glb":
             raise MeshError(f"{args.source} is a folder, so -o names the folder to write into, "
                             f"not a .glb file ({args.output})")
-        return _export_folder(args, chain, options)
+        return _export_folder(args, chain, options, begun)
     if args.scheduler is not None:
         raise MeshError("--scheduler runs the assets of a folder: name a folder, "
                         f"not a file ({args.source})")
@@ -260,6 +287,9 @@ def _cmd_export(args) -> int:
     finally:
         progress.close()
     print(f"{', '.join(map(str, done.outputs))}: {_levels(done)}", file=sys.stderr)
+    if args.report is not None:
+        from .scene.report import asset_entry
+        _write_report(args.report, "export", [asset_entry(done, done.outputs)], begun)
     return 0
 
 
@@ -285,7 +315,7 @@ def _levels(done) -> str:
     return text
 
 
-def _export_folder(args, chain, options) -> int:
+def _export_folder(args, chain, options, begun: float) -> int:
     """Every mesh file under ``args.source`` into the folder ``args.output``: a bar
     over the files on a terminal, a line per file, exit 1 if any failed (the same
     on a Dask cluster, ``--scheduler``)."""
@@ -329,6 +359,11 @@ def _export_folder(args, chain, options) -> int:
     print(f"{args.output}: {report.total} assets in {time.perf_counter() - start:.2f} s: "
           f"{len(report.written)} written, {len(report.up_to_date)} up to date, "
           f"{len(report.failed)} failed", file=sys.stderr)
+    if args.report is not None:
+        from .scene.report import folder_entries
+        _write_report(args.report, "export",
+                      folder_entries(report, args.source, local=not is_url(args.output)),
+                      begun)
     if report.failed:
         reasons = "; ".join(f"{path}: {reason}" for path, reason in report.failed.items())
         raise MeshError(f"{len(report.failed)} of {report.total} assets failed: {reasons}")
@@ -474,6 +509,11 @@ def _parser() -> argparse.ArgumentParser:
     group.add_argument("--ratio", type=float, help="this fraction of the faces, in (0, 1]")
     group.add_argument("--error", type=float, help="coarsest level with at most this error (mesh units)")
     p.add_argument("-o", "--output", required=True, help=OUTPUT_HELP)
+    p.add_argument("--report", metavar="FILE.json|-", help=REPORT_HELP)
+    p.add_argument("--compress", choices=COMPRESSIONS, default="none",
+                   help="a .glb output's storage, as for export: none (float32, the "
+                        "progressive mesh's order; default, and the only one for other "
+                        "formats), quantize or meshopt (both in vertex cache and fetch order)")
     p.set_defaults(run=_cmd_extract)
 
     p = _command(sub, "simplify", "write one simplified copy of a mesh file (no .pm)",
@@ -531,6 +571,13 @@ def _parser() -> argparse.ArgumentParser:
                         f"gltfpack -cc's form; the viewer needs a decoder such as three.js's "
                         f"MeshoptDecoder); both in vertex cache and fetch order (default "
                         f"{DEFAULT_COMPRESS})")
+    p.add_argument("--report", metavar="FILE.json|-", help=REPORT_HELP)
+    p.add_argument("--texture-scale", metavar="auto|S1,S2,...", type=_texture_scale,
+                   help="texture levels: auto scales each level's images to its screen size "
+                        "(sides by the square root of its share of the finest level's faces, "
+                        "a power of two, at least 64 px), or give one scale in (0, 1] per "
+                        "level; PNG, JPEG and WebP stay in their format, KTX2 is kept as it "
+                        "is (default: every level keeps the full-size images)")
     p.add_argument("--reach", choices=("none", "cluster"), default="none",
                    help="levels edge collapse cannot bring down to their budget (locked, "
                         "non-manifold or separate parts): keep the coarsest it reaches (none, "

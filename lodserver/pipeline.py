@@ -42,7 +42,10 @@ from .io import SUPPORTED_INPUT, write_atomic
 from .mesh import MeshError
 from .options import BuildOptions
 from .progressive.mesh import ProgressiveMesh
+from .scene.budget import part_diagonal
 from .scene.export import export_scene
+from .scene.report import level_errors
+from .scene.textures import chain_with_texture_levels
 
 SOURCE_SUFFIXES = tuple(f".{kind}" for kind in SUPPORTED_INPUT) + (".pm",)
 
@@ -109,25 +112,35 @@ def export_lods(source, output, chain: ChainOptions | None = None, *,
         (meshes, coverage), clustered = error_chain(pm, chain.errors), []
     else:
         meshes, coverage, clustered = lod_chain(pm, chain.lods, reach=chain.reach)
-    outputs = _write_chain(output, chain, meshes, coverage)
+    outputs, notes, seconds = _write_chain(output, chain, meshes, coverage)
     return Exported(source, outputs, [mesh.face_count for mesh in meshes], coverage,
                     time.perf_counter() - start, pm.faces_at_level(pm.base_vertices),
-                    clustered)
+                    clustered, notes, errors=level_errors(pm, chain, clustered),
+                    diagonal=part_diagonal(pm), level_seconds=seconds)
 
 
-def _write_chain(output: Path, chain: ChainOptions, meshes, coverage) -> list[Path]:
-    if chain.separate:
-        outputs = [output.with_name(f"{output.stem}_lod{i}{output.suffix}")
-                   for i in range(len(meshes))]
-        blobs = [encode_glb(mesh, chain.compress, name=lod_name(output.stem, i))
-                 for i, mesh in enumerate(meshes)]
-    else:
-        outputs, blobs = [output], [encode_lod_chain(meshes, coverage, chain.compress,
-                                                     naming=chain.naming, name=output.stem)]
+def _write_chain(output: Path, chain: ChainOptions, meshes, coverage):
+    """The chain's files written: (their paths, notes on what was not scaled, the
+    seconds each level's file took with ``separate``)."""
+    meshes, notes = chain_with_texture_levels(meshes, chain.texture_scale,
+                                              separate=chain.separate)
     output.parent.mkdir(parents=True, exist_ok=True)
-    for path, blob in zip(outputs, blobs):
+    if not chain.separate:
+        write_atomic(output, encode_lod_chain(meshes, coverage, chain.compress,
+                                              naming=chain.naming, name=output.stem))
+        return [output], notes, []
+    outputs = [output.with_name(f"{output.stem}_lod{i}{output.suffix}")
+               for i in range(len(meshes))]
+    blobs, seconds = [], []
+    for i, mesh in enumerate(meshes):       # every level encoded before any is written
+        begun = time.perf_counter()
+        blobs.append(encode_glb(mesh, chain.compress, name=lod_name(output.stem, i)))
+        seconds.append(time.perf_counter() - begun)
+    for i, (path, blob) in enumerate(zip(outputs, blobs)):
+        begun = time.perf_counter()
         write_atomic(path, blob)
-    return outputs
+        seconds[i] += time.perf_counter() - begun
+    return outputs, notes, seconds
 
 
 @dataclass
@@ -238,6 +251,9 @@ def export_folder(source, output, chain: ChainOptions | None = None, *, jobs: in
         recorded["compress"] = chain.compress
     if chain.naming != "msft":
         recorded["naming"] = chain.naming
+    if chain.texture_scale is not None:
+        recorded["texture_scale"] = (chain.texture_scale if chain.texture_scale == "auto"
+                                     else list(chain.texture_scale))
 
     def recorded_for(relative) -> dict:
         # a glTF scene's levels depend on whether they share one budget; other

@@ -10,6 +10,7 @@ document is written back with every mesh replaced by its levels
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from pathlib import Path
 
@@ -18,6 +19,7 @@ from ..io import write_atomic
 from ..io.scene_glb import encode_scene
 from ..mesh import Mesh, MeshError
 from .budget import chain_levels, coverage_from_errors, scene_instances, world_errors
+from .textures import level_meshes, texture_levels
 
 __all__ = ["export_scene"]
 
@@ -93,24 +95,33 @@ def export_scene(scene, source: Path, output: Path, chain: ChainOptions, options
     kept_drawn = sum(scene.as_is_faces[index] * len(scene.mesh_nodes.get(index, ()))
                      for index in scene.as_is)
     coverage = coverage_from_errors(worst, diagonal) if count else []
+    scenes, levels, notes = _scene_texture_levels(scene, levels, chain, drawn)
+    seconds = []
     if chain.separate:
         outputs = [output.with_name(f"{output.stem}_lod{i}{output.suffix}") for i in range(count)]
-        blobs = [encode_scene(scene, levels, coverage, level=i, compress=chain.compress)
-                 for i in range(count)]
+        blobs = []
+        for i in range(count):
+            begun = time.perf_counter()
+            blobs.append(encode_scene(scenes[i], levels, coverage, level=i,
+                                      compress=chain.compress))
+            seconds.append(time.perf_counter() - begun)
     else:
-        outputs, blobs = [output], [encode_scene(scene, levels, coverage,
+        outputs, blobs = [output], [encode_scene(scenes[0], levels, coverage,
                                                  compress=chain.compress)]
     output.parent.mkdir(parents=True, exist_ok=True)
-    for path, blob in zip(outputs, blobs):
+    for i, (path, blob) in enumerate(zip(outputs, blobs)):
+        begun = time.perf_counter()
         write_atomic(path, blob)
+        if seconds:
+            seconds[i] += time.perf_counter() - begun
     kept = sum(scene.as_is_faces.values())
     faces = [kept + sum(chain_[k].face_count for chain_ in levels.values()) for k in range(count)]
     base = sum(pm.faces_at_level(pm.base_vertices) for pm in pms.values())
     # base_faces: the coarsest the simplified meshes reach, with the kept ones beside them
     # (0 when nothing was simplified: no "simplifies no further" for a skinned asset)
     return Exported(source, outputs, faces, coverage, time.perf_counter() - start,
-                    base + kept if levels else 0, sorted(clustered), list(scene.notes),
-                    [kept_drawn + d for d in drawn], worst)
+                    base + kept if levels else 0, sorted(clustered), [*scene.notes, *notes],
+                    [kept_drawn + d for d in drawn], worst, diagonal, seconds)
 
 
 def _cluster_stuck(pms: dict, chosen: dict, levels: dict, k: int, ratio: float,
@@ -144,3 +155,19 @@ def _cluster_stuck(pms: dict, chosen: dict, levels: dict, k: int, ratio: float,
             except ValueError:      # a flat or degenerate part: no area to sample
                 replaced[index] = pm.error_at_level(pm.base_vertices)
     return replaced
+
+
+def _scene_texture_levels(scene, levels: dict, chain: ChainOptions, drawn: list):
+    """A scene's texture levels: (the scene to write each output from, the levels
+    of each mesh to write, notes). ``--separate``: file k's scene holds level k's
+    images; one file: every level's materials, each mesh's level k naming its own."""
+    count = len(drawn)
+    found = texture_levels(scene.materials, chain.texture_scale, drawn) if count else None
+    if found is None:
+        return [scene] * max(count, 1), levels, []
+    if chain.separate:
+        return ([dataclasses.replace(scene, materials=materials)
+                 for materials in found.separate], levels, found.notes)
+    levels = {index: level_meshes(chain_, found, separate=False)
+              for index, chain_ in levels.items()}
+    return [dataclasses.replace(scene, materials=found.chain)], levels, found.notes

@@ -2,10 +2,13 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 from ..io.scene import Scene
 from ..io.scene_glb import encode_scene
 from .asset import SceneAsset, instances_and_diagonal
 from .budget import chain_levels
+from .textures import level_meshes, texture_levels
 
 __all__ = ["scene_chain_glb", "scene_glb"]
 
@@ -28,19 +31,32 @@ def _labelled(asset: SceneAsset) -> Scene:
                  as_is_faces=scene.as_is_faces)
 
 
-def scene_glb(asset: SceneAsset, levels: dict) -> bytes:
+def scene_glb(asset: SceneAsset, levels: dict, compress: str = "none") -> bytes:
     """The GLB of the whole scene with part ``p`` at level ``levels[p]`` (node tree,
     skins, animations, cameras kept); each part's glTF mesh has
-    ``extras.lodserver_part``."""
+    ``extras.lodserver_part``. ``compress``: ``io.glb.COMPRESSIONS``, as for a
+    scene's export."""
     meshes = {part.mesh: [part.pm.at(levels[part.index])] for part in asset.parts}
-    return encode_scene(_labelled(asset), meshes, [1.0], level=0)
+    return encode_scene(_labelled(asset), meshes, [1.0], level=0, compress=compress)
 
 
-def scene_chain_glb(asset: SceneAsset, ratios, coverage) -> bytes:
-    """The ``MSFT_lod`` scene: level k of every part at scene ratio ``ratios[k]``."""
+def scene_chain_glb(asset: SceneAsset, ratios, coverage, *, compress: str = "none",
+                    texture_scale=None) -> bytes:
+    """The ``MSFT_lod`` scene: level k of every part at scene ratio ``ratios[k]``,
+    stored as ``compress`` says (``io.glb.COMPRESSIONS``); with ``texture_scale`` (``"auto"`` or one per level, ``textures.texture_levels``)
+    each level drawn with its own images, scaled by the triangles it draws (each
+    part once per instance)."""
     # each part only coarsens along the chain (budget.chain_levels)
     instances, diagonal = instances_and_diagonal(asset)
     chain = chain_levels(asset.pms, instances, lods=list(ratios), diagonal=diagonal)
     meshes = {part.mesh: [part.pm.at(levels[part.index]) for levels in chain]
               for part in asset.parts}
-    return encode_scene(_labelled(asset), meshes, list(coverage))
+    scene = _labelled(asset)
+    drawn = [sum(len(instances[part.index]) * meshes[part.mesh][k].face_count
+                 for part in asset.parts) for k in range(len(chain))]
+    found = texture_levels(scene.materials, texture_scale, drawn)
+    if found is not None:
+        meshes = {index: level_meshes(levels, found, separate=False)
+                  for index, levels in meshes.items()}
+        scene = dataclasses.replace(scene, materials=found.chain)
+    return encode_scene(scene, meshes, list(coverage), compress=compress)

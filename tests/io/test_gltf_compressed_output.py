@@ -279,3 +279,38 @@ def test_equal_materials_share_one_primitive():
         assert decoded.face_count == mesh.face_count
         errors = attribute_errors(painted, decoded, _step(painted))
         assert errors["TEXCOORD_0"] <= 2 / 65535
+
+
+@pytest.mark.parametrize("compress", ["quantize", "meshopt"])
+def test_extract_writes_the_chosen_compression(tmp_path, capsys, compress,
+                                               gltf_validator):  # noqa: F811
+    """``extract --compress``: one level, decoded by meshoptimizer's package to the
+    level ``extract`` writes uncompressed, its triangles in vertex cache order."""
+    asset = tmp_path / "spot.pm"
+    assert main(["build", str(DATA / "spot.obj"), "-o", str(asset)]) == 0
+    plain, packed = tmp_path / "plain.glb", tmp_path / f"{compress}.glb"
+    assert main(["extract", str(asset), "--ratio", "0.25", "-o", str(plain)]) == 0
+    assert main(["extract", str(asset), "--ratio", "0.25", "-o", str(packed),
+                 "--compress", compress]) == 0
+    data = packed.read_bytes()
+    document, _ = split_glb(data)
+    assert "KHR_mesh_quantization" in document["extensionsRequired"]
+    assert ("EXT_meshopt_compression" in document["extensionsRequired"]) == \
+        (compress == "meshopt")
+    reference, _ = load_mesh(plain)
+    decoded = as_mesh(decode_independently(data), reference.attributes.layout,
+                      reference.materials)
+    assert decoded.face_count == reference.face_count
+    errors = attribute_errors(reference, decoded, _step(reference))
+    assert errors and all(error <= 2 / 65535 for name, error in errors.items()
+                          if name.startswith("TEXCOORD"))
+    faces = decode_independently(data)[1]
+    assert _acmr(faces) < _acmr(decode_independently(plain.read_bytes())[1])
+    assert_valid(gltf_validator, data, f"extract --compress {compress}")
+    image = len((DATA / "spot_texture.png").read_bytes())
+    assert len(data) - image < 0.75 * (len(plain.read_bytes()) - image)
+    capsys.readouterr()
+    assert main(["extract", str(asset), "--ratio", "0.25", "-o", str(tmp_path / "x.ply"),
+                 "--compress", compress]) == 1
+    err = capsys.readouterr().err
+    assert "ply cannot be written with compress" in err and len(err.strip().splitlines()) == 1

@@ -15,11 +15,11 @@ from lodserver.io.glb import encode_glb
 DECODER = TOOLS / "node_modules" / "meshoptimizer" / "meshopt_decoder.mjs"
 VIEWPORT = {"width": 480, "height": 360}
 
-# In the viewer's page: each compression's level of GET /lod?ratio=1&format=glb drawn
-# by GLTFLoader in place of the viewer's mesh; per compression its triangles, its
-# world bounding box and the RMS difference (0-255, RGB) of its picture from the
-# float32 level's, and the share of pixels that picture draws.
-DRAW_JS = """async ({ id, decoder }) => {
+# The start of a page script that draws GLBs beside the viewer: three.js, GLTFLoader and
+# MeshoptDecoder (its source passed as ``decoder``) loaded, the viewer's mesh hidden and
+# the background's colour taken (``THREE``, ``GLTFLoader``, ``MeshoptDecoder``,
+# ``viewer``, ``scene``, ``background``).
+LOADER_JS = """
   const THREE = await import('three');
   const { GLTFLoader } = await import('three/addons/loaders/GLTFLoader.js');
   const url = URL.createObjectURL(new Blob([decoder], { type: 'text/javascript' }));
@@ -28,6 +28,13 @@ DRAW_JS = """async ({ id, decoder }) => {
   const viewer = window.lodViewer.scene, { scene } = viewer.three;
   viewer.three.mesh.visible = false;
   const background = viewer.pixels().data.slice(0, 4);
+"""
+
+# In the viewer's page: each compression's level of GET /lod?ratio=1&format=glb drawn
+# by GLTFLoader in place of the viewer's mesh; per compression its triangles, its
+# world bounding box and the RMS difference (0-255, RGB) of its picture from the
+# float32 level's, and the share of pixels that picture draws.
+DRAW_JS = "async ({ id, decoder }) => {" + LOADER_JS + """
   const found = {};
   let reference = null;
   for (const compress of ['none', 'quantize', 'meshopt']) {

@@ -32,6 +32,7 @@ from ...service.levels import (
     scene_bytes,
 )
 from ...scene.asset import SceneAsset, scene_levels_for
+from ...scene.textures import chain_with_texture_levels, texture_levels_bytes
 from ...scene.write import scene_chain_glb, scene_glb
 from ..bodies import BodiesDep
 from ..caching import VersionQuery, etag_for, load_versioned, version_of
@@ -79,20 +80,13 @@ def get_lod(mesh_id: MeshId, store: StoreDep, bodies: BodiesDep, request: Reques
     """
     asset, digest, policy = load_versioned(store, mesh_id, v)
     if asset.single is None:
-        _uncompressed_scene(compress)
         return _scene_lod(asset, digest, policy, request, bodies, mesh_id=mesh_id,
                           vertices=vertices, faces=faces, ratio=ratio, error=error,
-                          format=format)
+                          format=format, compress=compress)
     return level_response(asset.single, digest, policy, request, bodies, mesh_id=mesh_id,
                           criterion={"vertices": vertices, "faces": faces, "ratio": ratio,
                                      "error": error}, format=format, bits=bits, v=v,
                           compress=compress)
-
-
-def _uncompressed_scene(compress: str) -> None:
-    if compress != "none":
-        raise LevelError("a scene's GLB is served uncompressed; compress= applies to a "
-                         "mesh's levels and chains")
 
 
 def level_response(pm, digest: str, policy: str, request: Request, bodies, *, mesh_id: str,
@@ -177,7 +171,11 @@ def get_chain(mesh_id: MeshId, store: StoreDep, bodies: BodiesDep, request: Requ
               reach: Annotated[Literal["none", "cluster"], Query(description=(
                   "cluster: levels edge collapse cannot bring down to their budget are made "
                   "by vertex clustering (positions only)."))] = "none",
-              compress: Compress = "none", v: VersionQuery = None) -> Response:
+              compress: Compress = "none",
+              texture_scale: Annotated[Literal["none", "auto"], Query(description=(
+                  "auto: each level's images scaled to its screen size, as lodserver "
+                  "export --texture-scale auto (KTX2 kept as it is)."))] = "none",
+              v: VersionQuery = None) -> Response:
     """A chain of levels of detail in one GLB, as ``lodserver export`` writes it:
     node 0 the finest level, ``MSFT_lod`` naming the others, with
     ``MSFT_screencoverage`` hints.
@@ -195,23 +193,32 @@ def get_chain(mesh_id: MeshId, store: StoreDep, bodies: BodiesDep, request: Requ
         raise LevelError(f"a chain holds at most {MAX_CHAIN_LEVELS} levels, got {len(ratios)}")
     pm = asset.single
     if pm is None:
-        _uncompressed_scene(compress)
         return _scene_chain(asset, digest, policy, request, bodies, mesh_id=mesh_id,
-                            ratios=ratios, reach=reach)
+                            ratios=ratios, reach=reach, compress=compress,
+                            texture_scale=texture_scale)
     levels = [pm.level_for(ratio=ratio) for ratio in ratios]
     faces = sum(pm.faces_at_level(level) for level in levels)
     full = pm.faces_at_level(pm.vertex_count)
     if faces > MAX_CHAIN_FACES * full:
         raise LevelError(f"a chain's levels hold at most {MAX_CHAIN_FACES} times the mesh's "
                          f"faces; these ratios add up to {faces / full:.2f} times")
+    scaled = texture_scale if texture_scale != "none" else None
     etag = etag_for(digest, "chain", ",".join(map(repr, ratios)), reach,
-                    *([compress] if compress != "none" else []))
+                    *([compress] if compress != "none" else []),
+                    *(["textures", scaled] if scaled else []))
     # clustering (reach) works on the full mesh: it takes every slot
     return bodies.cached(
         request, etag, policy,
-        lambda: encode_lod_chain(*lod_chain(pm, ratios, reach=reach)[:2], compress),
+        lambda: encode_lod_chain(*_with_textures(*lod_chain(pm, ratios, reach=reach)[:2],
+                                                 scaled), compress),
         media_type=_GLB, filename=f"{mesh_id}-lods.glb",
-        estimate=lambda: chain_bytes(pm, levels) if reach == "none" else bodies.heavy.budget)
+        estimate=lambda: bodies.heavy.budget if reach != "none" else (
+            chain_bytes(pm, levels) + (texture_levels_bytes(pm.materials) if scaled else 0)))
+
+
+def _with_textures(meshes: list, coverage: list, texture_scale) -> tuple[list, list]:
+    """A mesh's chain (its levels and coverage hints) with its texture levels."""
+    return chain_with_texture_levels(meshes, texture_scale, separate=False)[0], coverage
 
 
 def _scene_levels(asset: SceneAsset, **criterion) -> dict:
@@ -222,8 +229,9 @@ def _scene_levels(asset: SceneAsset, **criterion) -> dict:
 
 
 def _scene_lod(asset: SceneAsset, digest: str, policy: str, request: Request, bodies, *,
-               mesh_id: str, vertices, faces, ratio, error, format: str) -> Response:
-    """The whole scene at one level (``get_lod``), as GLB."""
+               mesh_id: str, vertices, faces, ratio, error, format: str,
+               compress: str = "none") -> Response:
+    """The whole scene at one level (``get_lod``), as GLB stored as ``compress`` says."""
     if format != "glb":
         raise LevelError(f"mesh {mesh_id} is a scene of {len(asset.parts)} parts: its levels "
                          "are GLB files of the whole scene (format=glb); a part's level in any "
@@ -233,14 +241,17 @@ def _scene_lod(asset: SceneAsset, digest: str, policy: str, request: Request, bo
                          "triangles) and error (a fraction of its bounding-box diagonal)")
     levels = _scene_levels(asset, ratio=ratio, error=error)
     # named by the levels it holds: two criteria giving the same levels share a body
-    etag = etag_for(digest, "scene-lod", *(levels[p] for p in sorted(levels)))
-    return bodies.cached(request, etag, policy, lambda: scene_glb(asset, levels), media_type=_GLB,
+    etag = etag_for(digest, "scene-lod", *(levels[p] for p in sorted(levels)),
+                    *([compress] if compress != "none" else []))
+    return bodies.cached(request, etag, policy, lambda: scene_glb(asset, levels, compress),
+                         media_type=_GLB,
                          filename=f"{mesh_id}-scene.glb",
                          estimate=lambda: scene_bytes(asset, [levels]))
 
 
 def _scene_chain(asset: SceneAsset, digest: str, policy: str, request: Request, bodies, *,
-                 mesh_id: str, ratios, reach: str) -> Response:
+                 mesh_id: str, ratios, reach: str, compress: str = "none",
+                 texture_scale: str = "none") -> Response:
     """The ``MSFT_lod`` scene (``get_chain``)."""
     if reach != "none":
         raise LevelError("a scene's chain is made by edge collapse only (reach=none)")
@@ -251,7 +262,14 @@ def _scene_chain(asset: SceneAsset, digest: str, policy: str, request: Request, 
     if faces > MAX_CHAIN_FACES * full:
         raise LevelError(f"a chain's levels hold at most {MAX_CHAIN_FACES} times the mesh's "
                          f"faces; these ratios add up to {faces / full:.2f} times")
-    etag = etag_for(digest, "scene-chain", ",".join(map(repr, ratios)))
+    scaled = texture_scale if texture_scale != "none" else None
+    etag = etag_for(digest, "scene-chain", ",".join(map(repr, ratios)),
+                    *([compress] if compress != "none" else []),
+                    *(["textures", scaled] if scaled else []))
     return bodies.cached(
-        request, etag, policy, lambda: scene_chain_glb(asset, ratios, coverage_from_ratios(ratios)),
-        media_type=_GLB, filename=f"{mesh_id}-lods.glb", estimate=lambda: scene_bytes(asset, chain))
+        request, etag, policy,
+        lambda: scene_chain_glb(asset, ratios, coverage_from_ratios(ratios),
+                                compress=compress, texture_scale=scaled),
+        media_type=_GLB, filename=f"{mesh_id}-lods.glb",
+        estimate=lambda: scene_bytes(asset, chain)
+        + (texture_levels_bytes(asset.materials) if scaled else 0))
