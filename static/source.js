@@ -10,6 +10,8 @@
 // stream retries those with backoff).
 
 const POLL_MS = 500;
+// The packet versions packet.js reads (version 4 through packet_v4.js).
+const READ_VERSIONS = [1, 2, 3, 4];
 
 // An HTTP failure: `transient` when asking again may help.
 export class FetchError extends Error {
@@ -131,7 +133,7 @@ export class ServerSource {
   }
 
   async packet(from, to, { signal } = {}) {
-    const url = this.url('splits', { from, to });
+    const url = this.url('splits', { from, to, ...this.versionParam() });
     const response = await fetchOk(url, { signal });
     try {
       return { buffer: await response.arrayBuffer(), url };
@@ -139,6 +141,15 @@ export class ServerSource {
       if (error.name === 'AbortError') throw error;
       throw new FetchError(`the packet was cut short (${error.message})`, true);
     }
+  }
+
+  // The newest packet version both the server writes (the summary's
+  // packet_versions) and packet.js reads; none for a server that lists none
+  // (it writes version 3 only, its default).
+  versionParam() {
+    const offered = this.summary.packet_versions ?? [];
+    const version = Math.max(0, ...offered.filter((v) => READ_VERSIONS.includes(v)));
+    return version > 3 ? { version } : {};
   }
 
   async materials({ signal } = {}) {
