@@ -1,9 +1,11 @@
 // Where a progressive mesh's records come from: a lodserver (ServerSource),
-// later a progressive static file. The stream (stream.js) asks a source for
-// four things only, so another source needs only these:
+// or a progressive file on a static host (staticsource.js: StaticSource). The
+// stream (stream.js) asks a source for four things only, so another source
+// needs only these:
 //   summary          GET /meshes/{id}: counts, error curve, bounds, parts
 //   base(level)      the json level packets start from (an ArrayBuffer)
-//   packet(from, to) the vertex-split packet between two levels ({ buffer, url })
+//   packet(from, to) the vertex-split packet between two levels ({ buffer, url }),
+//                    or several in a row ({ buffers, url })
 //   materials()      the glTF material records ({ document, url }: image uris
 //                    are relative to url)
 // A failure is a FetchError, `transient` when asking again may help (the
@@ -150,6 +152,12 @@ export class ServerSource {
     const offered = this.summary.packet_versions ?? [];
     const version = Math.max(0, ...offered.filter((v) => READ_VERSIONS.includes(v)));
     return version > 3 ? { version } : {};
+  }
+
+  // A scene's GLB at `ratio` of its triangles (ProgressiveScene.load): { buffer, url }.
+  async sceneGlb({ ratio, signal } = {}) {
+    const url = this.url('lod', { ratio, format: 'glb' });
+    return { buffer: await (await fetchOk(url, { signal })).arrayBuffer(), url };
   }
 
   async materials({ signal } = {}) {

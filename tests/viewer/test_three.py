@@ -198,6 +198,8 @@ def test_a_page_of_another_origin_stops_at_one_pixel_refines_and_reaches_full_de
         assert _error_px(server, sphere["id"], sphere["base_vertices"], per_unit) > 10
         packets = [url for url in page.requests if "/splits?" in url]
         assert packets and all(int(url.split("to=")[1].split("&")[0]) <= level for url in packets)
+        # the server offers packet version 4 (the summary's packet_versions): asked for
+        assert all("version=4" in url for url in packets), packets
         faces, digest = _expected(server, sphere["id"], level)
         assert page.evaluate(HASH_JS.join(["(", ")(window.object.state)"])) == {
             "faces": faces, "hash": digest}
