@@ -278,6 +278,15 @@ def _export_progressive(args, options) -> int:
     from .scene.load import read_scene_upload
     from .service.progressive_file import progressive_glb
 
+    chain_flags = [flag for flag, given in (
+        ("--lods", args.lods is not None), ("--error", args.errors is not None),
+        ("--separate", args.separate), ("--per-mesh", args.per_mesh),
+        ("--reach", args.reach != "none"), ("--jobs", args.jobs != 1),
+        ("--scheduler", args.scheduler is not None), ("--force", args.force)) if given]
+    if chain_flags:
+        print(f"lodserver export: --progressive writes every level in one file; "
+              f"{', '.join(chain_flags)} apply to LOD chains", file=sys.stderr)
+        return 2
     source, output = Path(args.source), Path(args.output)
     if output.suffix.lower() != ".glb" or is_url(args.source) or source.is_dir():
         raise MeshError("--progressive writes one mesh file's progressive file: SOURCE a "
