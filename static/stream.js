@@ -204,7 +204,7 @@ export class PacketStream {
         try {
           const got = await packet;
           if (ticket !== this.opened) return;
-          applyAll(held, got.packet);
+          applyAll(held, got.packets);
           this.bytes += got.bytes;
         } catch (error) {
           refused = error;
@@ -263,7 +263,7 @@ export class PacketStream {
         const { buffer, buffers = [buffer], url } = await records.packet(from, to, { signal });
         const packets = [];
         for (const one of buffers) packets.push(await LodState.readPacket(one));
-        return { packet: packets, bytes: buffers.reduce((n, one) => n + one.byteLength, 0), url };
+        return { packets, bytes: buffers.reduce((n, one) => n + one.byteLength, 0), url };
       } catch (error) {
         if (signal.aborted || ticket !== this.opened) throw error;
         const transient = error instanceof FetchError && error.transient;
@@ -362,7 +362,7 @@ export class PacketStream {
         }
         this.queue.shift();
         const started = performance.now();
-        const records = applyAll(this.state, got.packet);
+        const records = applyAll(this.state, got.packets);
         const applyMs = performance.now() - started;
         this.bytes += got.bytes;
         this.counts.packets++;

@@ -13,7 +13,7 @@ from lodserver.packets import apply_packet, decode_any, encode_packet_v4, state_
 
 from ..meshes import DATA
 from ..packets.test_packets import _same
-from . import settled
+from . import uploaded
 
 
 @pytest.fixture(scope="module")
@@ -21,11 +21,7 @@ def served(tmp_path_factory):
     """spot (UV, a material) uploaded and built."""
     settings = Settings(data_dir=tmp_path_factory.mktemp("v4") / "data", warm_kernels=False)
     with TestClient(create_app(settings)) as client:
-        created = client.post("/meshes", files={"file": ("spot.obj", (DATA / "spot.obj").read_bytes())})
-        assert created.status_code == 202, created.text
-        mesh_id = created.json()["id"]
-        assert settled(client, mesh_id)["status"] == "ready"
-        yield client, mesh_id
+        yield client, uploaded(client, "spot.obj", (DATA / "spot.obj").read_bytes())
 
 
 def test_the_summary_lists_the_versions_written(served):

@@ -29,7 +29,7 @@ from lodserver.service.progressive_file import (
 from ..io.test_gltf import assert_valid, gltf_validator  # noqa: F401 (a fixture)
 from ..meshes import DATA, SHARED, textured_spot_glb
 from ..packets.test_packets import _same
-from . import settled
+from . import uploaded
 
 REPO = Path(__file__).resolve().parents[2]
 RIGGED = SHARED / "scenes" / "RiggedSimple.glb"
@@ -41,12 +41,7 @@ def served(tmp_path_factory):
     settings = Settings(data_dir=tmp_path_factory.mktemp("progressive") / "data",
                         warm_kernels=False)
     with TestClient(create_app(settings)) as client:
-        created = client.post("/meshes", files={"file": ("spot.glb", textured_spot_glb())},
-                              data={"name": "spot"})
-        assert created.status_code == 202, created.text
-        mesh_id = created.json()["id"]
-        assert settled(client, mesh_id)["status"] == "ready"
-        yield client, mesh_id
+        yield client, uploaded(client, "spot.glb", textured_spot_glb(), name="spot")
 
 
 def _levels(client, mesh_id, level, part=None):
@@ -150,10 +145,9 @@ def test_a_scene_file_holds_every_part_and_its_document(tmp_path):
         pytest.skip(f"shared scene not found at {RIGGED}")
     settings = Settings(data_dir=tmp_path / "data", warm_kernels=False)
     with TestClient(create_app(settings)) as client:
-        created = client.post("/meshes", files={"file": ("RiggedSimple.glb", RIGGED.read_bytes())})
-        mesh_id = created.json()["id"]
-        summary = settled(client, mesh_id)
-        assert summary["status"] == "ready" and summary["scene"], summary
+        mesh_id = uploaded(client, "RiggedSimple.glb", RIGGED.read_bytes())
+        summary = client.get(f"/meshes/{mesh_id}").json()
+        assert summary["scene"], summary
         data = client.get(f"/meshes/{mesh_id}/progressive").content
         record = _check_chunks(
             data, lambda p: summary["parts"][p],

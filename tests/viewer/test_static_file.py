@@ -23,7 +23,9 @@ from pathlib import Path
 import pytest
 import trimesh
 
+from lodserver.packets import apply_packet, decode_any, state_from_json
 from lodserver.progressive.mesh import ProgressiveMesh
+from lodserver.service.progressive_file import read_index
 from lodserver.service.levels import encode_level
 
 from ..meshes import SHARED
@@ -149,6 +151,31 @@ class _Levels:
         return type("Reply", (), {"json": lambda _: json.loads(data)})()
 
 
+class _Decoded:
+    """The state the reference decoder reaches from a progressive file's base
+    through its split chunks up to ``level``, as a json level (for _expected)."""
+
+    def __init__(self, data: bytes, part: int):
+        self.data, self.part = data, part
+
+    def get(self, route, params):
+        record, start = read_index(self.data)
+        part = next(p for p in record["parts"] if p["part"] == self.part)
+        base, at, length = part["base"]
+        state = state_from_json(json.loads(self.data[start + at:start + at + length]))
+        for _, end, at, length in part["splits"]:
+            if end > params["vertices"]:
+                break
+            state = apply_packet(state, decode_any(self.data[start + at:start + at + length]))
+        document = {"vertex_count": state.level, "face_count": len(state.faces),
+                    "positions": state.positions, "faces": state.faces}
+        if state.attribute_grids:
+            document.update(layout=True, wedges=state.wedges, corners=state.corners)
+        if state.face_material is not None:
+            document["face_material"] = state.face_material
+        return type("Reply", (), {"json": lambda _: document})()
+
+
 def _open(chromium, app, url):
     page = chromium.new_page(viewport=VIEWPORT)
     page.errors = []
@@ -251,14 +278,15 @@ def test_a_skinned_scene_streams_from_its_file_and_plays(chromium, app, host, fo
             const mesh = window.object.parts[0].meshes[0];
             return { skinned: mesh.isSkinnedMesh, faces: mesh.geometry.index.count / 3 };
         }""")
-        with open(folder / fox, "rb") as stream:
-            data = stream.read()
-        length = int.from_bytes(data[12:16], "little")
-        record = json.loads(data[20:20 + length])["extensions"]["LODSERVER_progressive"]
-        part = record["summary"]["parts"][0]
+        data = (folder / fox).read_bytes()
+        part = read_index(data)[0]["summary"]["parts"][0]
         assert shown == {"skinned": True, "faces": part["faces"]}, shown
-        # the part's state is its json level at full detail, from the file's own build
-        assert _state(page, "window.object.parts[0].levels.state")["faces"] == part["faces"]
+        # the part's state: the file's base json level and its chunks, as the
+        # reference decoder applies them (tests/api/test_progressive_file.py:
+        # each chunk's end is the json level there)
+        faces, digest = _expected(_Decoded(data, 0), "", part["vertices"])
+        assert _state(page, "window.object.parts[0].levels.state") == {"faces": faces,
+                                                                        "hash": digest}
         assert {entry[3] for entry in handler.log} == {206}, handler.log
         assert not page.errors, page.errors
     finally:
