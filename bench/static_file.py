@@ -14,6 +14,13 @@ JSON (one, two when the JSON is longer than 64 KiB), the base, then one per run
 of chunks the stream asks for: at least one to full detail.
 
     PYTHONPATH=$PWD python bench/static_file.py [mesh ...]    # names of bench/codec_meshes.py
+    PYTHONPATH=$PWD python bench/static_file.py --browser bunny_loop2
+
+``--browser``: a session in headless Chromium instead (software GL, the link
+throttled to 20 Mbit/s and 50 ms as in issue 25's table), the README's page
+opening the file from a static host with ``Range`` (``static_server.serve``):
+the requests, bytes and seconds to the 1 px level of the page's view
+(1200x800) and then to full detail (``setLevel``).
 
 gltfpack comes from bench/out/codec/npm (``npm i --no-save gltfpack`` there) or
 the tests' tools (tests/tools/node_modules).
@@ -22,7 +29,9 @@ the tests' tools (tests/tools/node_modules).
 from __future__ import annotations
 
 import argparse
+import shutil
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -30,6 +39,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 import codec  # noqa: E402
 from codec_meshes import SOURCES, progressive  # noqa: E402
+from static_server import serve  # noqa: E402
 
 from lodserver.packets.records_v4 import packet_between_v4  # noqa: E402
 from lodserver.scene.asset import SceneAsset  # noqa: E402
@@ -37,6 +47,42 @@ from lodserver.service.levels import encode_level  # noqa: E402
 from lodserver.service.progressive_file import progressive_glb, read_index  # noqa: E402
 
 HEAD_BYTES = 65536          # staticsource.js's first read
+REPO = Path(__file__).resolve().parents[1]
+CHROMIUM_ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--no-first-run"]
+THROTTLE = {"offline": False, "latency": 50, "downloadThroughput": 20e6 / 8,
+            "uploadThroughput": 20e6 / 8}
+# The README's example with the file's URL from the query.
+PAGE = """<!doctype html><html><body style="margin: 0">
+<script type="importmap">{ "imports": { "three": "/three/build/three.module.js",
+  "three/addons/": "/three/examples/jsm/", "lodserver-three": "/lodserver/lodserver-three.js" } }
+</script>
+<script type="module">
+import * as THREE from 'three';
+import { ProgressiveMeshLoader } from 'lodserver-three';
+const renderer = new THREE.WebGLRenderer();
+renderer.setSize(innerWidth, innerHeight);
+document.body.append(renderer.domElement);
+const scene = new THREE.Scene();
+scene.add(new THREE.HemisphereLight(0xffffff, 0x444444, 3));
+const camera = new THREE.PerspectiveCamera(40, innerWidth / innerHeight, 0.01, 1000);
+const object = await new ProgressiveMeshLoader().load(new URLSearchParams(location.search).get('file'));
+const { center, radius } = object.boundingSphere;
+camera.position.set(center.x, center.y, center.z + 3 * radius);
+scene.add(object);
+renderer.setAnimationLoop(() => { object.update(camera, renderer); renderer.render(scene, camera); });
+window.object = object;
+</script></body></html>"""
+# Resolves once the level is where update() sends it, twice in a row.
+SETTLED_JS = """async () => {
+  let last = null;
+  for (;;) {
+    await window.object.settled();
+    await new Promise((resolve) => requestAnimationFrame(() => requestAnimationFrame(resolve)));
+    const now = { level: window.object.level, target: window.object.target };
+    if (now.target === now.level && last?.level === now.level) return now;
+    last = now;
+  }
+}"""
 TOOLS = Path(__file__).resolve().parents[1] / "tests" / "tools" / "node_modules" / ".bin"
 
 
@@ -65,11 +111,54 @@ def server_bytes(pm) -> int:
     return total
 
 
+def session(name: str, timeout_s: float = 1800) -> dict:
+    """A browser session on ``name``'s progressive file (see ``--browser``)."""
+    from playwright.sync_api import sync_playwright
+    pm = progressive(name)
+    log: list = []
+    with tempfile.TemporaryDirectory() as tmp, sync_playwright() as playwright:
+        folder = Path(tmp)
+        (folder / "three").symlink_to(REPO / "static" / "vendor" / "three")
+        (folder / "lodserver").symlink_to(REPO / "static")
+        (folder / "index.html").write_text(PAGE)
+        (folder / f"{name}.glb").write_bytes(progressive_glb(SceneAsset.of_mesh(pm)))
+        browser = playwright.chromium.launch(executable_path=shutil.which("chromium"),
+                                             args=CHROMIUM_ARGS)
+        with serve(folder, log) as url:
+            context = browser.new_context(viewport={"width": 1200, "height": 800})
+            page = context.new_page()
+            cdp = context.new_cdp_session(page)
+            cdp.send("Network.enable")
+            cdp.send("Network.emulateNetworkConditions", THROTTLE)
+            page.set_default_timeout(timeout_s * 1000)
+            began = time.perf_counter()
+            page.goto(f"{url}/index.html?file={url}/{name}.glb")
+            page.wait_for_function("() => window.object?.target != null")
+            stops = {}
+            for stop, script in (("1 px", None), ("full", f"window.object.setLevel({pm.vertex_count})")):
+                if script:
+                    page.evaluate(script)
+                level = page.evaluate(SETTLED_JS)["level"]
+                files = [entry for entry in log if entry[0].endswith(".glb")]
+                stops[stop] = {"level": level, "seconds": time.perf_counter() - began,
+                               "requests": len(files), "bytes": sum(e[3] for e in files),
+                               "statuses": sorted({e[2] for e in files})}
+            context.close()
+        browser.close()
+    return {"mesh": name, "vertices": pm.vertex_count, **stops}
+
+
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("meshes", nargs="*", default=["spot", "stanford-bunny", "Duck"],
                         choices=list(SOURCES))
+    parser.add_argument("--browser", action="store_true",
+                        help="a Chromium session per mesh instead of the byte counts")
     args = parser.parse_args(argv)
+    if args.browser:
+        for name in args.meshes:
+            print(session(name))
+        return
     if not codec.GLTFPACK.exists() and (TOOLS / "gltfpack").exists():
         codec.GLTFPACK = TOOLS / "gltfpack"
     rows = []
