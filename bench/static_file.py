@@ -139,10 +139,10 @@ def session(name: str, timeout_s: float = 1800) -> dict:
                 if script:
                     page.evaluate(script)
                 level = page.evaluate(SETTLED_JS)["level"]
-                files = [entry for entry in log if entry[0].endswith(".glb")]
+                files = [entry for entry in log if entry[0] == f"/{name}.glb"]
                 stops[stop] = {"level": level, "seconds": time.perf_counter() - began,
                                "requests": len(files), "bytes": sum(e[3] for e in files),
-                               "statuses": sorted({e[2] for e in files})}
+                               "log": [(e[1], e[2], e[3]) for e in files]}
             context.close()
         browser.close()
     return {"mesh": name, "vertices": pm.vertex_count, **stops}

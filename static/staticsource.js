@@ -24,15 +24,20 @@ const JSON_CHUNK = 0x4e4f534a;  // 'JSON'
 export const NOT_A_SOURCE = 'not a lodserver mesh URL (http://host/meshes/ID) nor a progressive file';
 
 // Byte ranges of one file: a Range request each, or cuts of the whole file once
-// the host answered 200 to one.
+// the host answered 200 to one. The file's first bytes, read once, are kept:
+// the base and the first chunks of a small file are among them.
 export class RangeReader {
   constructor(url) {
     this.url = url;
     this.whole = null;          // the whole file, once a host ignored a Range
+    this.head = new ArrayBuffer(0);
   }
 
   // Bytes [start, end) of the file (fewer past its end), an ArrayBuffer.
   async read(start, end, { signal } = {}) {
+    const held = this.head.byteLength;
+    if (end <= held) return this.head.slice(start, end);
+    if (start < held) return concat(this.head.slice(start), await this.read(held, end, { signal }));
     if (this.whole) return (await this.whole).slice(start, end);
     const response = await fetchOk(this.url, { signal,
                                                headers: { Range: `bytes=${start}-${end - 1}` } });
@@ -89,6 +94,7 @@ export class StaticSource {
     const href = new URL(url, window.location.href).href;
     const reader = new RangeReader(href);
     let head = await reader.read(0, HEAD_BYTES, { signal });
+    reader.head = head;
     const view = new DataView(head);
     if (head.byteLength < 20 || view.getUint32(0, true) !== GLB_MAGIC
         || view.getUint32(16, true) !== JSON_CHUNK) {
