@@ -101,6 +101,9 @@ export class StaticSource {
       throw new Error(`${NOT_A_SOURCE}: ${url} is no GLB`);
     }
     const length = view.getUint32(12, true);
+    if (20 + length > head.byteLength && head.byteLength < HEAD_BYTES) {
+      throw new Error(`${NOT_A_SOURCE}: ${url} is cut short (its JSON chunk ends past the file)`);
+    }
     if (20 + length > head.byteLength) {
       head = concat(head, await reader.read(head.byteLength, 20 + length, { signal }));
     }

@@ -291,3 +291,38 @@ def test_a_skinned_scene_streams_from_its_file_and_plays(chromium, app, host, fo
         assert not page.errors, page.errors
     finally:
         page.close()
+
+
+def test_a_damaged_file_or_a_plain_glb_is_refused_with_its_reason(chromium, app, host, sphere):
+    folder, origin, handler = host
+    pm, name = sphere
+    data = bytearray((folder / name).read_bytes())
+    record, start = read_index(bytes(data))
+    at, length = record["parts"][0]["splits"][-1][2:]
+    data[start + at + length // 2] ^= 0xFF          # inside the last split chunk
+    (folder / "damaged.glb").write_bytes(bytes(data))
+    (folder / "plain.glb").write_bytes(bytes(data[:20]) + b"{}")
+    page = _open(chromium, app, f"{origin}/damaged.glb")
+    try:
+        page.evaluate(f"window.object.setLevel({pm.vertex_count})")
+        status = page.evaluate(SETTLED_JS)
+        assert status["error"] and "checksum" in status["error"], status
+        assert status["level"] < pm.vertex_count       # what arrived before it stays drawn
+        refusals = page.evaluate("""async (urls) => {
+            const { ProgressiveMeshLoader } = await import('lodserver-three');
+            const reasons = [];
+            for (const url of urls) {
+              try {
+                await new ProgressiveMeshLoader().load(url);
+                reasons.push(null);
+              } catch (error) {
+                reasons.push(error.message);
+              }
+            }
+            return reasons;
+        }""", [f"{origin}/plain.glb", f"{origin}/no-such-file.glb"])
+        assert all(r and r.startswith("not a lodserver mesh URL") for r in refusals), refusals
+        assert "cut short" in refusals[0], refusals
+        assert "404" in refusals[1], refusals
+    finally:
+        page.close()
