@@ -17,10 +17,10 @@ of chunks the stream asks for: at least one to full detail.
     PYTHONPATH=$PWD python bench/static_file.py --browser bunny_loop2
 
 ``--browser``: a session in headless Chromium instead (software GL, the link
-throttled to 20 Mbit/s and 50 ms as in issue 25's table), the README's page
-opening the file from a static host with ``Range`` (``static_server.serve``):
-the requests, bytes and seconds to the 1 px level of the page's view
-(1200x800) and then to full detail (``setLevel``).
+throttled to 20 Mbit/s and 50 ms as in issue 25's table), docs/three.md's
+example page opening the file from a static host with ``Range``
+(``static_server.serve``): the requests, bytes and seconds to the 1 px level of
+its view (1200x800) and then to full detail (``setLevel``).
 
 gltfpack comes from bench/out/codec/npm (``npm i --no-save gltfpack`` there) or
 the tests' tools (tests/tools/node_modules).
@@ -51,27 +51,22 @@ REPO = Path(__file__).resolve().parents[1]
 CHROMIUM_ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--no-first-run"]
 THROTTLE = {"offline": False, "latency": 50, "downloadThroughput": 20e6 / 8,
             "uploadThroughput": 20e6 / 8}
-# The README's example with the file's URL from the query.
-PAGE = """<!doctype html><html><body style="margin: 0">
-<script type="importmap">{ "imports": { "three": "/three/build/three.module.js",
-  "three/addons/": "/three/examples/jsm/", "lodserver-three": "/lodserver/lodserver-three.js" } }
-</script>
-<script type="module">
-import * as THREE from 'three';
-import { ProgressiveMeshLoader } from 'lodserver-three';
-const renderer = new THREE.WebGLRenderer();
-renderer.setSize(innerWidth, innerHeight);
-document.body.append(renderer.domElement);
-const scene = new THREE.Scene();
-scene.add(new THREE.HemisphereLight(0xffffff, 0x444444, 3));
-const camera = new THREE.PerspectiveCamera(40, innerWidth / innerHeight, 0.01, 1000);
-const object = await new ProgressiveMeshLoader().load(new URLSearchParams(location.search).get('file'));
-const { center, radius } = object.boundingSphere;
-camera.position.set(center.x, center.y, center.z + 3 * radius);
-scene.add(object);
-renderer.setAnimationLoop(() => { object.update(camera, renderer); renderer.render(scene, camera); });
-window.object = object;
-</script></body></html>"""
+# docs/three.md's example, its URLs this bench's, the object left on window.
+EXAMPLE_URLS = {"https://cdn.jsdelivr.net/npm/three@0.187.0/": "/three/",
+                "http://127.0.0.1:8000/viewer/lodserver-three.js": "/lodserver/lodserver-three.js",
+                "scene.add(object);": "scene.add(object);\nwindow.object = object;"}
+
+
+def example_page(file_url: str) -> str:
+    """docs/three.md's example page, opening ``file_url``."""
+    text = (REPO / "docs" / "three.md").read_text()
+    page = text.split("```html\n", 1)[1].split("```", 1)[0]
+    for old, new in {**EXAMPLE_URLS, "http://127.0.0.1:8000/meshes/ID": file_url}.items():
+        assert old in page, f"docs/three.md's example no longer has {old}"
+        page = page.replace(old, new)
+    return f"<!doctype html><html><body style=\"margin: 0\">{page}</body></html>"
+
+
 # Resolves once the level is where update() sends it, twice in a row.
 SETTLED_JS = """async () => {
   let last = null;
@@ -120,11 +115,11 @@ def session(name: str, timeout_s: float = 1800) -> dict:
         folder = Path(tmp)
         (folder / "three").symlink_to(REPO / "static" / "vendor" / "three")
         (folder / "lodserver").symlink_to(REPO / "static")
-        (folder / "index.html").write_text(PAGE)
         (folder / f"{name}.glb").write_bytes(progressive_glb(SceneAsset.of_mesh(pm)))
         browser = playwright.chromium.launch(executable_path=shutil.which("chromium"),
                                              args=CHROMIUM_ARGS)
         with serve(folder, log) as url:
+            (folder / "index.html").write_text(example_page(f"{url}/{name}.glb"))
             context = browser.new_context(viewport={"width": 1200, "height": 800})
             page = context.new_page()
             cdp = context.new_cdp_session(page)
@@ -132,7 +127,7 @@ def session(name: str, timeout_s: float = 1800) -> dict:
             cdp.send("Network.emulateNetworkConditions", THROTTLE)
             page.set_default_timeout(timeout_s * 1000)
             began = time.perf_counter()
-            page.goto(f"{url}/index.html?file={url}/{name}.glb")
+            page.goto(f"{url}/index.html")
             page.wait_for_function("() => window.object?.target != null")
             stops = {}
             for stop, script in (("1 px", None), ("full", f"window.object.setLevel({pm.vertex_count})")):

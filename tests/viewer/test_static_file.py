@@ -29,7 +29,8 @@ from lodserver.service.progressive_file import read_index
 from lodserver.service.levels import encode_level
 
 from ..meshes import SHARED
-from .test_three import HASH_JS, PAGE, SETTLED_JS, STATIC, VIEWPORT, _per_unit, _Quiet
+from .test_three import HASH_JS, PAGE, REFUSALS_JS, SETTLED_JS, STATIC, VIEWPORT, _Quiet
+from .test_three import _per_unit
 from .test_viewer import _expected
 
 REPO = Path(__file__).resolve().parents[2]
@@ -308,19 +309,8 @@ def test_a_damaged_file_or_a_plain_glb_is_refused_with_its_reason(chromium, app,
         status = page.evaluate(SETTLED_JS)
         assert status["error"] and "checksum" in status["error"], status
         assert status["level"] < pm.vertex_count       # what arrived before it stays drawn
-        refusals = page.evaluate("""async (urls) => {
-            const { ProgressiveMeshLoader } = await import('lodserver-three');
-            const reasons = [];
-            for (const url of urls) {
-              try {
-                await new ProgressiveMeshLoader().load(url);
-                reasons.push(null);
-              } catch (error) {
-                reasons.push(error.message);
-              }
-            }
-            return reasons;
-        }""", [f"{origin}/plain.glb", f"{origin}/no-such-file.glb"])
+        refusals = page.evaluate(REFUSALS_JS, [f"{origin}/plain.glb",
+                                               f"{origin}/no-such-file.glb"])
         assert all(r and r.startswith("not a lodserver mesh URL") for r in refusals), refusals
         assert "cut short" in refusals[0], refusals
         assert "404" in refusals[1], refusals
