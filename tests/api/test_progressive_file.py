@@ -170,3 +170,19 @@ def test_the_cli_refuses_what_it_cannot_write_with_a_sentence(tmp_path, flags, c
     assert result.returncode == code, result.stderr
     assert phrase in result.stderr and "Traceback" not in result.stderr
     assert not list(tmp_path.iterdir())        # nothing written
+
+
+def test_a_file_kept_as_a_body_file_answers_ranges_too(tmp_path):
+    """A file larger than LODSERVER_BODY_FILE_BYTES is streamed from a body file
+    (api/caching.BodyFileResponse): its ranges are answered the same way."""
+    settings = Settings(data_dir=tmp_path / "data", warm_kernels=False, body_file_bytes=4096)
+    with TestClient(create_app(settings)) as client:
+        mesh_id = uploaded(client, "spot.glb", textured_spot_glb(), name="spot")
+        whole = client.get(f"/meshes/{mesh_id}/progressive").content
+        again = client.get(f"/meshes/{mesh_id}/progressive", headers={"Range": "bytes=10-99"})
+        assert again.status_code == 206 and again.content == whole[10:100]
+        assert again.headers["content-range"] == f"bytes 10-99/{len(whole)}"
+        past = client.get(f"/meshes/{mesh_id}/progressive",
+                          headers={"Range": f"bytes={len(whole)}-"})
+        assert past.status_code == 416, past.text
+        assert str(tmp_path) not in past.text and "bodies" not in past.text
