@@ -130,7 +130,8 @@ def session(name: str, timeout_s: float = 1800) -> dict:
             page.goto(f"{url}/index.html")
             page.wait_for_function("() => window.object?.target != null")
             stops = {}
-            for stop, script in (("1 px", None), ("full", f"window.object.setLevel({pm.vertex_count})")):
+            full = f"window.object.setLevel({pm.vertex_count})"
+            for stop, script in (("1 px", None), ("full", full)):
                 if script:
                     page.evaluate(script)
                 level = page.evaluate(SETTLED_JS)["level"]

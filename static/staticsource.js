@@ -21,7 +21,8 @@ const HEAD_BYTES = 65536;
 const GLB_MAGIC = 0x46546c67;   // 'glTF'
 const JSON_CHUNK = 0x4e4f534a;  // 'JSON'
 
-export const NOT_A_SOURCE = 'not a lodserver mesh URL (http://host/meshes/ID) nor a progressive file';
+export const NOT_A_SOURCE =
+  'not a lodserver mesh URL (http://host/meshes/ID) nor a progressive file';
 
 // Byte ranges of one file: a Range request each, or cuts of the whole file once
 // the host answered 200 to one. The file's first bytes, read once, are kept:
@@ -165,7 +166,8 @@ export class StaticSource {
   async materials({ signal } = {}) {
     const { document } = this.file;
     const views = document.bufferViews ?? [];
-    const images = (document.images ?? []).map((image) => ({ image, view: views[image.bufferView] }));
+    const images = (document.images ?? []).map((image) => (
+      { image, view: views[image.bufferView] }));
     const held = images.filter(({ view }) => view);
     let bytes = null, start = 0;
     if (held.length) {

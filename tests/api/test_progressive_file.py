@@ -95,7 +95,8 @@ def test_the_route_serves_the_file_of_the_cli_and_every_chunk_decodes(served, tm
     data = response.content
     asset = client.app.state.store.load(mesh_id=mesh_id)
     assert data == progressive_glb(asset, name="spot")
-    record = _check_chunks(data, lambda p: summary, lambda p, level: _levels(client, mesh_id, level))
+    record = _check_chunks(data, lambda p: summary,
+                           lambda p, level: _levels(client, mesh_id, level))
     assert record["summary"]["vertices"] == summary["vertices"]
     assert record["summary"]["error_curve"] == summary["error_curve"]
     # the CLI writes the same bytes from the same file
