@@ -8,6 +8,7 @@ from __future__ import annotations
 import contextlib
 import functools
 import http.server
+import re
 import threading
 from pathlib import Path
 
@@ -17,15 +18,37 @@ TYPES = {".js": "text/javascript", ".mjs": "text/javascript",
 
 
 @contextlib.contextmanager
-def serve(directory: Path):
+def serve(directory: Path, log: list | None = None):
     """Serve ``directory`` on 127.0.0.1 at an ephemeral port while the block runs;
-    yields the base URL (``http://127.0.0.1:<port>``)."""
+    yields the base URL (``http://127.0.0.1:<port>``). With ``log`` (a list), a
+    ``Range`` request of one range of a file is answered 206 with those bytes, as
+    a CDN does, and every GET is logged: ``(path, Range header, status, bytes)``."""
 
     class Handler(http.server.SimpleHTTPRequestHandler):
         extensions_map = {**http.server.SimpleHTTPRequestHandler.extensions_map, **TYPES}
 
         def log_message(self, *args):
             pass
+
+        def do_GET(self):
+            asked = self.headers.get("Range") if log is not None else None
+            path = Path(self.translate_path(self.path))
+            match = re.fullmatch(r"bytes=(\d+)-(\d*)", asked or "")
+            if not match or not path.is_file() or int(match[1]) >= path.stat().st_size:
+                if log is not None:
+                    log.append((self.path, asked, 200, path.stat().st_size
+                                if path.is_file() else 0))
+                return super().do_GET()
+            data = path.read_bytes()
+            stop = min(len(data), int(match[2]) + 1 if match[2] else len(data))
+            body = data[int(match[1]):stop]
+            log.append((self.path, asked, 206, len(body)))
+            self.send_response(206)
+            self.send_header("Content-Type", self.guess_type(str(path)))
+            self.send_header("Content-Range", f"bytes {match[1]}-{stop - 1}/{len(data)}")
+            self.send_header("Content-Length", str(len(body)))
+            self.end_headers()
+            self.wfile.write(body)
 
     server = http.server.ThreadingHTTPServer(
         ("127.0.0.1", 0), functools.partial(Handler, directory=str(directory)))

@@ -267,6 +267,8 @@ def _cmd_export(args) -> int:
                          naming=args.lod_naming,
                          texture_scale=args.texture_scale)
     options = options_from(args)
+    if args.progressive:
+        return _export_progressive(args, options)
     if is_url(args.source) or Path(args.source).is_dir():
         if Path(args.output).suffix.lower() == ".glb":
             raise MeshError(f"{args.source} is a folder, so -o names the folder to write into, "
@@ -290,6 +292,58 @@ def _cmd_export(args) -> int:
     if args.report is not None:
         from .scene.report import asset_entry
         _write_report(args.report, "export", [asset_entry(done, done.outputs)], begun)
+    return 0
+
+
+def _export_progressive(args, options) -> int:
+    """``export --progressive``: the file ``GET /meshes/{id}/progressive`` serves,
+    built as the server builds an upload (a glTF scene kept whole)."""
+    from .build import build
+    from .io import load_mesh
+    from .io.files import write_atomic
+    from .pipeline import is_url
+    from .progressive.mesh import ProgressiveMesh
+    from .scene.asset import SceneAsset
+    from .scene.build import build_asset
+    from .scene.load import read_scene_upload
+    from .service.progressive_file import progressive_glb
+
+    chain_flags = [flag for flag, given in (
+        ("--lods", args.lods is not None), ("--error", args.errors is not None),
+        ("--separate", args.separate), ("--per-mesh", args.per_mesh),
+        ("--reach", args.reach != "none"), ("--jobs", args.jobs != 1),
+        ("--scheduler", args.scheduler is not None), ("--force", args.force)) if given]
+    if chain_flags:
+        print(f"lodserver export: --progressive writes every level in one file; "
+              f"{', '.join(chain_flags)} apply to LOD chains", file=sys.stderr)
+        return 2
+    source, output = Path(args.source), Path(args.output)
+    if output.suffix.lower() != ".glb" or is_url(args.source) or source.is_dir():
+        raise MeshError("--progressive writes one mesh file's progressive file: SOURCE a "
+                        f"mesh file or .pm artefact, -o a .glb file (got {source.name} -> "
+                        f"{output.name})")
+    start = time.perf_counter()
+    if source.suffix.lower() == ".pm":
+        asset = SceneAsset.of_mesh(ProgressiveMesh.load(source))
+    else:
+        _announce_compile(options.method)
+        root = source.parent if args.untrusted else None
+        found = read_scene_upload(source, root=root, limits=None, max_triangles=sys.maxsize)
+        values = options.model_dump()
+        lock_border = bool(values.pop("lock_border", False))
+        progress = _Progress()
+        try:
+            asset = build_asset(found[0] if found else load_mesh(source, root=root)[0],
+                                build=build, options=values, lock_border=lock_border,
+                                progress=progress)
+        finally:
+            progress.close()
+    data = progressive_glb(asset, name=source.stem)
+    output.parent.mkdir(parents=True, exist_ok=True)
+    write_atomic(output, data)
+    print(f"{output}: {len(data)} bytes, {len(asset.parts)} part(s), "
+          f"{sum(p.pm.vertex_count for p in asset.parts)} vertices at full detail, in "
+          f"{time.perf_counter() - start:.2f} s", file=sys.stderr)
     return 0
 
 
@@ -595,6 +649,12 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--force", action="store_true",
                    help="folder source: rebuild every mesh, even those whose file and options "
                         "match the last run (lodserver-export.json in OUTPUT)")
+    p.add_argument("--progressive", action="store_true",
+                   help="write the progressive file instead of levels: one GLB whose base "
+                        "level any glTF viewer draws, with every split record in chunks "
+                        "behind the LODSERVER_progressive extension, for streaming from any "
+                        "static host with range requests (docs/packets.md); the bytes "
+                        "GET /meshes/{id}/progressive serves")
     _input_flags(p)
     p.set_defaults(run=_cmd_export)
 

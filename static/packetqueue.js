@@ -4,7 +4,7 @@
 // target moved back).
 
 export class PacketQueue {
-  // fetchPacket(from, to, signal): a promise of { packet, bytes, url }.
+  // fetchPacket(from, to, signal): a promise of { packets, bytes, url }.
   constructor(fetchPacket) {
     this.fetchPacket = fetchPacket;
     this.entries = [];          // { from, to, controller, ready, result }, in order
@@ -17,7 +17,7 @@ export class PacketQueue {
   shift() { return this.entries.shift(); }
 
   // Asks for the packet from -> to: an entry whose `result` is a promise of
-  // { packet, bytes, url }, `ready` once it is in.
+  // { packets, bytes, url }, `ready` once it is in.
   request(from, to) {
     const controller = new AbortController();
     const entry = { from, to, controller, ready: false };

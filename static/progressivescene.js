@@ -13,7 +13,6 @@
 import * as THREE from 'three';
 import { GLTFLoader } from 'three/addons/loaders/GLTFLoader.js';
 import { levelGeometry } from './partgeometry.js';
-import { fetchOk } from './source.js';
 import { allowedError, DEFAULTS, StreamedLevel } from './streamedlevel.js';
 
 const diagonal = (box) => Math.hypot(...box.max.map((x, k) => x - box.min[k]));
@@ -96,13 +95,13 @@ export class ProgressiveScene extends THREE.Object3D {
     });
   }
 
-  // The scene's GLB, at most firstLevelMaxVertices, loaded as a ProgressiveScene.
+  // The scene's GLB, at most firstLevelMaxVertices (a progressive file's: at
+  // its base levels), loaded as a ProgressiveScene.
   static async load(source, options = {}) {
     const { vertices } = source.summary;
     const first = options.firstLevelMaxVertices ?? DEFAULTS.firstLevelMaxVertices;
     const ratio = Number(Math.min(1, first / Math.max(1, vertices)).toPrecision(6));
-    const url = source.url('lod', { ratio, format: 'glb' });
-    const buffer = await (await fetchOk(url)).arrayBuffer();
+    const { buffer, url } = await source.sceneGlb({ ratio });
     const gltf = await new GLTFLoader().parseAsync(buffer, new URL('./', url).href);
     return new ProgressiveScene(source, gltf, options);
   }

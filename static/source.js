@@ -1,15 +1,19 @@
 // Where a progressive mesh's records come from: a lodserver (ServerSource),
-// later a progressive static file. The stream (stream.js) asks a source for
-// four things only, so another source needs only these:
+// or a progressive file on a static host (staticsource.js: StaticSource). The
+// stream (stream.js) asks a source for four things only, so another source
+// needs only these:
 //   summary          GET /meshes/{id}: counts, error curve, bounds, parts
 //   base(level)      the json level packets start from (an ArrayBuffer)
-//   packet(from, to) the vertex-split packet between two levels ({ buffer, url })
+//   packet(from, to) the vertex-split packet between two levels ({ buffer, url }),
+//                    or several in a row ({ buffers, url })
 //   materials()      the glTF material records ({ document, url }: image uris
 //                    are relative to url)
 // A failure is a FetchError, `transient` when asking again may help (the
 // stream retries those with backoff).
 
 const POLL_MS = 500;
+// The packet versions packet.js reads (version 4 through packet_v4.js).
+const READ_VERSIONS = [1, 2, 3, 4];
 
 // An HTTP failure: `transient` when asking again may help.
 export class FetchError extends Error {
@@ -131,7 +135,7 @@ export class ServerSource {
   }
 
   async packet(from, to, { signal } = {}) {
-    const url = this.url('splits', { from, to });
+    const url = this.url('splits', { from, to, ...this.versionParam() });
     const response = await fetchOk(url, { signal });
     try {
       return { buffer: await response.arrayBuffer(), url };
@@ -139,6 +143,21 @@ export class ServerSource {
       if (error.name === 'AbortError') throw error;
       throw new FetchError(`the packet was cut short (${error.message})`, true);
     }
+  }
+
+  // The newest packet version both the server writes (the summary's
+  // packet_versions) and packet.js reads; none for a server that lists none
+  // (it writes version 3 only, its default).
+  versionParam() {
+    const offered = this.summary.packet_versions ?? [];
+    const version = Math.max(0, ...offered.filter((v) => READ_VERSIONS.includes(v)));
+    return version > 3 ? { version } : {};
+  }
+
+  // A scene's GLB at `ratio` of its triangles (ProgressiveScene.load): { buffer, url }.
+  async sceneGlb({ ratio, signal } = {}) {
+    const url = this.url('lod', { ratio, format: 'glb' });
+    return { buffer: await (await fetchOk(url, { signal })).arrayBuffer(), url };
   }
 
   async materials({ signal } = {}) {

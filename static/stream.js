@@ -61,6 +61,17 @@ function yieldTask() {
   });
 }
 
+// Applies packets in order; the records applied.
+function applyAll(state, packets) {
+  return packets.reduce((records, packet) => records + state.apply(packet), 0);
+}
+
+// A source whose levels are fixed (a progressive file's chunk ends: its snap())
+// holds only those: a level asked for is moved to the nearest one past it.
+function snapped(source, level, direction = 'up') {
+  return source?.snap ? source.snap(level, direction) : level;
+}
+
 // One mesh's stream (a scene streams each part with its own). The viewer's
 // bus `viewer` carries its settings (DEFAULTS' keys) and its signals (see the top).
 export class PacketStream {
@@ -169,8 +180,8 @@ export class PacketStream {
         return;
       }
       const base = summary.base_vertices;
-      first = Number.isFinite(first)
-        ? Math.min(summary.vertices, Math.max(base, Math.round(first))) : base;
+      first = snapped(this.source, Number.isFinite(first)
+        ? Math.min(summary.vertices, Math.max(base, Math.round(first))) : base);
       this.viewer.emit('status', `${summary.name}: loading level ${first}`);
       const baseLevel = this.fetchBase(base, ticket);
       // (retried as any packet; not aborted: a new open() drops it by its ticket)
@@ -193,7 +204,7 @@ export class PacketStream {
         try {
           const got = await packet;
           if (ticket !== this.opened) return;
-          held.apply(got.packet);
+          applyAll(held, got.packets);
           this.bytes += got.bytes;
         } catch (error) {
           refused = error;
@@ -226,7 +237,7 @@ export class PacketStream {
   goto(level, { opening: first = false } = {}) {
     if (!this.state || this.failed || !Number.isFinite(level)) return;
     const { vertices, base_vertices: base } = this.info;
-    this.target = Math.min(vertices, Math.max(base, Math.round(level)));
+    this.target = snapped(this.source, Math.min(vertices, Math.max(base, Math.round(level))));
     this.viewer.emit('target', this.target);
     if (this.stalled) {
       this.stalled = null;           // a move of the level retries a stalled stream
@@ -248,9 +259,11 @@ export class PacketStream {
     const records = this.source;         // this mesh's, whatever is opened meanwhile
     for (let attempt = 0; ; attempt++) {
       try {
-        const { buffer, url } = await records.packet(from, to, { signal });
-        const packet = await LodState.readPacket(buffer);
-        return { packet, bytes: buffer.byteLength, url };
+        // (a progressive file's source answers several chunks: one packet each)
+        const { buffer, buffers = [buffer], url } = await records.packet(from, to, { signal });
+        const packets = [];
+        for (const one of buffers) packets.push(await LodState.readPacket(one));
+        return { packets, bytes: buffers.reduce((n, one) => n + one.byteLength, 0), url };
       } catch (error) {
         if (signal.aborted || ticket !== this.opened) throw error;
         const transient = error instanceof FetchError && error.transient;
@@ -282,7 +295,8 @@ export class PacketStream {
 
   refill() {
     if (!this.state || this.failed || this.stalled) return;
-    const cut = (from, to) => this.sizer.nextStop(from, to);
+    const cut = (from, to) => snapped(this.source, this.sizer.nextStop(from, to),
+                                      to > from ? 'up' : 'down');
     this.queue.refill(this.target, this.packetsAhead(), cut);
   }
 
@@ -348,7 +362,7 @@ export class PacketStream {
         }
         this.queue.shift();
         const started = performance.now();
-        const records = this.state.apply(got.packet);
+        const records = applyAll(this.state, got.packets);
         const applyMs = performance.now() - started;
         this.bytes += got.bytes;
         this.counts.packets++;

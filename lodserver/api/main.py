@@ -20,7 +20,7 @@ from ..service.parsing import ParsePool
 from ..service.store import LocalStore
 from .caching import BodyCache
 from .errors import add_error_handlers
-from .routes import health, lods, materials, meshes, parts, viewer
+from .routes import health, lods, materials, meshes, parts, progressive, viewer
 from .settings import Settings, get_settings
 
 
@@ -81,10 +81,11 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     if settings.cors_origins:
         app.add_middleware(CORSMiddleware, allow_origins=settings.cors_origins,
                            allow_methods=["GET", "POST", "DELETE"],
-                           allow_headers=["Authorization", "If-None-Match"],
-                           expose_headers=["ETag", "Location"])
+                           allow_headers=["Authorization", "If-None-Match", "Range"],
+                           expose_headers=["ETag", "Location", "Content-Range",
+                                           "Accept-Ranges"])
     add_error_handlers(app)
-    for module in (meshes, lods, parts, materials, health, viewer):
+    for module in (meshes, lods, parts, progressive, materials, health, viewer):
         app.include_router(module.router)
     viewer.mount_static(app, settings)
     from .bodies import add_bounded_reads   # body files, heavy-request limit, security headers

@@ -9,6 +9,7 @@ from pydantic import BaseModel, Field, field_validator
 from ..io.fileset import MAX_NAME_BYTES, check_name, load_warnings
 from ..options import BuildOptions
 from ..service.store import MeshRecord, Status
+from ..packets.served import SERVED_VERSIONS
 from .caching import version_of, versioned_urls
 
 
@@ -71,6 +72,9 @@ class PartPublic(BaseModel):
         None, description="Full-detail bounding box in the part's own (mesh) space.")
     urls: dict[str, str] = Field(description="The part's lod and splits URLs at the mesh's "
                                  "version (append the route's parameters).")
+    packet_versions: list[int] = Field(default_factory=lambda: list(SERVED_VERSIONS),
+                                       description="The packet versions its splits route "
+                                       "writes (version=K); a client asks for the newest it reads.")
 
 
 class MeshPublic(BaseModel):
@@ -113,6 +117,10 @@ class MeshPublic(BaseModel):
                                     "Empty in the list of meshes (GET /meshes), which gives "
                                     "part_count: a scene may have thousands.")
     part_count: int = Field(0, description="Once ready: how many parts it has.")
+    packet_versions: list[int] = Field(default_factory=lambda: list(SERVED_VERSIONS),
+                                       description="The packet versions the splits routes "
+                                       "write (version=K; docs/packets.md); a client asks for "
+                                       "the newest it reads.")
     created: datetime
     updated: datetime
 

@@ -464,7 +464,7 @@ class GlbWriter:
         if used:
             document["extensionsUsed"] = used
         self.blobs.append(b"\0" * (-self.size % 4))
-        return _pack_glb(document, *self.blobs)
+        return pack_glb(document, *self.blobs)
 
 
 def geometry_glb(positions, faces) -> bytes:
@@ -478,7 +478,7 @@ def geometry_glb(positions, faces) -> bytes:
     # glTF requires POSITION bounds, taken from the float32 values written
     document = _geometry_document(len(vertices), len(indices) // 3, *_bounds(vertices))
     # both sizes are multiples of 4, so the chunk needs no padding
-    return _pack_glb(document, memoryview(vertices).cast("B"), memoryview(indices).cast("B"))
+    return pack_glb(document, memoryview(vertices).cast("B"), memoryview(indices).cast("B"))
 
 
 def _geometry_document(vertex_count: int, face_count: int, lo: list, hi: list) -> dict:
@@ -572,7 +572,7 @@ def _bounds(values: np.ndarray) -> tuple[list, list]:
     return [c.min().item() for c in columns], [c.max().item() for c in columns]
 
 
-def _pack_glb(document: dict, *binary) -> bytes:
+def pack_glb(document: dict, *binary) -> bytes:
     """The GLB container: 12-byte header, JSON chunk (space padded), BIN chunk
     (the concatenation of ``binary``, byte buffers; copied once)."""
     header = json.dumps(document, separators=(",", ":")).encode()

@@ -21,7 +21,7 @@ The package, in the order data flows through it:
 - ``reference.py``  the readable decoder, the reference for clients
 - ``rans.py``, ``streams_v4.py``, ``encode_v4.py``, ``decode_v4.py``  version 4:
                     the same records, each field coded by kind with adaptive rANS
-                    (not served yet; docs/packets.md, "Version 4")
+                    (served on request: ``served.py``; docs/packets.md, "Version 4")
 
 The compiled encoder is checked byte for byte against the readable encoder in
 ``tests/naive_packets.py``, which predicts with ``reference.py``'s functions.

@@ -24,7 +24,7 @@ PACKET_VERSION = 3
 READABLE_VERSIONS = (1, 2, 3)
 # Version 4 ("Version 4" in docs/packets.md): the same records, their fields coded by
 # kind with rANS (packets/rans.py) instead of varints and deflate. Read by
-# packets/decode_v4.py; the server still serves version 3.
+# packets/decode_v4.py; the server writes it on request (packets/served.py).
 VERSION_4 = 4
 # The server's range for the header's ``bits`` (positions and attributes alike).
 MIN_BITS, MAX_BITS = 8, 24

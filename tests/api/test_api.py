@@ -384,10 +384,10 @@ def test_cors_and_health(tmp_path):
 @settings(max_examples=40, deadline=None, suppress_health_check=list(HealthCheck))
 @given(params=st.dictionaries(
     st.sampled_from(["vertices", "faces", "ratio", "error", "format", "bits", "from", "to",
-                     "lods", "reach"]),
+                     "lods", "reach", "version"]),
     st.one_of(st.integers(-2**40, 2**40), st.floats(allow_nan=True), st.text(max_size=5),
               st.sampled_from(["json", "glb", "inf", "-0", "1e309"])), max_size=4),
-       path=st.sampled_from(["lod", "splits", "chain"]))
+       path=st.sampled_from(["lod", "splits", "chain", "progressive"]))
 def test_random_level_queries_never_fail_the_server(served, params, path):
     client, mesh_id = served
     response = client.get(f"/meshes/{mesh_id}/{path}", params=params)

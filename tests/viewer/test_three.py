@@ -110,6 +110,22 @@ HASH_JS = """async (state) => {
 }"""
 
 
+# Each URL loaded: the reason it was refused, or null.
+REFUSALS_JS = """async (urls) => {
+  const { ProgressiveMeshLoader } = await import('lodserver-three');
+  const reasons = [];
+  for (const url of urls) {
+    try {
+      await new ProgressiveMeshLoader().load(url);
+      reasons.push(null);
+    } catch (error) {
+      reasons.push(error.message);
+    }
+  }
+  return reasons;
+}"""
+
+
 class _Quiet(http.server.SimpleHTTPRequestHandler):
     def log_message(self, *args):
         pass
@@ -198,6 +214,8 @@ def test_a_page_of_another_origin_stops_at_one_pixel_refines_and_reaches_full_de
         assert _error_px(server, sphere["id"], sphere["base_vertices"], per_unit) > 10
         packets = [url for url in page.requests if "/splits?" in url]
         assert packets and all(int(url.split("to=")[1].split("&")[0]) <= level for url in packets)
+        # the server offers packet version 4 (the summary's packet_versions): asked for
+        assert all("version=4" in url for url in packets), packets
         faces, digest = _expected(server, sphere["id"], level)
         assert page.evaluate(HASH_JS.join(["(", ")(window.object.state)"])) == {
             "faces": faces, "hash": digest}
@@ -313,19 +331,9 @@ def _expected_part(client, mesh_id, part, level):
 def test_a_url_that_names_no_mesh_is_refused_with_its_reason(chromium, app_origin, server, sphere):
     page = _open(chromium, app_origin, server, sphere)
     try:
-        refusals = page.evaluate("""async (base) => {
-            const { ProgressiveMeshLoader } = await import('lodserver-three');
-            const reasons = [];
-            for (const url of [`${base}/healthz`, `${base}/meshes/no-such-mesh`, 'not a url']) {
-              try {
-                await new ProgressiveMeshLoader().load(url);
-                reasons.push(null);
-              } catch (error) {
-                reasons.push(error.message);
-              }
-            }
-            return reasons;
-        }""", str(server.base_url))
+        base = str(server.base_url)
+        refusals = page.evaluate(REFUSALS_JS, [f"{base}/healthz", f"{base}/meshes/no-such-mesh",
+                                               "not a url"])
         assert refusals[0].startswith("not a lodserver mesh URL"), refusals
         assert refusals[1] == "no mesh has the id 'no-such-mesh'", refusals     # the server's 404
         assert refusals[2].startswith("not a lodserver mesh URL"), refusals

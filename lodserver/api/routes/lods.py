@@ -18,7 +18,8 @@ from fastapi import APIRouter, Query, Request, Response
 
 from ...io import SERVED_FORMATS
 from ...io.glb import COMPRESSIONS, coverage_from_ratios, encode_lod_chain
-from ...packets import MAX_BITS, MIN_BITS, packet_between, prepare_records, records_ready
+from ...packets import MAX_BITS, MIN_BITS, prepare_records, records_ready
+from ...packets.served import DEFAULT_VERSION, PACKET_WRITERS, SERVED_VERSIONS
 from ...chains import DEFAULT_LODS, lod_chain, parse_lods
 from ...service.levels import (
     LevelError,
@@ -48,6 +49,12 @@ _LEVEL = {"ge": 0, "le": 2**31 - 1,
 Bits = Annotated[int | None, Query(ge=MIN_BITS, le=MAX_BITS, description="Quantization grid "
                                    "bits of the json form and of packets (default: by mesh size). "
                                    "A client must use the same value for both.")]
+# (a range: the versions written are consecutive, and a query's string is not a Literal's int)
+PacketVersion = Annotated[int, Query(
+    ge=min(SERVED_VERSIONS), le=max(SERVED_VERSIONS), description=(
+    "The packet format version (docs/packets.md): 3 (the default, for clients written "
+    "before version 4) or 4 (entropy-coded, smaller); GET /meshes/{id} lists them as "
+    "packet_versions."))]
 # The formats a level is served in: those of the output-format registry (io/save.py).
 LevelFormat = Literal[tuple(SERVED_FORMATS)]
 Compress = Annotated[Literal[tuple(COMPRESSIONS)], Query(description=(
@@ -122,7 +129,7 @@ def level_response(pm, digest: str, policy: str, request: Request, bodies, *, me
 def get_splits(mesh_id: MeshId, store: StoreDep, bodies: BodiesDep, request: Request,
                start: Annotated[int, Query(alias="from", **_LEVEL)],
                to: Annotated[int, Query(**_LEVEL)], bits: Bits = None,
-               v: VersionQuery = None) -> Response:
+               version: PacketVersion = DEFAULT_VERSION, v: VersionQuery = None) -> Response:
     """The packet taking a client at level ``from`` to level ``to``: vertex splits
     forward, edge collapses backward.
 
@@ -135,22 +142,26 @@ def get_splits(mesh_id: MeshId, store: StoreDep, bodies: BodiesDep, request: Req
         raise LevelError(f"mesh {mesh_id} is a scene of {len(asset.parts)} parts; its "
                          f"packets are its parts': /meshes/{mesh_id}/parts/{{p}}/splits")
     return splits_response(asset.single, digest, policy, request, bodies, start=start, to=to,
-                           bits=bits)
+                           bits=bits, version=version)
 
 
 def splits_response(pm, digest: str, policy: str, request: Request, bodies, *, start: int,
-                    to: int, bits: int | None, part: int | None = None) -> Response:
-    """The response of the packet from ``start`` to ``to`` of ``pm`` (``part`` as for
-    :func:`level_response`)."""
+                    to: int, bits: int | None, part: int | None = None,
+                    version: int = DEFAULT_VERSION) -> Response:
+    """The response of the packet from ``start`` to ``to`` of ``pm`` in packet format
+    ``version`` (``part`` as for :func:`level_response`)."""
     start = check_level(pm, start, name="from")
     to = check_level(pm, to, name="to")
     bits = checked_bits(bits)
-    etag = etag_for(digest, *(() if part is None else ("part", part)), "splits", start, to, bits)
+    # the default version's ETags stay what they were, so caches keep their entries
+    etag = etag_for(digest, *(() if part is None else ("part", part)), "splits", start, to, bits,
+                    *([f"version{version}"] if version != DEFAULT_VERSION else []))
+    write = PACKET_WRITERS[version]
     forward = to > start
     # a packet at the default grid is a slice once its direction's records are
     # encoded (by the build, the background preparation or an earlier packet)
     light = start == to or (bits is None and records_ready(pm, forward))
-    return bodies.cached(request, etag, policy, lambda: packet_between(pm, start, to, bits=bits),
+    return bodies.cached(request, etag, policy, lambda: write(pm, start, to, bits=bits),
                          media_type="application/octet-stream",
                          estimate=lambda: 0 if light else packet_bytes(pm, start, to, bits))
 

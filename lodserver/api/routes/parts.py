@@ -17,7 +17,8 @@ from ..bodies import BodiesDep
 from ..caching import VersionQuery, load_versioned
 from ..deps import MeshId, StoreDep
 from ..models import Message
-from .lods import Bits, LevelFormat, level_response, splits_response
+from ...packets.served import DEFAULT_VERSION
+from .lods import Bits, LevelFormat, PacketVersion, level_response, splits_response
 
 router = APIRouter(prefix="/meshes", tags=["parts"])
 
@@ -62,9 +63,10 @@ def get_part_lod(mesh_id: MeshId, index: PartIndex, store: StoreDep, bodies: Bod
 def get_part_splits(mesh_id: MeshId, index: PartIndex, store: StoreDep, bodies: BodiesDep,
                     request: Request, start: Annotated[int, Query(alias="from", **_LEVEL)],
                     to: Annotated[int, Query(**_LEVEL)], bits: Bits = None,
+                    version: PacketVersion = DEFAULT_VERSION,
                     v: VersionQuery = None) -> Response:
     """The packet taking part ``index`` from level ``from`` to ``to``, as
     ``GET /meshes/{id}/splits`` does a mesh."""
     pm, digest, policy, part = _part(store, mesh_id, index, v)
     return splits_response(pm, digest, policy, request, bodies, start=start, to=to, bits=bits,
-                           part=part)
+                           part=part, version=version)
