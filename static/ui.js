@@ -8,7 +8,7 @@
 // An id that the server does not know (a link to a deleted mesh, a typo, a
 // path) is named in the status and never opened or listed.
 //
-// Signals out: 'open' ({ id, level: the first-level chooser }), 'goto' (a
+// Signals out: 'open' ({ id }), 'goto' (a
 // level), 'settings' (a key). In: 'mesh', 'level', 'target', 'status',
 // 'settings', 'textures' (image bytes received).
 
@@ -27,8 +27,7 @@ const CONTROLS = [
   { key: 'chunkSplits', label: 'splits per packet', type: 'number', min: 16, step: 256 },
 ];
 
-// options: { firstLevel(summary) -> the level to fetch first, as stream.js's open() takes }.
-export function createUi(viewer, root, { firstLevel = null } = {}) {
+export function createUi(viewer, root) {
   const { settings } = viewer;
   const $ = (selector) => root.querySelector(selector);
   const select = $('#mesh-select'), status = $('#status');
@@ -97,7 +96,7 @@ export function createUi(viewer, root, { firstLevel = null } = {}) {
     select.value = id;
     [info, state, textureBytes] = [null, null, 0];
     stats.replaceChildren();
-    viewer.emit('open', { id, level: firstLevel });
+    viewer.emit('open', { id });
   }
 
   // ---- the level ---------------------------------------------------------------
