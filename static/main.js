@@ -8,10 +8,10 @@ import { SceneAnimation } from './animated.js';
 import { createBus } from './bus.js';
 import { firstLevel } from './framing.js';
 import { hashLevel } from './levelhash.js';
-import { createErrorPlot } from './plot.js';
+import { ErrorPlot } from './plot.js';
 import { ViewScene } from './scene.js';
 import { createTools, readUrl } from './tools.js';
-import { createUi } from './ui.js';
+import { Panel } from './ui.js';
 import { createUpload } from './upload.js';
 import { ViewedMesh } from './viewedmesh.js';
 
@@ -43,7 +43,7 @@ try {
 } catch (error) {
   viewport.textContent = `cannot draw: ${error.message}`;
 }
-createErrorPlot(viewer, document.getElementById('plot'));
+new ErrorPlot(viewer, document.getElementById('plot'));
 
 // The view the page was opened with (?level=&camera=&auto=), for its first mesh.
 const linked = readUrl();
@@ -52,7 +52,7 @@ if (linked.auto !== null) settings.autoByDistance = linked.auto;
 else if (linked.level !== null) settings.autoByDistance = false;
 const viewed = new ViewedMesh(viewer, scene, animated, linked);
 
-createUi(viewer, panel);
+new Panel(viewer, panel);
 createTools(viewer, panel);
 createUpload(viewer, { panel, viewport, note: document.getElementById('view-note') });
 
