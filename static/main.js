@@ -12,7 +12,7 @@ import { ErrorPlot } from './plot.js';
 import { ViewScene } from './scene.js';
 import { createTools, readUrl } from './tools.js';
 import { Panel } from './ui.js';
-import { createUpload } from './upload.js';
+import { Upload } from './upload.js';
 import { ViewedMesh } from './viewedmesh.js';
 
 const settings = {
@@ -54,7 +54,7 @@ const viewed = new ViewedMesh(viewer, scene, animated, linked);
 
 new Panel(viewer, panel);
 createTools(viewer, panel);
-createUpload(viewer, { panel, viewport, note: document.getElementById('view-note') });
+new Upload(viewer, { panel, viewport, note: document.getElementById('view-note') });
 
 // A small debug API for tests and benchmarks.
 window.lodViewer = {
