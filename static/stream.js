@@ -101,7 +101,7 @@ export class PacketStream {
 
   emitStream(name, extra = {}) {
     this.bus.emit('stream', { state: name, level: this.state?.level ?? null,
-                                 target: this.target, size: this.sizer.size, ...extra });
+                              target: this.target, size: this.sizer.size, ...extra });
   }
 
   async fetchBase(level, ticket) {
@@ -173,7 +173,7 @@ export class PacketStream {
       this.bus.emit('mesh', { info: this.info, state: this.state, appearance,
                             curve: new ErrorCurve(this.info, document.error) });
       this.bus.emit('level', { state: this.state, bytes: this.bytes,
-                                  dirty: this.state.takeDirty() });
+                               dirty: this.state.takeDirty() });
       if (refused) this.fail(refused);
       else this.goto(Math.round(this.option('initialRatio') * this.info.vertices),
                      { opening: true });
@@ -226,8 +226,8 @@ export class PacketStream {
         const delay = Math.min(RETRY_MAX_MS, RETRY_BASE_MS * 2 ** attempt);
         this.counts.retries++;
         this.bus.emit('status', `${summary.name}: a packet failed (${error.message}); ` +
-                         `retrying in ${(delay / 1000).toFixed(1)} s (attempt ${attempt + 2} ` +
-                         `of ${this.option('retries') + 1})`);
+                      `retrying in ${(delay / 1000).toFixed(1)} s (attempt ${attempt + 2} ` +
+                      `of ${this.option('retries') + 1})`);
         this.emitStream('retrying', { attempt: attempt + 1, delayMs: delay, error: error.message });
         await sleep(delay, signal);
       }
@@ -259,7 +259,7 @@ export class PacketStream {
     if (!this.state) return;
     this.shown = this.state.level;
     this.bus.emit('level', { state: this.state, bytes: this.bytes, records, applyMs, morph,
-                                dirty: this.state.takeDirty() });
+                             dirty: this.state.takeDirty() });
   }
 
   // The rest of the way to the target, for ReportPacer.holding(): { ms: its
