@@ -62,11 +62,11 @@ function yieldTask() {
 }
 
 // One mesh's stream (a scene streams each part with its own). Its bus
-// (bus.js: a StreamedLevel's) carries its settings (DEFAULTS' keys) and its
-// signals (see the top).
+// `viewer` (bus.js: a StreamedLevel's) carries its settings (DEFAULTS' keys)
+// and its signals (see the top).
 export class PacketStream {
-  constructor(bus) {
-    this.bus = bus;
+  constructor(viewer) {
+    this.viewer = viewer;
     this.info = null;           // GET /meshes/{id}
     this.source = null;         // where the records come from (source.js)
     this.state = null;          // the level held
@@ -88,11 +88,11 @@ export class PacketStream {
     // when the applied packets are reported ('level')
     this.pacer = new ReportPacer(option, { emit: (pending) => this.emitLevel(pending),
                                            rest: () => this.restOfTheWay() });
-    bus.on('goto', (level) => this.goto(level));
+    viewer.on('goto', (level) => this.goto(level));
   }
 
   option(key) {
-    return this.bus.settings[key] ?? DEFAULTS[key];
+    return this.viewer.settings[key] ?? DEFAULTS[key];
   }
 
   get busy() { return this.moving !== null; }
@@ -100,8 +100,8 @@ export class PacketStream {
   get stats() { return { ...this.counts, aborted: this.queue.aborted }; }
 
   emitStream(name, extra = {}) {
-    this.bus.emit('stream', { state: name, level: this.state?.level ?? null,
-                              target: this.target, size: this.sizer.size, ...extra });
+    this.viewer.emit('stream', { state: name, level: this.state?.level ?? null,
+                                 target: this.target, size: this.sizer.size, ...extra });
   }
 
   async fetchBase(level, ticket) {
@@ -134,10 +134,11 @@ export class PacketStream {
     this.source = source;
     const { summary } = source;
     try {
+      let first = level;
       const base = summary.base_vertices;
-      const first = Number.isFinite(level)
-        ? Math.min(summary.vertices, Math.max(base, Math.round(level))) : base;
-      this.bus.emit('status', `${summary.name}: loading level ${first}`);
+      first = Number.isFinite(first)
+        ? Math.min(summary.vertices, Math.max(base, Math.round(first))) : base;
+      this.viewer.emit('status', `${summary.name}: loading level ${first}`);
       const baseLevel = this.fetchBase(base, ticket);
       // (retried as any packet; not aborted: a new open() drops it by its ticket)
       const packet = first > base
@@ -170,10 +171,10 @@ export class PacketStream {
       this.info = summary;
       this.state = held;
       this.target = this.queue.planned = this.shown = this.state.level;
-      this.bus.emit('mesh', { info: this.info, state: this.state, appearance,
+      this.viewer.emit('mesh', { info: this.info, state: this.state, appearance,
                             curve: new ErrorCurve(this.info, document.error) });
-      this.bus.emit('level', { state: this.state, bytes: this.bytes,
-                               dirty: this.state.takeDirty() });
+      this.viewer.emit('level', { state: this.state, bytes: this.bytes,
+                                  dirty: this.state.takeDirty() });
       if (refused) this.fail(refused);
       else this.goto(Math.round(this.option('initialRatio') * this.info.vertices),
                      { opening: true });
@@ -185,7 +186,7 @@ export class PacketStream {
   stop(error) {
     this.failed = error;
     this.queue.abort(0, this.state?.level ?? null);
-    this.bus.emit('status', `error: ${error.message}`);
+    this.viewer.emit('status', `error: ${error.message}`);
     this.emitStream('failed', { error: error.message });
   }
 
@@ -193,7 +194,7 @@ export class PacketStream {
     if (!this.state || this.failed || !Number.isFinite(level)) return;
     const { vertices, base_vertices: base } = this.info;
     this.target = Math.min(vertices, Math.max(base, Math.round(level)));
-    this.bus.emit('target', this.target);
+    this.viewer.emit('target', this.target);
     if (this.stalled) {
       this.stalled = null;           // a move of the level retries a stalled stream
       this.queue.planned = this.state.level;
@@ -225,9 +226,9 @@ export class PacketStream {
         }
         const delay = Math.min(RETRY_MAX_MS, RETRY_BASE_MS * 2 ** attempt);
         this.counts.retries++;
-        this.bus.emit('status', `${summary.name}: a packet failed (${error.message}); ` +
-                      `retrying in ${(delay / 1000).toFixed(1)} s (attempt ${attempt + 2} ` +
-                      `of ${this.option('retries') + 1})`);
+        this.viewer.emit('status', `${summary.name}: a packet failed (${error.message}); ` +
+                         `retrying in ${(delay / 1000).toFixed(1)} s (attempt ${attempt + 2} ` +
+                         `of ${this.option('retries') + 1})`);
         this.emitStream('retrying', { attempt: attempt + 1, delayMs: delay, error: error.message });
         await sleep(delay, signal);
       }
@@ -258,8 +259,8 @@ export class PacketStream {
   emitLevel({ records, applyMs, morph = false }) {
     if (!this.state) return;
     this.shown = this.state.level;
-    this.bus.emit('level', { state: this.state, bytes: this.bytes, records, applyMs, morph,
-                             dirty: this.state.takeDirty() });
+    this.viewer.emit('level', { state: this.state, bytes: this.bytes, records, applyMs, morph,
+                                dirty: this.state.takeDirty() });
   }
 
   // The rest of the way to the target, for ReportPacer.holding(): { ms: its
@@ -295,7 +296,7 @@ export class PacketStream {
         const { head } = this.queue;
         if (!head) break;
         const verb = head.to > head.from ? 'refining' : 'coarsening';
-        this.bus.emit('status', `${this.info.name}: ${verb} to ${this.target}`);
+        this.viewer.emit('status', `${this.info.name}: ${verb} to ${this.target}`);
         this.emitStream('moving', { restMs: this.restEstimateMs() });
         let got;
         try {
@@ -343,7 +344,7 @@ export class PacketStream {
       if (ticket !== this.opened) return;
       this.pacer.now();
       if (!this.failed && !this.stalled) {
-        this.bus.emit('status', `${this.info.name}`);
+        this.viewer.emit('status', `${this.info.name}`);
         this.emitStream('idle', { ...this.stats });
       }
     } catch (error) {
@@ -359,7 +360,7 @@ export class PacketStream {
     if (error instanceof FetchError && error.transient) {
       this.stalled = error;
       this.queue.abort(0, this.state?.level ?? null);
-      this.bus.emit('status', `error: ${error.message} (move the level to try again)`);
+      this.viewer.emit('status', `error: ${error.message} (move the level to try again)`);
       this.emitStream('stalled', { error: error.message });
     } else {
       this.stop(error instanceof PacketError || error instanceof FetchError ? error
