@@ -22,16 +22,13 @@
 // wedgeVertex[w].
 //
 // Signals in: 'mesh', 'level' (after the LevelMesh drawing the level, in
-// scene.js or progressivemesh.js: it writes the exact positions, then this
-// overwrites the gliding ones before the frame is drawn).
+// progressivemesh.js: it writes the exact positions, then this overwrites the
+// gliding ones before the frame is drawn).
 // Used by stream.js: coarsen(state) before reporting a collapse batch.
 
-import { levelNormals } from './levelmesh.js';
-import { dequantize } from './packet.js';
+import { NormalGlide } from './normalglide.js';
 
 const DEFAULTS = { geomorphMs: 250, geomorphMaxVertices: 200000 };
-// A normal that moved less than this (per component) is not glided.
-const NORMAL_EPSILON = 1e-3;
 
 // Smoothstep: zero speed at both ends, so neither end shows a jolt.
 export function ease(x) {
@@ -62,147 +59,103 @@ export function collapseTargets(parent, from, to, ancestor) {
   }
 }
 
-export function createGeomorph(viewer, scene) {
-  const { settings } = viewer;
-  const option = (key) => settings[key] ?? DEFAULTS[key];
-  let state = null;
-  let level = 0;              // the level whose positions `shown` holds
-  let wedgesDrawn = 0;        // GPU vertices of that level (wedges, or vertices)
-  let shown = null;           // (3 * capacity) float: the positions on screen, per vertex
-  let start = null, end = null;   // per vertex: the glide's ends
-  let ancestor = null;        // per vertex: scratch for collapseTargets
-  let gliding = null, glidingCount = 0;   // the vertices gliding
-  let mark = null;            // per vertex: 1 while gliding
-  let began = 0, duration = 0, frame = 0;
-  let finished = null, resolveFinished = null;   // the running glide's promise
-  let measure = { glides: 0, largest: 0 };
-  // Normals per GPU vertex: shown, and a glide's ends; the GPU vertices gliding.
-  let shownNormal = null, normalStart = null, normalEnd = null, scratch = null;
-  let normalList = new Int32Array(1024), normalCount = 0;
+// The glide of one streamed mesh. bus: its stream's (settings: geomorphMs,
+// geomorphMaxVertices; signals 'mesh' and 'level', registered after the
+// LevelMesh's own listeners); view: { mesh() -> the THREE.Mesh drawing the
+// level (or null), rendered() -> a frame is due }.
+export class Geomorph {
+  constructor(bus, view) {
+    this.settings = bus.settings;
+    this.view = view;
+    this.state = null;
+    this.level = 0;             // the level whose positions `shown` holds
+    this.wedgesDrawn = 0;       // GPU vertices of that level (wedges, or vertices)
+    this.shown = null;          // (3 * capacity) float: the positions on screen, per vertex
+    this.start = this.end = null;   // per vertex: the glide's ends
+    this.ancestor = null;       // per vertex: scratch for collapseTargets
+    this.gliding = null;        // the vertices gliding, glidingCount of them
+    this.glidingCount = 0;
+    this.mark = null;           // per vertex: 1 while gliding
+    this.began = this.duration = this.frame = 0;
+    this.finished = this.resolveFinished = null;   // the running glide's promise
+    this.counts = { glides: 0, largest: 0 };
+    this.normals = null;        // the normals' glide (normalglide.js)
+    this.scratch = null;        // per vertex: a level's normals, for coarsening
+    this.tick = this.tick.bind(this);
+    bus.on('mesh', (detail) => this.onMesh(detail));
+    bus.on('level', (detail) => this.onLevel(detail));
+  }
 
-  function exact(v, out, at) {
-    const { positions, grid: { step } } = state;
+  option(key) {
+    return this.settings[key] ?? DEFAULTS[key];
+  }
+
+  enabled() {
+    return this.option('geomorphMs') > 0;
+  }
+
+  // Resolves when no glide is running.
+  idle() {
+    return this.finished ?? Promise.resolve();
+  }
+
+  // For tests and benchmarks: glides started, and the most vertices in one.
+  get measure() { return { ...this.counts }; }
+
+  exact(v, out, at) {
+    const { positions, grid: { step } } = this.state;
     out[at] = positions[3 * v] * step;
     out[at + 1] = positions[3 * v + 1] * step;
     out[at + 2] = positions[3 * v + 2] * step;
   }
 
-  function onMesh({ state: opened }) {
-    stopGlide();
-    state = opened;
+  onMesh({ state }) {
+    this.stopGlide();
+    this.state = state;
     const n = state.vertexCapacity;
-    shown = new Float32Array(3 * n);
-    start = new Float32Array(3 * n);
-    end = new Float32Array(3 * n);
-    ancestor = new Int32Array(n);
-    gliding = new Int32Array(1024);
-    mark = new Uint8Array(n);
-    const drawn = state.attributes.length ? state.wedgeCapacity : n;
-    shownNormal = new Float32Array(3 * drawn);
-    normalStart = new Float32Array(3 * drawn);
-    normalEnd = new Float32Array(3 * drawn);
-    scratch = new Float32Array(3 * n);
-    normalCount = 0;
-    level = 0;
+    this.shown = new Float32Array(3 * n);
+    this.start = new Float32Array(3 * n);
+    this.end = new Float32Array(3 * n);
+    this.ancestor = new Int32Array(n);
+    this.gliding = new Int32Array(1024);
+    this.mark = new Uint8Array(n);
+    this.normals = new NormalGlide(state.attributes.length ? state.wedgeCapacity : n);
+    this.scratch = new Float32Array(3 * n);
+    this.level = 0;
   }
 
-  function normalBuffer() {
-    return scene.three.mesh?.geometry.getAttribute('normal') ?? null;
-  }
-
-  // The GPU's normals [0, count) as shown now.
-  function takeNormals(count) {
-    const normal = normalBuffer();
-    if (normal) shownNormal.set(normal.array.subarray(0, 3 * count));
-  }
-
-  // Glides the GPU normals i in [0, count) whose end (endOf(i, out, at)) differs
-  // from the one shown; the others are set to their end at once.
-  function planNormals(count, endOf) {
-    normalCount = 0;
-    for (let i = 0; i < count; i++) {
-      const k = 3 * i;
-      endOf(i, normalEnd, k);
-      if (Math.abs(normalEnd[k] - shownNormal[k]) < NORMAL_EPSILON &&
-          Math.abs(normalEnd[k + 1] - shownNormal[k + 1]) < NORMAL_EPSILON &&
-          Math.abs(normalEnd[k + 2] - shownNormal[k + 2]) < NORMAL_EPSILON) continue;
-      normalStart[k] = shownNormal[k];
-      normalStart[k + 1] = shownNormal[k + 1];
-      normalStart[k + 2] = shownNormal[k + 2];
-      if (normalCount === normalList.length) {
-        const grown = new Int32Array(2 * normalList.length);
-        grown.set(normalList);
-        normalList = grown;
-      }
-      normalList[normalCount++] = i;
-    }
-  }
-
-  function writeNormals(t) {
-    const normal = normalBuffer();
-    if (!normal || !normalCount) return;
-    const out = normal.array;
-    let low = Infinity, high = -1;
-    for (let j = 0; j < normalCount; j++) {
-      const i = normalList[j], k = 3 * i;
-      for (let c = 0; c < 3; c++) {
-        const x = normalStart[k + c] + (normalEnd[k + c] - normalStart[k + c]) * t;
-        out[k + c] = x;
-        shownNormal[k + c] = x;
-      }
-      if (i < low) low = i;
-      if (i > high) high = i;
-    }
-    normal.addUpdateRange(3 * low, 3 * (high - low + 1));
-    normal.needsUpdate = true;
-  }
-
-  // The new level's normal of GPU vertex i, for a coarsening: per vertex from
-  // levelNormals (in scratch; a vanishing vertex takes its ancestor's), per
-  // wedge its streamed NORMAL (a vanishing wedge keeps its own) or its vertex's.
-  function coarseNormal(to, wedgesTo) {
-    const normals = state.attributes.find((a) => a.name === 'NORMAL');
-    if (!normals) levelNormals(state, scratch);
-    const vertexOf = (v) => (v < to ? v : ancestor[v]);
-    if (!state.attributes.length) {
-      return (i, out, at) => {
-        const k = 3 * vertexOf(i);
-        out[at] = scratch[k];
-        out[at + 1] = scratch[k + 1];
-        out[at + 2] = scratch[k + 2];
-      };
-    }
-    const { wedges, components, wedgeVertex } = state;
-    return (i, out, at) => {
-      if (normals) {
-        if (i < wedgesTo) dequantize(normals, wedges, components * i + normals.offset, out, at);
-        else out.set(shownNormal.subarray(at, at + 3), at);
-        return;
-      }
-      const k = 3 * vertexOf(wedgeVertex[i]);
-      out[at] = scratch[k];
-      out[at + 1] = scratch[k + 1];
-      out[at + 2] = scratch[k + 2];
-    };
+  normalBuffer() {
+    return this.view.mesh()?.geometry.getAttribute('normal') ?? null;
   }
 
   // Adds v to the glide (its start is set by the caller).
-  function addGliding(v) {
-    if (mark[v]) return;
-    mark[v] = 1;
-    if (glidingCount === gliding.length) {
-      const grown = new Int32Array(2 * gliding.length);
-      grown.set(gliding);
-      gliding = grown;
+  addGliding(v) {
+    if (this.mark[v]) return;
+    this.mark[v] = 1;
+    if (this.glidingCount === this.gliding.length) {
+      const grown = new Int32Array(2 * this.gliding.length);
+      grown.set(this.gliding);
+      this.gliding = grown;
     }
-    gliding[glidingCount++] = v;
+    this.gliding[this.glidingCount++] = v;
+  }
+
+  // Starts v's glide from where it is shown, unless it glides already.
+  startFromShown(v) {
+    if (this.mark[v]) return;
+    const k = 3 * v;
+    this.start[k] = this.shown[k];
+    this.start[k + 1] = this.shown[k + 1];
+    this.start[k + 2] = this.shown[k + 2];
   }
 
   // Writes the positions of the gliding vertices at ease `t` into `shown` and
   // the GPU buffer.
-  function writeGlide(t) {
-    writeNormals(t);
-    const mesh = scene.three.mesh;
+  writeGlide(t) {
+    const normal = this.normalBuffer();
+    if (normal) this.normals.write(normal, t);
+    const { gliding, glidingCount, shown, start, end, mark, state } = this;
+    const mesh = this.view.mesh();
     for (let i = 0; i < glidingCount; i++) {
       const k = 3 * gliding[i];
       shown[k] = start[k] + (end[k] - start[k]) * t;
@@ -215,7 +168,7 @@ export function createGeomorph(viewer, scene) {
     let low = Infinity, high = -1;
     if (state.attributes.length) {
       const { wedgeVertex } = state;
-      for (let w = 0; w < wedgesDrawn; w++) {
+      for (let w = 0; w < this.wedgesDrawn; w++) {
         const v = wedgeVertex[w];
         if (!mark[v]) continue;
         p[3 * w] = shown[3 * v];
@@ -240,49 +193,49 @@ export function createGeomorph(viewer, scene) {
     }
   }
 
-  function tick() {
-    frame = 0;
-    const x = duration > 0 ? (performance.now() - began) / duration : 1;
-    writeGlide(ease(x));
-    scene.rendered();
-    if (x < 1) frame = requestAnimationFrame(tick);
-    else endGlide();
+  tick() {
+    this.frame = 0;
+    const x = this.duration > 0 ? (performance.now() - this.began) / this.duration : 1;
+    this.writeGlide(ease(x));
+    this.view.rendered();
+    if (x < 1) this.frame = requestAnimationFrame(this.tick);
+    else this.endGlide();
   }
 
-  function endGlide() {
-    for (let i = 0; i < glidingCount; i++) mark[gliding[i]] = 0;
-    glidingCount = 0;
-    normalCount = 0;
-    if (frame) cancelAnimationFrame(frame);
-    frame = 0;
-    const resolve = resolveFinished;
-    finished = resolveFinished = null;
+  endGlide() {
+    for (let i = 0; i < this.glidingCount; i++) this.mark[this.gliding[i]] = 0;
+    this.glidingCount = 0;
+    if (this.normals) this.normals.count = 0;
+    if (this.frame) cancelAnimationFrame(this.frame);
+    this.frame = 0;
+    const resolve = this.resolveFinished;
+    this.finished = this.resolveFinished = null;
     resolve?.();
   }
 
   // Ends a running glide at its end positions.
-  function stopGlide() {
-    if (!glidingCount) return endGlide();
-    writeGlide(1);
-    return endGlide();
+  stopGlide() {
+    if (this.glidingCount) this.writeGlide(1);
+    this.endGlide();
   }
 
   // Starts (or restarts, from where everything is now) the glide of the
   // marked vertices; a promise of its end.
-  function beginGlide() {
-    measure.glides++;
-    measure.largest = Math.max(measure.largest, glidingCount);
-    began = performance.now();
-    duration = option('geomorphMs');
-    writeGlide(0);
-    if (!finished) finished = new Promise((resolve) => { resolveFinished = resolve; });
-    if (!frame) frame = requestAnimationFrame(tick);
-    return finished;
+  beginGlide() {
+    this.counts.glides++;
+    this.counts.largest = Math.max(this.counts.largest, this.glidingCount);
+    this.began = performance.now();
+    this.duration = this.option('geomorphMs');
+    this.writeGlide(0);
+    if (!this.finished) this.finished = new Promise((resolve) => { this.resolveFinished = resolve; });
+    if (!this.frame) this.frame = requestAnimationFrame(this.tick);
+    return this.finished;
   }
 
   // The vertices gliding keep going from where they are now toward their end.
-  function restartFromShown() {
-    for (let i = 0; i < glidingCount; i++) {
+  restartFromShown() {
+    const { gliding, start, shown } = this;
+    for (let i = 0; i < this.glidingCount; i++) {
       const k = 3 * gliding[i];
       start[k] = shown[k];
       start[k + 1] = shown[k + 1];
@@ -293,116 +246,92 @@ export function createGeomorph(viewer, scene) {
   // After the LevelMesh (levelmesh.js) showed a level: glide the new vertices
   // out of their ancestors (refinement asked for by the stream), else take the
   // level as shown.
-  function onLevel({ dirty, morph }) {
+  onLevel({ dirty, morph }) {
+    const { state } = this;
     if (!state) return;
-    const to = state.level, from = level;
+    const to = state.level, from = this.level;
     const { vertexStart, vertexEnd } = dirty;
     const moved = Math.max(0, vertexEnd - vertexStart);
-    const glide = morph && to > from && from > 0 && option('geomorphMs') > 0 &&
-                  moved <= option('geomorphMaxVertices');
+    const glide = morph && to > from && from > 0 && this.option('geomorphMs') > 0 &&
+                  moved <= this.option('geomorphMaxVertices');
     if (glide) {
-      restartFromShown();
-      splitStarts(state.parent, shown, from, to, start);
-      for (let v = vertexStart; v < vertexEnd; v++) {
-        if (v < from && !mark[v]) {
-          const k = 3 * v;
-          start[k] = shown[k];
-          start[k + 1] = shown[k + 1];
-          start[k + 2] = shown[k + 2];
-        }
-        exact(v, end, 3 * v);
-        addGliding(v);
-      }
-      // the scene wrote the new level's normals: glide to them from those shown
-      // (a new vertex from its ancestor's; a new wedge starts at its own)
-      const normal = normalBuffer();
-      const wedged = state.attributes.length > 0, oldDrawn = wedgesDrawn;
-      if (normal) {
-        if (!wedged) {
-          for (let v = from; v < to; v++) {      // a new vertex shows its ancestor's normal
-            const p = 3 * state.parent[v], k = 3 * v;
-            shownNormal[k] = shownNormal[p];
-            shownNormal[k + 1] = shownNormal[p + 1];
-            shownNormal[k + 2] = shownNormal[p + 2];
-          }
-        } else {
-          shownNormal.set(normal.array.subarray(3 * oldDrawn, 3 * state.wedgeCount), 3 * oldDrawn);
-        }
-        const count = wedged ? state.wedgeCount : to;
-        planNormals(count, (i, out, at) => {
-          out[at] = normal.array[at];
-          out[at + 1] = normal.array[at + 1];
-          out[at + 2] = normal.array[at + 2];
-        });
-      }
-      level = to;
-      wedgesDrawn = wedged ? state.wedgeCount : to;
-      beginGlide();
+      this.glideSplits(from, to, vertexStart, vertexEnd);
       return;
     }
     // shown as it is: the exact positions (a glide still running keeps going
     // toward its ends, now exact)
     for (let v = vertexStart; v < vertexEnd; v++) {
-      exact(v, shown, 3 * v);
-      if (mark[v]) exact(v, end, 3 * v);
+      this.exact(v, this.shown, 3 * v);
+      if (this.mark[v]) this.exact(v, this.end, 3 * v);
     }
-    if (from === 0) for (let v = 0; v < to; v++) exact(v, shown, 3 * v);   // a new mesh
-    level = to;
-    wedgesDrawn = state.attributes.length ? state.wedgeCount : to;
-    if (glidingCount) writeGlide(ease((performance.now() - began) / Math.max(duration, 1)));
-    else takeNormals(wedgesDrawn);
+    if (from === 0) for (let v = 0; v < to; v++) this.exact(v, this.shown, 3 * v);   // a new mesh
+    this.level = to;
+    this.wedgesDrawn = state.attributes.length ? state.wedgeCount : to;
+    if (this.glidingCount) {
+      this.writeGlide(ease((performance.now() - this.began) / Math.max(this.duration, 1)));
+    } else {
+      const normal = this.normalBuffer();
+      if (normal) this.normals.take(normal, this.wedgesDrawn);
+    }
+  }
+
+  // A refinement from level `from` to `to` glides: the new vertices out of
+  // their ancestors, the ones the splits moved (vertexStart..vertexEnd) from
+  // where they were.
+  glideSplits(from, to, vertexStart, vertexEnd) {
+    const { state } = this;
+    this.restartFromShown();
+    splitStarts(state.parent, this.shown, from, to, this.start);
+    for (let v = vertexStart; v < vertexEnd; v++) {
+      if (v < from) this.startFromShown(v);
+      this.exact(v, this.end, 3 * v);
+      this.addGliding(v);
+    }
+    // the mesh wrote the new level's normals: glide to them from those shown
+    const normal = this.normalBuffer();
+    const wedged = state.attributes.length > 0;
+    if (normal) this.normals.planSplits(state, normal, from, to, this.wedgesDrawn);
+    this.level = to;
+    this.wedgesDrawn = wedged ? state.wedgeCount : to;
+    this.beginGlide();
   }
 
   // Called by stream.js once a collapse batch is applied to `opened` but not
   // yet shown (the GPU still draws level `level`): the vanishing vertices glide
   // into their ancestors' new positions and the moved ones to theirs.
   // Resolves when the glide ends (at once when off or too big).
-  function coarsen(opened) {
-    if (opened !== state || level === 0) return Promise.resolve();
-    const to = opened.level, from = level;
+  coarsen(opened) {
+    if (opened !== this.state || this.level === 0) return Promise.resolve();
+    const to = opened.level, from = this.level;
     const first = Math.min(opened.vertexStart, to), last = Math.min(opened.vertexEnd, to);
-    if (!(to < from) || option('geomorphMs') <= 0 ||
-        from - to + Math.max(0, last - first) > option('geomorphMaxVertices')) {
+    if (!(to < from) || this.option('geomorphMs') <= 0 ||
+        from - to + Math.max(0, last - first) > this.option('geomorphMaxVertices')) {
       return Promise.resolve();
     }
-    restartFromShown();
-    collapseTargets(state.parent, from, to, ancestor);
+    this.restartFromShown();
+    collapseTargets(this.state.parent, from, to, this.ancestor);
     for (let v = first; v < last; v++) {      // the survivors the collapses moved
-      const k = 3 * v;
-      if (!mark[v]) {
-        start[k] = shown[k];
-        start[k + 1] = shown[k + 1];
-        start[k + 2] = shown[k + 2];
-      }
-      exact(v, end, k);
-      addGliding(v);
+      this.startFromShown(v);
+      this.exact(v, this.end, 3 * v);
+      this.addGliding(v);
     }
     for (let v = to; v < from; v++) {        // the vanishing ones, into their ancestors
-      const k = 3 * v;
-      if (!mark[v]) {
-        start[k] = shown[k];
-        start[k + 1] = shown[k + 1];
-        start[k + 2] = shown[k + 2];
-      }
-      exact(ancestor[v], end, k);
-      addGliding(v);
+      this.startFromShown(v);
+      this.exact(this.ancestor[v], this.end, 3 * v);
+      this.addGliding(v);
     }
     // the GPU keeps drawing the old level's faces and wedges until the report;
     // their normals glide to the new level's
-    if (normalBuffer()) planNormals(wedgesDrawn, coarseNormal(to, opened.wedgeCount));
-    return beginGlide();
+    if (this.normalBuffer()) {
+      this.normals.planCollapses(this.state, this.wedgesDrawn, to, opened.wedgeCount,
+                                 this.ancestor, this.scratch);
+    }
+    return this.beginGlide();
   }
 
-  viewer.on('mesh', onMesh);
-  viewer.on('level', onLevel);
-
-  return {
-    enabled: () => option('geomorphMs') > 0,
-    coarsen,
-    // Resolves when no glide is running.
-    idle: () => finished ?? Promise.resolve(),
-    get gliding() { return glidingCount; },
-    // For tests and benchmarks: glides started, and the most vertices in one.
-    get measure() { return { ...measure }; },
-  };
+  // Ends the glide and forgets the mesh (its object is disposed).
+  dispose() {
+    this.stopGlide();
+    this.state = null;
+  }
 }

@@ -8,10 +8,39 @@ const MARGIN = { left: 6, right: 6, top: 8, bottom: 16 };
 const COLORS = { curve: '#8fb3ff', point: '#dfe8ff', level: '#ffcf6e', target: '#ffcf6e80',
                  budget: '#7fd99a', text: '#9aa3b2' };
 
-export function createErrorPlot(viewer, canvas) {
-  let curve = null, level = null, target = null, budget = null;
+export class ErrorPlot {
+  // viewer: the bus; canvas: the <canvas> drawn on.
+  constructor(viewer, canvas) {
+    this.canvas = canvas;
+    this.curve = null;          // the mesh's ErrorCurve (curve.js), or null: nothing drawn
+    this.level = this.target = this.budget = null;
+    viewer.on('mesh', (detail) => {
+      this.curve = detail.curve;
+      this.level = this.target = detail.state.level;
+      this.draw();
+    });
+    viewer.on('level', ({ state }) => {
+      this.level = state.level;
+      this.draw();
+    });
+    // a scene (animated.js) has a curve per part: none is drawn
+    viewer.on('scene-shown', () => {
+      this.curve = null;
+      this.draw();
+    });
+    viewer.on('target', (value) => {
+      this.target = value;
+      this.draw();
+    });
+    // the error the pixel budget allows in auto mode, or null
+    viewer.on('budget', (error) => {
+      this.budget = error;
+      this.draw();
+    });
+  }
 
-  function draw() {
+  draw() {
+    const { canvas, curve, level, target, budget } = this;
     const ratio = window.devicePixelRatio || 1;
     const width = canvas.clientWidth, height = canvas.clientHeight;
     canvas.width = Math.round(width * ratio);
@@ -64,27 +93,4 @@ export function createErrorPlot(viewer, canvas) {
     g.textBaseline = 'top';
     g.fillText(`max error ${curve.maxError.toPrecision(3)}`, width - MARGIN.right, 0);
   }
-
-  viewer.on('mesh', (detail) => {
-    [curve, level, target] = [detail.curve, detail.state.level, detail.state.level];
-    draw();
-  });
-  viewer.on('level', ({ state }) => {
-    level = state.level;
-    draw();
-  });
-  // a scene (animated.js) has a curve per part: none is drawn
-  viewer.on('scene-shown', () => {
-    curve = null;
-    draw();
-  });
-  viewer.on('target', (value) => {
-    target = value;
-    draw();
-  });
-  // the error the pixel budget allows in auto mode, or null
-  viewer.on('budget', (error) => {
-    budget = error;
-    draw();
-  });
 }

@@ -5,17 +5,26 @@
 // gliding between levels (geomorph.js).
 
 import * as THREE from 'three';
-import { createGeomorph } from './geomorph.js';
+import { Geomorph } from './geomorph.js';
 import { LevelMesh } from './levelmesh.js';
 import { allowedError, DEFAULTS, StreamedLevel } from './streamedlevel.js';
 
+// The stream's signals a ProgressiveMesh dispatches as three.js events
+// ({ type, detail }), for a page showing what the stream does (the viewer's
+// panel): what each detail holds is said at the top of stream.js.
+const STREAM_EVENTS = ['mesh', 'level', 'target', 'status', 'stream'];
+
 export class ProgressiveMesh extends THREE.Object3D {
   // source: a source (source.js) of a mesh that is not a scene; options: DEFAULTS' keys.
+  // Besides STREAM_EVENTS it dispatches 'change' when it changed without a
+  // new level (a texture arrived, a glide moved): a page that draws on demand
+  // draws then.
   constructor(source, options = {}) {
     super();
     this.type = 'ProgressiveMesh';
     this.summary = source.summary;
     this.name = this.summary.name ?? '';
+    // read live by the stream and the geomorph (geomorphMs, errorPixels, ...)
     this.options = { ...DEFAULTS, ...options };
     // the full-detail mesh's bounding sphere in this object's frame (null for a
     // mesh summarised without its box), for framing it
@@ -28,9 +37,14 @@ export class ProgressiveMesh extends THREE.Object3D {
       onLevel: ({ dirty }) => this.drawn?.update(dirty),
     });
     // registered after the mesh's own listeners: it glides what they wrote
-    const self = this;
-    const view = { three: { get mesh() { return self.drawn?.mesh ?? null; } }, rendered() {} };
-    this.levels.stream.attachGeomorph(createGeomorph(this.levels.bus, view));
+    this.geomorph = new Geomorph(this.levels.bus, {
+      mesh: () => this.drawn?.mesh ?? null,
+      rendered: () => this.dispatchEvent({ type: 'change' }),
+    });
+    this.levels.stream.attachGeomorph(this.geomorph);
+    for (const type of STREAM_EVENTS) {
+      this.levels.bus.on(type, (detail) => this.dispatchEvent({ type, detail }));
+    }
   }
 
   // The vertices of the level held (0 before the first arrives), and of full detail.
@@ -45,11 +59,28 @@ export class ProgressiveMesh extends THREE.Object3D {
   // The level held (a LodState: levelstate.js), for comparing with the server's.
   get state() { return this.levels.state; }
 
+  // The THREE.Mesh drawing the level (null before the first level is in).
+  get mesh() { return this.drawn?.mesh ?? null; }
+  // The texture bytes received, and a promise of every texture asked for so far.
+  get textureBytes() { return this.drawn?.textures?.textureBytes ?? 0; }
+  texturesReady() {
+    return this.drawn?.textures?.ready ?? Promise.resolve();
+  }
+
   show(state, appearance) {
     this.drawn?.dispose();
-    this.drawn = new LevelMesh(state, appearance);
+    this.drawn = new LevelMesh(state, appearance, {
+      onTexture: () => this.dispatchEvent({ type: 'change' }) });
     this.drawn.setLook(this.options);
     this.add(this.drawn.mesh);
+  }
+
+  // Sets options.shading ('smooth' or 'flat') and options.wireframe, and
+  // shows the mesh so.
+  setLook({ shading = this.options.shading, wireframe = this.options.wireframe } = {}) {
+    Object.assign(this.options, { shading, wireframe });
+    this.drawn?.setLook(this.options);
+    this.dispatchEvent({ type: 'change' });
   }
 
   // Pins the level at n vertices (null: back to the error budget).
@@ -72,6 +103,7 @@ export class ProgressiveMesh extends THREE.Object3D {
   // Frees the GPU buffers and textures and stops every fetch.
   dispose() {
     this.levels.close();
+    this.geomorph.dispose();
     this.drawn?.dispose();
     this.drawn = null;
     this.removeFromParent();

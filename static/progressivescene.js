@@ -21,7 +21,9 @@ const diagonal = (box) => Math.hypot(...box.max.map((x, k) => x - box.min[k]));
 class ScenePart {
   // meshes: the GLB's meshes marked extras.lodserver_part == record.index;
   // box: their box ({ min, max }) in the scene object's frame, posed as loaded.
-  constructor(source, record, meshes, box, options) {
+  // onRefine(part): its meshes took a new level; onStream(part, detail): its
+  // stream's state (the 'stream' signal of stream.js).
+  constructor(source, record, meshes, box, options, { onRefine, onStream }) {
     this.record = record;
     this.meshes = meshes;
     this.box = box;
@@ -32,11 +34,16 @@ class ScenePart {
     this.unitScale = record.bounds && diagonal(record.bounds) > 0
       ? diagonal(box) / diagonal(record.bounds) : 1;
     this.levels = null;
+    this.shown = null;          // the level the meshes show: null while the GLB's
+    this.faces = null;
+    this.refined = 0;           // levels taken from the stream
+    this.onRefine = onRefine;
     if (!this.original) return;
     const { index, attributes } = this.original;
     this.glbFaces = (index ? index.count : attributes.position.count) / 3;
     this.levels = new StreamedLevel(source.part(record), options, {
       materials: false, onLevel: ({ state }) => this.refine(state) });
+    this.levels.bus.on('stream', (detail) => onStream(this, detail));
   }
 
   // The part's meshes take the geometry of the stream's level.
@@ -55,6 +62,10 @@ class ScenePart {
       // a skinned mesh's bounds (posed) are its own: recomputed when next needed
       if (mesh.isSkinnedMesh) mesh.boundingBox = mesh.boundingSphere = null;
     }
+    this.shown = state.level;
+    this.faces = state.faceCount;
+    this.refined++;
+    this.onRefine(this);
   }
 
   dispose() {
@@ -65,8 +76,11 @@ class ScenePart {
 }
 
 export class ProgressiveScene extends THREE.Object3D {
-  // source: a scene's source (source.js); gltf: GLTFLoader's result for its GLB.
-  constructor(source, gltf, options = {}) {
+  // source: a scene's source (source.js); gltf: GLTFLoader's result for its
+  // GLB; glb: { bytes: its size, ratio: the level it holds, a fraction of the
+  // vertices }. Dispatches 'change' when a part took a new level and
+  // 'stream' ({ part, detail }) with each part's stream state.
+  constructor(source, gltf, options = {}, glb = { bytes: 0, ratio: 1 }) {
     super();
     this.type = 'ProgressiveScene';
     this.summary = source.summary;
@@ -75,9 +89,11 @@ export class ProgressiveScene extends THREE.Object3D {
     this.root = gltf.scene;
     this.add(this.root);
     this.animations = gltf.animations;
+    this.cameras = gltf.cameras;       // the scene's own, for an app to look through
     this.mixer = new THREE.AnimationMixer(this.root);
     this.clock = new THREE.Clock();
     this.disposed = false;
+    this.glb = glb;
     if (this.animations.length) this.mixer.clipAction(this.animations[0]).play();
     this.updateMatrixWorld(true);
     // the scene's bounding sphere as loaded, in this object's frame, for framing it
@@ -91,19 +107,24 @@ export class ProgressiveScene extends THREE.Object3D {
       const box = new THREE.Box3();
       for (const mesh of meshes) box.union(new THREE.Box3().setFromObject(mesh, true));
       const bounds = box.isEmpty() ? null : { min: box.min.toArray(), max: box.max.toArray() };
-      return new ScenePart(source, record, meshes, bounds, this.options);
+      return new ScenePart(source, record, meshes, bounds, this.options, {
+        onRefine: () => this.dispatchEvent({ type: 'change' }),
+        onStream: (part, detail) => this.dispatchEvent({ type: 'stream', part, detail }),
+      });
     });
   }
 
   // The scene's GLB, at most firstLevelMaxVertices (a progressive file's: at
-  // its base levels), loaded as a ProgressiveScene.
+  // its base levels), loaded as a ProgressiveScene (by options.gltfLoader: an
+  // app's own GLTFLoader, with its plugins, or a new one).
   static async load(source, options = {}) {
     const { vertices } = source.summary;
     const first = options.firstLevelMaxVertices ?? DEFAULTS.firstLevelMaxVertices;
     const ratio = Number(Math.min(1, first / Math.max(1, vertices)).toPrecision(6));
     const { buffer, url } = await source.sceneGlb({ ratio });
-    const gltf = await new GLTFLoader().parseAsync(buffer, new URL('./', url).href);
-    return new ProgressiveScene(source, gltf, options);
+    const loader = options.gltfLoader ?? new GLTFLoader();
+    const gltf = await loader.parseAsync(buffer, new URL('./', url).href);
+    return new ProgressiveScene(source, gltf, options, { bytes: buffer.byteLength, ratio });
   }
 
   get streamed() { return this.parts.filter((part) => part.levels); }
@@ -116,6 +137,8 @@ export class ProgressiveScene extends THREE.Object3D {
       : parts.reduce((n, part) => n + part.levels.target, 0);
   }
   get error() { return this.streamed.find((part) => part.levels.error)?.levels.error ?? null; }
+  // The bytes received: the GLB and every part's packets.
+  get bytes() { return this.glb.bytes + this.streamed.reduce((n, part) => n + part.levels.bytes, 0); }
 
   // Pins the scene at n vertices, each part at its share (null: back to the budget).
   setLevel(n) {

@@ -1,13 +1,10 @@
-// The three.js scene: one mesh drawn from the decoder's arrays, rendered on
-// demand (when the camera, the level, a texture or a setting changes; a glTF
-// scene's animation, animated.js, asks for a frame at a time while it plays:
-// showObject() puts such a scene here in place of the mesh), lit by an
-// image-based environment (environment.js: made when it costs the first
-// frames least) and a headlight, tone-mapped (materials.js), framed by
-// framing.js.
-//
-// The mesh itself, its buffers following the stream's level, is a LevelMesh
-// (levelmesh.js).
+// The three.js scene of the viewer: the object shown (a ProgressiveMesh, or a
+// ProgressiveScene: the three.js module's objects, viewedmesh.js opens them),
+// rendered on demand (when the camera, the level, a texture or a setting
+// changes; a scene's animation, animated.js, asks for a frame at a time while
+// it plays), lit by an image-based environment (environment.js: made when it
+// costs the first frames least) and a headlight, tone-mapped (materials.js),
+// framed by framing.js.
 //
 // Signals in: 'mesh', 'level', 'settings', 'stream', 'reset-view', 'camera-set'.
 // Out: 'view' (pixels per mesh unit at the mesh's nearest point, for choosing
@@ -18,7 +15,6 @@ import * as THREE from 'three';
 import { OrbitControls } from 'three/addons/controls/OrbitControls.js';
 import { DeferredEnvironment } from './environment.js';
 import { fitBox, freeArea, pixelsPerUnit } from './framing.js';
-import { LevelMesh } from './levelmesh.js';
 import { configureRenderer, LOOK } from './materials.js';
 
 export class ViewScene {
@@ -46,9 +42,9 @@ export class ViewScene {
     scene.add(camera);
     this.controls = this.makeControls();
     this.controlsUp = 'Y';
-    this.drawn = null;          // the LevelMesh shown
-    this.mesh = this.state = this.info = null;
-    // A loaded glTF scene (animated.js) drawn instead of a streamed mesh, and its box.
+    this.progressive = null;    // the ProgressiveMesh shown (progressivemesh.js)
+    this.mesh = this.state = this.info = null;   // its THREE.Mesh, level and summary
+    // A scene (animated.js) drawn instead of a streamed mesh, and its box.
     this.object = this.objectBox = null;
     this.bounds = null;         // { center (world, THREE.Vector3), radius }
     this.userMoved = false;     // until the user moves the camera, the view follows the mesh
@@ -58,7 +54,7 @@ export class ViewScene {
     const self = this;
     // For tests: the three.js objects.
     this.three = { THREE, renderer, scene, camera, get mesh() { return self.mesh; },
-                   get materials() { return self.drawn?.materials ?? []; } };
+                   get materials() { return self.progressive?.drawn?.materials ?? []; } };
 
     window.addEventListener('resize', () => this.resize());
     if (panel && window.ResizeObserver) new ResizeObserver(() => this.resize()).observe(panel);
@@ -215,32 +211,32 @@ export class ViewScene {
     this.rendered();
   }
 
-  disposeMesh() {
-    if (this.object) this.scene.remove(this.object);
-    this.object = this.objectBox = null;
-    this.drawn?.dispose();
-    this.drawn = this.mesh = null;
-  }
-
-  showMesh({ state, appearance, info }) {
-    this.disposeMesh();
-    this.state = state;
-    this.info = info || null;
-    const drawn = this.drawn = new LevelMesh(state, appearance, { onTexture: () => {
-      this.viewer.emit('textures', this.drawn?.textures?.textureBytes ?? 0);
-      this.rendered();
-    } });
-    drawn.setLook(this.settings);
-    this.mesh = drawn.mesh;
-    this.scene.add(this.mesh);
+  // Shows `object`, a ProgressiveMesh (its level drawn once its first level
+  // is in: 'mesh'), framed by its full-detail box when its summary has one,
+  // so that the view it asks its first level for is the one shown.
+  showProgressive(object) {
+    this.removeObject(this.object ?? this.progressive);
+    this.progressive = object;
+    this.scene.add(object);
     this.userMoved = false;
     this.bounds = null;
-    if (this.info?.bounds) this.frameMesh();
+    this.info = object.summary;
+    if (this.info.bounds) this.frameMesh();
   }
 
-  showLevel({ dirty }) {
+  // The first level of the ProgressiveMesh shown is in.
+  showMesh({ state, info }) {
+    if (!this.progressive) return;
+    this.state = state;
+    this.info = info;
+    this.mesh = this.progressive.mesh;
+    this.userMoved = false;
+    this.bounds = null;
+    if (this.info.bounds) this.frameMesh();
+  }
+
+  showLevel() {
     if (!this.mesh) return;
-    this.drawn.update(dirty);
     // Without the mesh's box the view follows the level's, until the user moves
     // it; in auto mode the camera distance picks the level: framing would feed back.
     if (!this.bounds || (!this.info?.bounds && !this.userMoved && !this.settings.autoByDistance)) {
@@ -251,8 +247,8 @@ export class ViewScene {
   }
 
   applySettings(key) {
-    if ((key === 'shading' || key === 'wireframe') && this.mesh) {
-      this.drawn.setLook(this.settings);
+    if (key === 'shading' || key === 'wireframe') {
+      this.progressive?.setLook(this.settings);
       this.rendered();
     } else if (key === 'up' && this.showing()) {
       this.userMoved = false;
@@ -266,12 +262,11 @@ export class ViewScene {
     return this.showing() ? this.environment.ready : Promise.resolve();
   }
 
-  // Shows `root` (a three.js object: a glTF scene, animated.js draws and
-  // animates it) in place of the streamed mesh, framed by `box` ({ min, max },
-  // world units); the caller owns and disposes it.
+  // Shows `root` (a three.js object: a ProgressiveScene, animated.js animates
+  // it) in place of the streamed mesh, framed by `box` ({ min, max }, world
+  // units); the caller owns and disposes it.
   showObject(root, box) {
-    this.disposeMesh();
-    this.mesh = this.state = this.info = null;
+    this.removeObject(this.object ?? this.progressive);
     this.object = root;
     this.objectBox = box;
     this.scene.add(root);
@@ -279,20 +274,20 @@ export class ViewScene {
     this.refit();
   }
 
-  // Removes the object showObject() showed, if it is still `root`.
+  // Removes the object shown (by showObject() or showProgressive()), if it is
+  // still `root`; its owner disposes it.
   removeObject(root) {
-    if (this.object !== root) return;
-    this.scene.remove(this.object);
-    this.object = this.objectBox = null;
+    if (!root || (this.object !== root && this.progressive !== root)) return;
+    this.scene.remove(root);
+    this.object = this.objectBox = this.progressive = null;
+    this.mesh = this.state = this.info = null;
     this.rendered();
   }
 
   // Resolves once every texture asked for so far has arrived.
   texturesReady() {
-    return this.drawn?.textures?.ready ?? Promise.resolve();
+    return this.progressive?.texturesReady() ?? Promise.resolve();
   }
-
-  get textureBytes() { return this.drawn?.textures?.textureBytes ?? 0; }
 
   // For tests: the canvas pixels drawn now (RGBA, bottom row first; read in
   // the same task as the draw, so the drawing buffer still holds them).
@@ -306,7 +301,3 @@ export class ViewScene {
   }
 }
 
-// The viewer's scene (main.js).
-export function createScene(viewer, container, panel = null) {
-  return new ViewScene(viewer, container, panel);
-}

@@ -1,7 +1,9 @@
-// Fetching a mesh: its summary, a first level (the base unless the opener
-// names another: the base level and one packet to it, in one round trip), its
-// materials if any, then packets between levels; at the mesh's version (the
-// summary's `urls`), so every response but the summary is cacheable for good.
+// Fetching a mesh's level from its source (source.js, which has its summary):
+// a first level (the base unless the opener names another: the base level and
+// one packet to it, in one round trip), its materials if any, then packets
+// between levels; from a server at the mesh's version (the summary's `urls`),
+// so every response but the summary is cacheable for good. One stream per
+// mesh (streamedlevel.js), a scene's part each its own.
 //
 // The client never refetches a level: it holds one LodState and moves it to
 // the target level packet by packet, forward (splits) or backward (collapses).
@@ -27,22 +29,20 @@
 //   reported (the scene drops their faces); splits are reported at once and
 //   the geomorph glides the new vertices out of their parents.
 //
-// Signals out: 'mesh' (a new mesh is shown), 'level' (the state moved: { state, bytes,
+// Signals out (on the bus it is made with): 'mesh' (the first level is in:
+// { info: the summary, state, appearance, curve }), 'level' (the state moved: { state, bytes,
 // records, applyMs, morph (glide it: geomorph.js), dirty }),
 // 'target' (the level being moved to), 'status' (text for the user),
 // 'stream' (the stream's state: { state: 'moving'|'retrying'|'stalled'|'idle'|'failed', ... };
 // 'moving' has restMs, the rest of the way's estimated time on the link: see restEstimateMs).
-// Signals in: 'open' (a mesh id, or { id, level }: see open()), 'goto' (a level).
+// Signals in: 'goto' (a level).
 
 import { ErrorCurve } from './curve.js';
 import { PacketQueue } from './packetqueue.js';
 import { PacketSizer } from './packetsizer.js';
 import { ReportPacer } from './reportpacer.js';
-import { FetchError, routeUrl, ServerSource, sleep } from './source.js';
+import { FetchError, sleep } from './source.js';
 import { LodState, PacketError } from './vsplit.js';
-
-// (tools.js and animated.js take a route's URL from here, where they take the stream)
-export { routeUrl };
 
 const MAX_AHEAD = 32;              // the most packets requested ahead (see packetsAhead)
 const RETRY_BASE_MS = 250;
@@ -72,8 +72,9 @@ function snapped(source, level, direction = 'up') {
   return source?.snap ? source.snap(level, direction) : level;
 }
 
-// One mesh's stream (a scene streams each part with its own). The viewer's
-// bus `viewer` carries its settings (DEFAULTS' keys) and its signals (see the top).
+// One mesh's stream (a scene streams each part with its own). Its bus
+// `viewer` (bus.js: a StreamedLevel's) carries its settings (DEFAULTS' keys)
+// and its signals (see the top).
 export class PacketStream {
   constructor(viewer) {
     this.viewer = viewer;
@@ -98,10 +99,6 @@ export class PacketStream {
     // when the applied packets are reported ('level')
     this.pacer = new ReportPacer(option, { emit: (pending) => this.emitLevel(pending),
                                            rest: () => this.restOfTheWay() });
-    viewer.on('open', (detail) => {
-      const { id, ...options } = typeof detail === 'object' && detail ? detail : { id: detail };
-      this.open(id, options);
-    });
     viewer.on('goto', (level) => this.goto(level));
   }
 
@@ -124,61 +121,31 @@ export class PacketStream {
     return buffer;
   }
 
-  // The source of a mesh once it is built, reporting the build's progress;
-  // null once another mesh is opened.
-  waitUntilReady(id, ticket) {
-    return ServerSource.open(id, { onProgress: (summary) => {
-      if (ticket !== this.opened) return false;
-      const percent = Math.round(100 * summary.progress);
-      this.viewer.emit('status', `${summary.name}: ${summary.status} ${percent}%`);
-      return true;
-    } });
-  }
-
-  // Opens mesh `id` at a first level (see openMesh); resolves once it is open.
-  open(id, options = {}) {
-    this.opening = this.openMesh(id, options);
+  // Opens the mesh of `source` (source.js: a ServerSource, a file) at a
+  // first level (see openMesh); resolves once it is open.
+  open(source, options = {}) {
+    this.opening = this.openMesh(source, options);
     return this.opening;
   }
 
-  // Opens mesh `id` at `level`: a number of vertices, or a function of the
-  // mesh's summary returning one (or a promise of one), e.g. the level a
-  // first-frame chooser picks for the view; the base level by default.
-  // That level arrives in one round trip: the base level (json: the grid and
-  // the state packets start from) and the one packet from the base to it,
-  // fetched together, and nothing is drawn until both are in. A packet costs
-  // 8-12 bytes a vertex against the json form's ~50 (120 with attributes).
-  // Packets then refine it to settings.initialRatio of the vertices.
-  //
-  // A mesh whose summary says `"scene": true` is not streamed here: the
-  // stream emits 'scene' ({ info: the summary, level: the first level chosen,
-  // in vertices of the whole scene }) and animated.js takes it from there,
-  // opening one stream per part with open(id, { summary: the part's, ... }):
-  // a summary given is not fetched (nor is it checked for a scene), and
-  // `materials: false` leaves the part's materials to the caller.
-  // A source given (source.js: a ServerSource, a file) is read instead of the
-  // page's server, its summary as a given one.
-  async openMesh(id, { level, summary: givenSummary = null, source: givenSource = null,
-                       materials: withMaterials = true } = {}) {
+  // Opens the mesh of `source` at `level` (vertices; the base level by
+  // default). That level arrives in one round trip: the base level (json: the
+  // grid and the state packets start from) and the one packet from the base
+  // to it, fetched together, and nothing is drawn until both are in. A packet
+  // costs 8-12 bytes a vertex against the json form's ~50 (120 with
+  // attributes). Packets then refine it to settings.initialRatio of the
+  // vertices. `materials: false` leaves the materials to the caller (a scene's
+  // part: its GLB's).
+  async openMesh(source, { level, materials: withMaterials = true } = {}) {
     const ticket = ++this.opened;
     this.stopMoving();
     [this.info, this.state, this.target, this.bytes] = [null, null, null, 0];
     [this.failed, this.stalled, this.shown] = [null, null, null];
     this.sizer.reset();
-    const given = givenSource?.summary ?? givenSummary;
+    this.source = source;
+    const { summary } = source;
     try {
-      const found = givenSource ?? (givenSummary ? new ServerSource(givenSummary)
-        : await this.waitUntilReady(id, ticket));
-      if (!found || ticket !== this.opened) return;
-      this.source = found;
-      const { summary } = this.source;
-      let first = typeof level === 'function' ? await level(summary) : level;
-      if (ticket !== this.opened) return;
-      if (!given && summary.scene === true) {
-        this.info = summary;
-        this.viewer.emit('scene', { info: summary, level: first });
-        return;
-      }
+      let first = level;
       const base = summary.base_vertices;
       first = snapped(this.source, Number.isFinite(first)
         ? Math.min(summary.vertices, Math.max(base, Math.round(first))) : base);
@@ -441,9 +408,4 @@ export class PacketStream {
     while (this.moving) await this.moving.done;
     await this.geomorph?.idle();
   }
-}
-
-// The stream of the viewer's bus `viewer` (main.js, animated.js).
-export function createStream(viewer) {
-  return new PacketStream(viewer);
 }

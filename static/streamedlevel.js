@@ -10,7 +10,7 @@ import * as THREE from 'three';
 import { createBus } from './bus.js';
 import { ErrorCurve } from './curve.js';
 import { sphereOf } from './framing.js';
-import { createStream } from './stream.js';
+import { PacketStream } from './stream.js';
 
 // The module's options (docs/three.md).
 export const DEFAULTS = {
@@ -67,8 +67,13 @@ export class StreamedLevel {
     this.refresh = false;       // the budget's level is due at once (after pin(null))
     this.opened = false;
     this.closed = false;
-    this.bus = createBus({ initialRatio: 1, geomorphMs: options.geomorphMs });
-    this.stream = createStream(this.bus);
+    // the stream's and geomorph's settings: the options, read live (an app's or
+    // the viewer's change of geomorphMs reaches a running stream), and this
+    // level's own first target
+    const settings = Object.create(options);
+    settings.initialRatio = 1;
+    this.bus = createBus(settings);
+    this.stream = new PacketStream(this.bus);
     this.bus.on('mesh', (detail) => {
       this.curve = detail.curve;
       onMesh(detail);
@@ -90,10 +95,10 @@ export class StreamedLevel {
   // (at most firstLevelMaxVertices), then packets to `level`.
   open(level) {
     this.opened = true;
-    const { vertices, id } = this.summary;
+    const { vertices } = this.summary;
     this.bus.settings.initialRatio = Math.min(1, level / vertices);
-    this.stream.open(id, { source: this.source, materials: this.withMaterials,
-                           level: Math.min(level, this.options.firstLevelMaxVertices) });
+    this.stream.open(this.source, { materials: this.withMaterials,
+                                    level: Math.min(level, this.options.firstLevelMaxVertices) });
   }
 
   // Pins the level at n vertices (null: back to the error budget).

@@ -6,7 +6,7 @@
 // Signals in: 'mesh', 'scene-shown', 'level', 'target', 'frame', 'camera', 'settings'.
 // Out: 'reset-view', 'settings' (up, through the caller's change()).
 
-import { routeUrl } from './stream.js';
+import { routeUrl } from './source.js';
 
 // The frames drawn within this window count towards the fps shown. The scene
 // draws on demand, so an idle view shows 0 fps: the rate is of frames drawn.

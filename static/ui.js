@@ -8,7 +8,7 @@
 // An id that the server does not know (a link to a deleted mesh, a typo, a
 // path) is named in the status and never opened or listed.
 //
-// Signals out: 'open' ({ id, level: the first-level chooser }), 'goto' (a
+// Signals out: 'open' ({ id }), 'goto' (a
 // level), 'settings' (a key). In: 'mesh', 'level', 'target', 'status',
 // 'settings', 'textures' (image bytes received).
 
@@ -27,19 +27,44 @@ const CONTROLS = [
   { key: 'chunkSplits', label: 'splits per packet', type: 'number', min: 16, step: 256 },
 ];
 
-// options: { firstLevel(summary) -> the level to fetch first, as stream.js's open() takes }.
-export function createUi(viewer, root, { firstLevel = null } = {}) {
-  const { settings } = viewer;
-  const $ = (selector) => root.querySelector(selector);
-  const select = $('#mesh-select'), status = $('#status');
-  const slider = $('#level-slider'), number = $('#level-input'), stats = $('#stats');
-  let info = null, curve = null, state = null, target = null;
-  let bytes = 0, textureBytes = 0, lastPacket = '';
-  let listTimer = 0, opening = null;
+function formatBytes(n) {
+  return n < 1024 ? `${n} B` : n < 2 ** 20 ? `${(n / 1024).toFixed(1)} KiB`
+    : `${(n / 2 ** 20).toFixed(2)} MiB`;
+}
+
+export class Panel {
+  // viewer: the bus; root: the panel's element.
+  constructor(viewer, root) {
+    this.viewer = viewer;
+    this.settings = viewer.settings;
+    this.root = root;
+    const $ = (selector) => root.querySelector(selector);
+    this.select = $('#mesh-select');
+    this.status = $('#status');
+    this.slider = $('#level-slider');
+    this.number = $('#level-input');
+    this.stats = $('#stats');
+    // the mesh shown: its summary, error curve, level held and level moved to
+    this.info = this.curve = this.state = this.target = null;
+    this.bytes = this.textureBytes = 0;
+    this.lastPacket = '';
+    this.listTimer = 0;
+    this.opening = null;        // the latest open(), so an earlier one stops
+    this.listen();
+    this.wire($);
+    this.setLevelEnabled(false);
+    const wanted = new URL(window.location.href).searchParams.get('mesh');
+    this.refreshList(wanted).then((meshes) => {
+      const listed = meshes.some((mesh) => mesh.id === wanted);
+      const first = wanted || meshes.find((mesh) => mesh.status === 'ready')?.id;
+      if (first) return this.open(first, { listed: listed || !wanted });
+      return null;
+    }).catch((error) => { this.status.textContent = `error: ${error.message}`; });
+  }
 
   // ---- meshes ----------------------------------------------------------------
 
-  async function listMeshes() {
+  async listMeshes() {
     const response = await fetch('../meshes?limit=1000');
     if (!response.ok) throw new Error(`listing meshes failed (${response.status})`);
     return (await response.json()).meshes;
@@ -47,9 +72,10 @@ export function createUi(viewer, root, { firstLevel = null } = {}) {
 
   // Lists the server's meshes (keeping `selected`, or the current choice,
   // selected); polls again while one is queued or building.
-  async function refreshList(selected = select.value) {
-    clearTimeout(listTimer);
-    const meshes = await listMeshes();
+  async refreshList(selected = this.select.value) {
+    const { select } = this;
+    clearTimeout(this.listTimer);
+    const meshes = await this.listMeshes();
     const prompt = meshes.length ? 'choose a mesh' : 'no meshes: upload one';
     select.replaceChildren(new Option(prompt, ''));
     for (const mesh of meshes) {
@@ -58,35 +84,35 @@ export function createUi(viewer, root, { firstLevel = null } = {}) {
     }
     select.value = meshes.some((mesh) => mesh.id === selected) ? selected : '';
     if (meshes.some((mesh) => PENDING.has(mesh.status))) {
-      listTimer = setTimeout(() => refreshList().catch(() => {}), LIST_REFRESH_MS);
+      this.listTimer = setTimeout(() => this.refreshList().catch(() => {}), LIST_REFRESH_MS);
     }
     return meshes;
   }
 
   // Whether the server knows mesh `id` (a 404 or 422: it does not).
-  async function known(id) {
+  async known(id) {
     const response = await fetch(`../meshes/${encodeURIComponent(id)}`);
     if (response.ok) return true;
     if (response.status === 404 || response.status === 422) return false;
     throw new Error(`looking the mesh up failed (${response.status})`);
   }
 
-  async function open(id, { listed = false } = {}) {
-    const ticket = opening = {};
-    setLevelEnabled(false);
-    if (!listed && !(await known(id))) {
-      if (opening !== ticket) return;
+  async open(id, { listed = false } = {}) {
+    const ticket = this.opening = {};
+    this.setLevelEnabled(false);
+    if (!listed && !(await this.known(id))) {
+      if (this.opening !== ticket) return;
       const url = new URL(window.location.href);
       url.searchParams.delete('mesh');
       window.history.replaceState(null, '', url);
-      select.value = '';
+      this.select.value = '';
       // (an id is letters, digits, - and _: anything else is not repeated back)
-      status.textContent = /^[\w-]{1,64}$/.test(id)
+      this.status.textContent = /^[\w-]{1,64}$/.test(id)
         ? `there is no mesh with the id "${id}"; choose one from the list`
         : 'the link names no mesh id; choose a mesh from the list';
       return;
     }
-    if (opening !== ticket) return;
+    if (this.opening !== ticket) return;
     const url = new URL(window.location.href);
     if (url.searchParams.get('mesh') !== id) {
       // another mesh: the level and camera kept in the URL were that mesh's
@@ -94,36 +120,37 @@ export function createUi(viewer, root, { firstLevel = null } = {}) {
     }
     url.searchParams.set('mesh', id);
     window.history.replaceState(null, '', url);
-    select.value = id;
-    [info, state, textureBytes] = [null, null, 0];
-    stats.replaceChildren();
-    viewer.emit('open', { id, level: firstLevel });
+    this.select.value = id;
+    [this.info, this.state, this.textureBytes] = [null, null, 0];
+    this.stats.replaceChildren();
+    this.viewer.emit('open', { id });
   }
 
   // ---- the level ---------------------------------------------------------------
 
-  function levelOf(position) {
-    const { base_vertices: base, vertices: full } = info;
+  levelOf(position) {
+    const { base_vertices: base, vertices: full } = this.info;
     return Math.round(base * (full / base) ** (position / SLIDER_STEPS));
   }
 
-  function positionOf(level) {
-    const { base_vertices: base, vertices: full } = info;
+  positionOf(level) {
+    const { base_vertices: base, vertices: full } = this.info;
     return full === base ? 0 : SLIDER_STEPS * Math.log(level / base) / Math.log(full / base);
   }
 
   // A level asked for by hand: it ends the automatic choice.
-  function request(level) {
-    if (!info) return;
-    if (settings.autoByDistance) change('autoByDistance', false);
-    viewer.emit('goto', level);
+  request(level) {
+    if (!this.info) return;
+    if (this.settings.autoByDistance) this.change('autoByDistance', false);
+    this.viewer.emit('goto', level);
   }
 
-  function onKey(event) {
+  onKey(event) {
+    const { info, target } = this;
     const focus = event.target;
     // Level keys over the closed mesh dropdown move the level, not the choice of
     // mesh (the browser would open each mesh in turn); Alt+Down or Space opens it.
-    const onSelect = focus === select;
+    const onSelect = focus === this.select;
     const typing = !onSelect && focus.matches?.('input:not([type=range]), select, textarea');
     if (typing || event.ctrlKey || event.metaKey || event.altKey) return;
     const levelKey = event.key in KEY_STEPS || event.key === 'Home' || event.key === 'End';
@@ -136,31 +163,36 @@ export function createUi(viewer, root, { firstLevel = null } = {}) {
       const steps = KEY_STEPS[event.key];
       // Shift: one split or collapse at a time
       level = event.shiftKey ? target + Math.sign(steps)
-                             : levelOf(Math.round(positionOf(target)) + steps);
+                             : this.levelOf(Math.round(this.positionOf(target)) + steps);
       if (level === target) level += Math.sign(steps);   // always move at least one level
     }
     if (level === null) return;
     event.preventDefault();
-    request(level);
+    this.request(level);
   }
 
   // ---- settings ----------------------------------------------------------------
 
-  function change(key, value) {
-    settings[key] = value;
-    const input = root.querySelector(`[data-key="${key}"]`);
-    if (input) {
-      if (input.type === 'checkbox') input.checked = value;
-      else input.value = value;
-    }
-    viewer.emit('settings', key);
+  change(key, value) {
+    this.settings[key] = value;
+    this.showSetting(key);
+    this.viewer.emit('settings', key);
   }
 
-  function setLevelEnabled(enabled) {
-    slider.disabled = number.disabled = !enabled;
+  // The control of setting `key` shows its value.
+  showSetting(key) {
+    const input = this.root.querySelector(`[data-key="${key}"]`);
+    if (!input) return;
+    if (input.type === 'checkbox') input.checked = this.settings[key];
+    else input.value = this.settings[key];
   }
 
-  function makeControl({ key, label, type, options, min, step }) {
+  setLevelEnabled(enabled) {
+    this.slider.disabled = this.number.disabled = !enabled;
+  }
+
+  makeControl({ key, label, type, options, min, step }) {
+    const { settings } = this;
     const row = document.createElement('label');
     let input;
     if (options) {
@@ -177,7 +209,7 @@ export function createUi(viewer, root, { firstLevel = null } = {}) {
       const value = type === 'checkbox' ? input.checked
         : type === 'number' ? Number(input.value) : input.value;
       if (type === 'number' && !(value >= min)) input.value = settings[key];
-      else change(key, value);
+      else this.change(key, value);
     });
     row.append(input, ` ${label}`);
     return row;
@@ -185,12 +217,8 @@ export function createUi(viewer, root, { firstLevel = null } = {}) {
 
   // ---- stats -------------------------------------------------------------------
 
-  function formatBytes(n) {
-    return n < 1024 ? `${n} B` : n < 2 ** 20 ? `${(n / 1024).toFixed(1)} KiB`
-      : `${(n / 2 ** 20).toFixed(2)} MiB`;
-  }
-
-  function showStats() {
+  showStats() {
+    const { state, curve, info, target, settings, bytes, textureBytes } = this;
     if (!state) return;
     const error = curve.errorAt(state.level);
     const rows = [
@@ -203,12 +231,12 @@ export function createUi(viewer, root, { firstLevel = null } = {}) {
       ['received', textureBytes
         ? `${formatBytes(bytes + textureBytes)} (textures ${formatBytes(textureBytes)})`
         : formatBytes(bytes)],
-      ['last packet', lastPacket],
+      ['last packet', this.lastPacket],
     ];
     if (target !== state.level) rows[0][1] += ` → ${target.toLocaleString()}`;
-    stats.replaceChildren();
+    this.stats.replaceChildren();
     for (const [name, value] of rows) {
-      const row = stats.insertRow();
+      const row = this.stats.insertRow();
       row.insertCell().textContent = name;
       row.insertCell().textContent = value;
     }
@@ -216,74 +244,72 @@ export function createUi(viewer, root, { firstLevel = null } = {}) {
 
   // ---- wiring ------------------------------------------------------------------
 
-  viewer.on('mesh', (detail) => {
-    ({ info, curve, state } = detail);
-    target = state.level;
-    setLevelEnabled(info.vertices !== info.base_vertices);
-    const up = root.querySelector('[data-key="up"]');
-    if (up) up.value = settings.up;       // chosen for this mesh as it opened
-    // the list may still say "queued" or "building" for the mesh now shown
-    const option = [...select.options].find((each) => each.value === info.id);
-    if (option && !option.textContent.includes(' · ready')) refreshList(info.id).catch(() => {});
-    Object.assign(number, { min: info.base_vertices, max: info.vertices });
-    showStats();
-  });
-  viewer.on('level', (detail) => {
-    ({ state, bytes } = detail);
-    if (detail.records) {
-      lastPacket = `${detail.records.toLocaleString()} records applied in ` +
-                   `${detail.applyMs.toFixed(1)} ms`;
-    }
-    showStats();
-  });
-  viewer.on('target', (level) => {
-    target = level;
-    slider.value = positionOf(level);
-    number.value = level;
-    showStats();
-  });
-  viewer.on('status', (text) => { status.textContent = text; });
-  viewer.on('textures', (received) => {
-    textureBytes = received;
-    showStats();
-  });
-  // settings changed elsewhere (the up axis chosen for a mesh): show them
-  viewer.on('settings', (key) => {
-    showStats();
-    const input = root.querySelector(`[data-key="${key}"]`);
-    if (!input) return;
-    if (input.type === 'checkbox') input.checked = settings[key];
-    else input.value = settings[key];
-  });
-
-  select.addEventListener('change', () => select.value && open(select.value, { listed: true }));
-  // opening the dropdown shows fresh statuses
-  select.addEventListener('pointerdown', () => { refreshList().catch(() => {}); });
-  // an upload (upload.js) the server accepted: list it and open it
-  viewer.on('uploaded', (id) => {
-    refreshList(id).then(() => open(id, { listed: true })).catch((error) => {
-      status.textContent = `error: ${error.message}`;
+  // The viewer's signals the panel shows.
+  listen() {
+    const { viewer } = this;
+    viewer.on('mesh', (detail) => {
+      ({ info: this.info, curve: this.curve, state: this.state } = detail);
+      const { info } = this;
+      this.target = this.state.level;
+      this.setLevelEnabled(info.vertices !== info.base_vertices);
+      this.showSetting('up');                 // chosen for this mesh as it opened
+      // the list may still say "queued" or "building" for the mesh now shown
+      const option = [...this.select.options].find((each) => each.value === info.id);
+      if (option && !option.textContent.includes(' · ready')) {
+        this.refreshList(info.id).catch(() => {});
+      }
+      Object.assign(this.number, { min: info.base_vertices, max: info.vertices });
+      this.showStats();
     });
-  });
-  // full detail, one click away from the budget's level
-  $('#full-detail').addEventListener('click', () => info && request(info.vertices));
-  slider.max = SLIDER_STEPS;
-  slider.addEventListener('input', () => request(levelOf(Number(slider.value))));
-  number.addEventListener('change', () => {
-    // an emptied or unreadable box means no new level: show the current one again
-    const value = number.value.trim() === '' ? NaN : Number(number.value);
-    if (Number.isFinite(value)) request(value);
-    else number.value = target ?? '';
-  });
-  window.addEventListener('keydown', onKey);
-  $('#settings').append(...CONTROLS.map(makeControl));
+    viewer.on('level', (detail) => {
+      ({ state: this.state, bytes: this.bytes } = detail);
+      if (detail.records) {
+        this.lastPacket = `${detail.records.toLocaleString()} records applied in ` +
+                          `${detail.applyMs.toFixed(1)} ms`;
+      }
+      this.showStats();
+    });
+    viewer.on('target', (level) => {
+      this.target = level;
+      this.slider.value = this.positionOf(level);
+      this.number.value = level;
+      this.showStats();
+    });
+    viewer.on('status', (text) => { this.status.textContent = text; });
+    viewer.on('textures', (received) => {
+      this.textureBytes = received;
+      this.showStats();
+    });
+    // settings changed elsewhere (the up axis chosen for a mesh): show them
+    viewer.on('settings', (key) => {
+      this.showStats();
+      this.showSetting(key);
+    });
+    // an upload (upload.js) the server accepted: list it and open it
+    viewer.on('uploaded', (id) => {
+      this.refreshList(id).then(() => this.open(id, { listed: true })).catch((error) => {
+        this.status.textContent = `error: ${error.message}`;
+      });
+    });
+  }
 
-  setLevelEnabled(false);
-  const wanted = new URL(window.location.href).searchParams.get('mesh');
-  refreshList(wanted).then((meshes) => {
-    const listed = meshes.some((mesh) => mesh.id === wanted);
-    const first = wanted || meshes.find((mesh) => mesh.status === 'ready')?.id;
-    if (first) return open(first, { listed: listed || !wanted });
-    return null;
-  }).catch((error) => { status.textContent = `error: ${error.message}`; });
+  // The panel's controls.
+  wire($) {
+    const { select, slider, number } = this;
+    select.addEventListener('change', () => select.value && this.open(select.value, { listed: true }));
+    // opening the dropdown shows fresh statuses
+    select.addEventListener('pointerdown', () => { this.refreshList().catch(() => {}); });
+    // full detail, one click away from the budget's level
+    $('#full-detail').addEventListener('click', () => this.info && this.request(this.info.vertices));
+    slider.max = SLIDER_STEPS;
+    slider.addEventListener('input', () => this.request(this.levelOf(Number(slider.value))));
+    number.addEventListener('change', () => {
+      // an emptied or unreadable box means no new level: show the current one again
+      const value = number.value.trim() === '' ? NaN : Number(number.value);
+      if (Number.isFinite(value)) this.request(value);
+      else number.value = this.target ?? '';
+    });
+    window.addEventListener('keydown', (event) => this.onKey(event));
+    $('#settings').append(...CONTROLS.map((control) => this.makeControl(control)));
+  }
 }

@@ -68,51 +68,62 @@ export function suggestionFor(status, message = '') {
   return 'check that the file opens in another program; the message says what is wrong';
 }
 
-export function createUpload(viewer, { panel, viewport, note }) {
-  const $ = (selector) => panel.querySelector(selector);
-  const button = $('#upload-button'), input = $('#upload'), bar = $('#upload-progress');
-  const text = $('#upload-status'), warningList = $('#upload-warnings');
-  const choices = $('#upload-choices');
-  let current = 0;          // counts uploads, so a poll of an earlier one stops
-
-  function say(message, { error = false } = {}) {
-    text.textContent = message;
-    text.classList.toggle('error', error);
+export class Upload {
+  // viewer: the bus; panel: the panel's element (its upload controls);
+  // viewport: the view files are dropped on; note: the note over a stale view.
+  constructor(viewer, { panel, viewport, note }) {
+    this.viewer = viewer;
+    this.viewport = viewport;
+    this.note = note;
+    const $ = (selector) => panel.querySelector(selector);
+    this.button = $('#upload-button');
+    this.input = $('#upload');
+    this.bar = $('#upload-progress');
+    this.text = $('#upload-status');
+    this.warningList = $('#upload-warnings');
+    this.choices = $('#upload-choices');
+    this.current = 0;           // counts uploads, so a poll of an earlier one stops
+    this.wire();
   }
 
-  function showProgress(value) {
-    bar.hidden = value === null;
-    if (value !== null) bar.value = value;
+  say(message, { error = false } = {}) {
+    this.text.textContent = message;
+    this.text.classList.toggle('error', error);
   }
 
-  function showWarnings(warnings = []) {
-    warningList.replaceChildren(...warnings.map((warning) => {
+  showProgress(value) {
+    this.bar.hidden = value === null;
+    if (value !== null) this.bar.value = value;
+  }
+
+  showWarnings(warnings = []) {
+    this.warningList.replaceChildren(...warnings.map((warning) => {
       const item = document.createElement('li');
       item.textContent = warning;
       return item;
     }));
   }
 
-  function fail(status, message) {
-    showProgress(null);
-    say(`upload refused: ${message} — ${suggestionFor(status, message)}`, { error: true });
+  fail(status, message) {
+    this.showProgress(null);
+    this.say(`upload refused: ${message} — ${suggestionFor(status, message)}`, { error: true });
   }
 
   // Several mesh files in one upload: a button per mesh file sends the same
   // files again with that one as the form field 'main'.
-  function offerChoices(files) {
+  offerChoices(files) {
     const meshes = files.filter((file) => MESH_TYPES.includes(extension(file.name)));
-    choices.replaceChildren(...meshes.map((file) => {
+    this.choices.replaceChildren(...meshes.map((file) => {
       const choice = document.createElement('button');
       choice.type = 'button';
       choice.textContent = `build ${file.name}`;
-      choice.addEventListener('click', () => run(files, file.name));
+      choice.addEventListener('click', () => this.run(files, file.name));
       return choice;
     }));
   }
 
   // POST /meshes with XMLHttpRequest, for its upload progress events.
-  function send(files, main, ticket) {
+  send(files, main, ticket) {
     const form = new FormData();
     for (const file of files) form.append('file', file, file.name);
     if (main) form.append('main', main);
@@ -123,14 +134,14 @@ export function createUpload(viewer, { panel, viewport, note }) {
       request.open('POST', '../meshes');
       request.responseType = 'json';
       request.upload.addEventListener('progress', (event) => {
-        if (ticket !== current) return;
+        if (ticket !== this.current) return;
         const sent = event.loaded, length = event.lengthComputable ? event.total : total;
-        showProgress(length ? sent / length : null);
-        say(`uploading ${what}: ${formatBytes(Math.min(sent, length))} of ` +
-            `${formatBytes(length)} (${Math.round(100 * sent / Math.max(length, 1))}%)`);
+        this.showProgress(length ? sent / length : null);
+        this.say(`uploading ${what}: ${formatBytes(Math.min(sent, length))} of ` +
+                 `${formatBytes(length)} (${Math.round(100 * sent / Math.max(length, 1))}%)`);
       });
       request.upload.addEventListener('load', () => {
-        if (ticket === current) say(`${what} sent; the server is checking it`);
+        if (ticket === this.current) this.say(`${what} sent; the server is checking it`);
       });
       request.addEventListener('load', () => resolve({ status: request.status,
                                                         body: request.response || {} }));
@@ -141,23 +152,23 @@ export function createUpload(viewer, { panel, viewport, note }) {
   }
 
   // Queue position and build progress of an accepted upload, until it settles.
-  async function follow(id, ticket) {
+  async follow(id, ticket) {
     for (;;) {
       const response = await fetch(`../meshes/${encodeURIComponent(id)}`);
-      if (ticket !== current) return;
+      if (ticket !== this.current) return;
       const body = await response.json().catch(() => ({}));
       if (!response.ok) {
-        fail(response.status, body.message || `the server answered ${response.status}`);
+        this.fail(response.status, body.message || `the server answered ${response.status}`);
         return;
       }
       if (body.status === 'ready') {
-        showProgress(null);
-        say(`${body.name}: built`);
-        if (body.warnings?.length) showWarnings(body.warnings);
+        this.showProgress(null);
+        this.say(`${body.name}: built`);
+        if (body.warnings?.length) this.showWarnings(body.warnings);
         return;
       }
       if (body.status === 'failed') {
-        fail(422, `the build failed: ${body.failure}`);
+        this.fail(422, `the build failed: ${body.failure}`);
         return;
       }
       let line;
@@ -166,88 +177,91 @@ export function createUpload(viewer, { panel, viewport, note }) {
         line = ahead == null ? `${body.name}: queued`
           : ahead === 0 ? `${body.name}: queued, next to be built`
           : `${body.name}: queued, ${ahead} upload${ahead === 1 ? '' : 's'} ahead`;
-        showProgress(0);
+        this.showProgress(0);
       } else {
         line = `${body.name}: building ${Math.round(100 * body.progress)}%`;
-        showProgress(body.progress);
+        this.showProgress(body.progress);
       }
-      say(line);
-      note.textContent = line;
+      this.say(line);
+      this.note.textContent = line;
       await new Promise((resolve) => setTimeout(resolve, POLL_MS));
     }
   }
 
-  async function upload(list, main = null) {
+  async upload(list, main = null) {
     const files = [...list];
     if (!files.length) return;
-    const ticket = ++current;
-    showWarnings([]);
-    choices.replaceChildren();
-    const { status, body } = await send(files, main, ticket);
-    if (ticket !== current) return;
+    const ticket = ++this.current;
+    this.showWarnings([]);
+    this.choices.replaceChildren();
+    const { status, body } = await this.send(files, main, ticket);
+    if (ticket !== this.current) return;
     if (status !== 202) {
-      fail(status, body.message || `the server answered ${status}`);
+      this.fail(status, body.message || `the server answered ${status}`);
       if (status === 422 && !main && (body.message || '').includes("field 'main'")) {
-        offerChoices(files);
+        this.offerChoices(files);
       }
       return;
     }
-    showWarnings(body.warnings);
-    say(`${body.main ?? files[0].name}: accepted`);
-    viewer.emit('uploaded', body.id);
-    await follow(body.id, ticket);
+    this.showWarnings(body.warnings);
+    this.say(`${body.main ?? files[0].name}: accepted`);
+    this.viewer.emit('uploaded', body.id);
+    await this.follow(body.id, ticket);
   }
 
-  const run = (files, main) => upload(files, main).catch((error) => fail(0, error.message));
+  run(files, main) {
+    return this.upload(files, main).catch((error) => this.fail(0, error.message));
+  }
 
-  // A real button (focusable, Enter/Space) in front of the hidden file input.
-  button.addEventListener('click', () => input.click());
-  input.addEventListener('change', () => {
-    const files = [...input.files];
-    input.value = '';          // the same files may be chosen again
-    run(files);
-  });
-
-  // Drag-and-drop onto the view.
-  const carriesFiles = (event) => [...(event.dataTransfer?.types ?? [])].includes('Files');
-  viewport.addEventListener('dragenter', (event) => {
-    if (!carriesFiles(event)) return;
-    event.preventDefault();
-    viewport.classList.add('dropping');
-  });
-  viewport.addEventListener('dragover', (event) => {
-    if (!carriesFiles(event)) return;
-    event.preventDefault();                // without it the browser opens the file
-    event.dataTransfer.dropEffect = 'copy';
-  });
-  viewport.addEventListener('dragleave', (event) => {
-    if (!viewport.contains(event.relatedTarget)) viewport.classList.remove('dropping');
-  });
-  viewport.addEventListener('drop', (event) => {
-    event.preventDefault();
-    viewport.classList.remove('dropping');
-    run(event.dataTransfer?.files ?? []);
-  });
-
-  // Files dropped anywhere else must not make the browser navigate to them.
-  for (const type of ['dragover', 'drop']) {
-    window.addEventListener(type, (event) => {
-      if (carriesFiles(event) && !viewport.contains(event.target)) event.preventDefault();
+  wire() {
+    const { button, input, viewport, note, viewer } = this;
+    // A real button (focusable, Enter/Space) in front of the hidden file input.
+    button.addEventListener('click', () => input.click());
+    input.addEventListener('change', () => {
+      const files = [...input.files];
+      input.value = '';          // the same files may be chosen again
+      this.run(files);
     });
+
+    // Drag-and-drop onto the view.
+    const carriesFiles = (event) => [...(event.dataTransfer?.types ?? [])].includes('Files');
+    viewport.addEventListener('dragenter', (event) => {
+      if (!carriesFiles(event)) return;
+      event.preventDefault();
+      viewport.classList.add('dropping');
+    });
+    viewport.addEventListener('dragover', (event) => {
+      if (!carriesFiles(event)) return;
+      event.preventDefault();                // without it the browser opens the file
+      event.dataTransfer.dropEffect = 'copy';
+    });
+    viewport.addEventListener('dragleave', (event) => {
+      if (!viewport.contains(event.relatedTarget)) viewport.classList.remove('dropping');
+    });
+    viewport.addEventListener('drop', (event) => {
+      event.preventDefault();
+      viewport.classList.remove('dropping');
+      this.run(event.dataTransfer?.files ?? []);
+    });
+
+    // Files dropped anywhere else must not make the browser navigate to them.
+    for (const type of ['dragover', 'drop']) {
+      window.addEventListener(type, (event) => {
+        if (carriesFiles(event) && !viewport.contains(event.target)) event.preventDefault();
+      });
+    }
+
+    // The view is stale from the moment another mesh is opened until it is shown.
+    viewer.on('open', () => {
+      viewport.classList.add('stale');
+      note.hidden = false;
+      note.textContent = 'loading the mesh…';
+    });
+    const fresh = () => {
+      viewport.classList.remove('stale');
+      note.hidden = true;
+    };
+    viewer.on('mesh', fresh);
+    viewer.on('scene-shown', fresh);      // a scene (animated.js)
   }
-
-  // The view is stale from the moment another mesh is opened until it is shown.
-  viewer.on('open', () => {
-    viewport.classList.add('stale');
-    note.hidden = false;
-    note.textContent = 'loading the mesh…';
-  });
-  const fresh = () => {
-    viewport.classList.remove('stale');
-    note.hidden = true;
-  };
-  viewer.on('mesh', fresh);
-  viewer.on('scene-shown', fresh);      // a scene (animated.js)
-
-  return { upload: run };
 }

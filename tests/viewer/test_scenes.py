@@ -192,6 +192,10 @@ def test_clip_choice_pause_and_scrub(chromium, server, fox):
     try:
         page.wait_for_function("() => document.querySelector('#clip-select').options.length > 0")
         page.evaluate("lodViewer.settled()")
+        # the scene is the three.js module's ProgressiveScene, its mixer the one played
+        assert page.evaluate("""() => [lodViewer.viewed.object.type,
+            lodViewer.viewed.object.mixer === lodViewer.animated.three.mixer]""") == [
+            "ProgressiveScene", True]
         page.select_option("#clip-select", "1")                 # Walk
         animation = page.evaluate("lodViewer.status().animation")
         assert animation["clip"] == 1 and animation["playing"]

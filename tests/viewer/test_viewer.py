@@ -220,6 +220,41 @@ def test_viewer_levels_equal_the_server_levels(name, chromium, server, tmp_path)
         page.close()
 
 
+# The panel's vertices line ("A / B", "A / B → C").
+VERTICES_JS = """() => [...document.querySelectorAll('#stats tr')]
+    .find((row) => row.cells[0].textContent === 'vertices').cells[1].textContent"""
+
+
+def test_the_panel_is_ui_around_the_module_object(chromium, server):
+    """The viewer shows the three.js module's ProgressiveMesh (issue 26 point 3):
+    the object the page holds is the module's, and a level set on it as an app
+    sets one (setLevel) is the level the panel shows and the server's level."""
+    mesh = upload_and_wait(server, DATA / "spot.obj")
+    page = chromium.new_page(viewport=VIEWPORT)
+    failures = []
+    page.on("pageerror", lambda error: failures.append(error))
+    try:
+        page.goto(f"{server.base_url}/viewer/?mesh={mesh['id']}")
+        page.wait_for_function("() => window.lodViewer?.status().level != null")
+        status = page.evaluate("lodViewer.settled()")
+        held = page.evaluate("""() => { const object = lodViewer.viewed.object;
+            return { type: object.type, level: object.level, full: object.fullLevel,
+                     inScene: object.parent === lodViewer.scene.three.scene,
+                     drawn: object.mesh === lodViewer.scene.three.mesh }; }""")
+        assert held == {"type": "ProgressiveMesh", "level": status["level"],
+                        "full": mesh["vertices"], "inScene": True, "drawn": True}, held
+        level = (mesh["base_vertices"] + mesh["vertices"]) // 3
+        page.evaluate("(n) => lodViewer.viewed.object.setLevel(n)", level)
+        status = page.evaluate("lodViewer.settled()")
+        assert status["level"] == level and status["error"] is None, status
+        assert page.evaluate(VERTICES_JS) == f"{level:,} / {mesh['vertices']:,}"
+        faces, digest = _expected(server, mesh["id"], level)
+        assert status["faces"] == faces and page.evaluate("lodViewer.hash()") == digest
+        assert not failures, failures
+    finally:
+        page.close()
+
+
 LONG_PACKETS_JS = """async ({ id, levels, vertexCapacity, faceCapacity }) => {
   const { LodState } = await import('/viewer/vsplit.js');
   const document = await (await fetch(`/meshes/${id}/lod?vertices=${levels[0]}&format=json`)).json();
