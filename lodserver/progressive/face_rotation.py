@@ -51,12 +51,31 @@ def _turns(faces, parent, face_counts, n0):
 
 def turned_rows(rows: np.ndarray, turn: np.ndarray) -> np.ndarray:
     """(m, 3) ``rows`` (faces or corner wedges), row ``f`` turned left by ``turn[f]``."""
-    slots = (np.arange(3)[None, :] + turn[:, None]) % 3
-    return np.take_along_axis(rows, slots, axis=1)
+    return _turned_rows(np.ascontiguousarray(rows), np.ascontiguousarray(turn, dtype=np.int64))
+
+
+@njit(cache=True, nogil=True)
+def _turned_rows(rows, turn):
+    out = rows.copy()
+    for f in range(rows.shape[0]):
+        r = turn[f]
+        if r:
+            for k in range(3):
+                out[f, k] = rows[f, (k + r) % 3]
+    return out
 
 
 def turned_corners(corners: np.ndarray, turn: np.ndarray) -> np.ndarray:
     """Corner ids ``3 * face + slot`` after :func:`turned_rows`: slot ``j`` of face
     ``f`` is now slot ``(j - turn[f]) % 3``."""
-    face, slot = np.divmod(corners, 3)
-    return 3 * face + (slot - turn[face]) % 3
+    return _turned_corners(np.ascontiguousarray(corners, dtype=np.int64),
+                           np.ascontiguousarray(turn, dtype=np.int64))
+
+
+@njit(cache=True, nogil=True)
+def _turned_corners(corners, turn):
+    out = np.empty_like(corners)
+    for i in range(corners.shape[0]):
+        face, slot = corners[i] // 3, corners[i] % 3
+        out[i] = 3 * face + (slot - turn[face]) % 3
+    return out
