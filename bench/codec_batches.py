@@ -1,9 +1,10 @@
 """Version 4 with the batch schedule of the ``batches`` branch: bytes base -> full.
 
-The batched meshes are built by that branch's code (``BuildOptions.batched``) into
-bench/out/codec/NAME-batched.pm with their batch ids beside (NAME-batched-ids.npy);
-this checkout's reader skips the schedule block, so the ids are passed to
-``encode_packet_v4(batch=...)``. Prints, per mesh at ``bits=14``: v3, v4 with one
+The batched meshes were built by that branch's code (``BuildOptions.batched``) into
+bench/out/codec/NAME-batched.pm with their batch ids beside (NAME-batched-ids.npy),
+when this checkout's reader skipped the schedule block; a batched build now carries
+its schedule (``split_batch``), which is used when the ids file is absent
+(``bench/codec_levers.py`` measures the merged code's batched builds). Prints, per mesh at ``bits=14``: v3, v4 with one
 batch per split, v4 with the schedule (whole packet base -> full), and the vertex
 stream's bytes per split each way; then the streamed bytes as bench/codec.py counts
 them.
@@ -49,11 +50,13 @@ def main(names):
     from lodserver.progressive.mesh import ProgressiveMesh
     for name in names:
         pm = ProgressiveMesh.load(OUT / f"{name}-batched.pm")
-        ids = np.load(OUT / f"{name}-batched-ids.npy")
+        saved = OUT / f"{name}-batched-ids.npy"
+        ids = np.load(saved) if saved.exists() else pm.split_batch
         n0, n = pm.base_vertices, pm.vertex_count
         splits = n - n0
         v3 = len(encode_packet(pm, n0, n, bits=14))
-        plain = len(encode_packet_v4(pm, n0, n, bits=14))
+        one_each = np.arange(splits)
+        plain = len(encode_packet_v4(pm, n0, n, bits=14, batch=one_each))
         data = encode_packet_v4(pm, n0, n, bits=14, batch=ids)
         state = apply_packet(quantized_level(pm, n0, grid_of(pm, bits=14)), decode_packet_v4(data))
         exact = np.array_equal(state.positions, quantized_level(pm, n, grid_of(pm, bits=14)).positions)
@@ -64,7 +67,7 @@ def main(names):
               f"{(one['vertex'][1] + one['batch'][1]) / splits:.3f} -> "
               f"{(runs['vertex'][1] + runs['batch'][1]) / splits:.3f} B/split")
         streamed = [stream_bytes(pm, 14, encode) for encode in (
-            encode_packet, encode_packet_v4,
+            encode_packet, lambda *a, **k: encode_packet_v4(*a, batch=one_each, **k),
             lambda *a, **k: encode_packet_v4(*a, batch=ids, **k))]
         print(f"  streamed (base json gz + packets of 8192): v3 {streamed[0]} B, v4 {streamed[1]} B, "
               f"v4 batched {streamed[2]} B")

@@ -64,7 +64,8 @@ def encode_packet_v4(pm: ProgressiveMesh, start: int, stop: int, *, bits: int | 
         As for :func:`~lodserver.packets.encode.encode_packet`.
     batch : (pm.split_count,) int array, optional
         The batch of every split (non-decreasing; within a batch ``vs`` ascending):
-        a run of one batch codes its ``vs`` as gaps. Default: every split its own batch.
+        a run of one batch codes its ``vs`` as gaps. Default: the mesh's own
+        schedule (``pm.split_batch``, a batched build), else every split its own batch.
     flags : int
         Which codings to use: :data:`~.format.EDGE_POSITIONS`,
         :data:`~.format.MAGNITUDE_CONTEXTS` (default :data:`DEFAULT_FLAGS`).
@@ -86,6 +87,7 @@ def encode_packet_v4(pm: ProgressiveMesh, start: int, stop: int, *, bits: int | 
     forward = stop > start
     records = abs(stop - start)
     n0, n = pm.base_vertices, pm.vertex_count
+    batch = pm.split_batch if batch is None else batch
     if batch is not None:
         batch = np.asarray(batch, dtype=np.int64)
         if batch.shape != (n - n0,) or (len(batch) > 1 and np.any(np.diff(batch) < 0)):

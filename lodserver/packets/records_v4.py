@@ -7,7 +7,7 @@ at a multiple of ``encode_v4.SEGMENT_RECORDS`` records. So the packet
 two partial ones coded afresh from the slices of version 3's
 :class:`~lodserver.packets.records.RecordStreams` (which hold every record's
 fields). The bytes are those of :func:`~lodserver.packets.encode_v4.encode_packet_v4`
-at the default grids, codings and batches.
+at the default grids, codings and batches (the mesh's own schedule).
 """
 
 from __future__ import annotations
@@ -33,7 +33,7 @@ _lock = threading.Lock()
 def packet_between_v4(pm: ProgressiveMesh, start: int, stop: int, *,
                       bits: int | None = None) -> bytes:
     """The version 4 packet ``start -> stop`` of :func:`~.encode_v4.encode_packet_v4`
-    (default codings, one batch per split), from cached records and segments.
+    (default codings, the mesh's own batches), from cached records and segments.
     Other grids are encoded directly."""
     start, stop = pm.check_level(start), pm.check_level(stop)
     if start == stop or (bits is not None and check_bits(bits) != default_bits(pm)):
@@ -44,6 +44,7 @@ def packet_between_v4(pm: ProgressiveMesh, start: int, stop: int, *,
     first, last = (start - n0, stop - n0) if forward else (n - start, n - stop)
     grid, grids = grid_of(pm), attribute_grids_of(pm)
     flags = encode_v4.DEFAULT_FLAGS
+    batch = pm.split_batch
     layout = shapes(grids, pm.face_material is not None, forward, flags)
     size = encode_v4.SEGMENT_RECORDS
     with _lock:
@@ -54,8 +55,9 @@ def packet_between_v4(pm: ProgressiveMesh, start: int, stop: int, *,
         whole = a % size == 0 and b - a == size
         coded = kept.get(a // size) if whole else None
         if coded is None:
+            ids = None if batch is None or not forward else batch[a:b]
             coded = encode_v4.segment_bytes(records.slices(a, b), n0 + a if forward else None,
-                                            None, flags, layout)
+                                            ids, flags, layout)
             if whole:
                 kept[a // size] = coded      # the same bytes whichever thread wins
         segments.append(coded)

@@ -7,7 +7,8 @@ Layout (Hoppe 1996, renumbered so that every level is a prefix):
   A level is named by its vertex count ``v`` in ``[n0, n]``; it uses
   ``positions[:v]``.
 - Faces are numbered so the base faces come first and each split appends the
-  faces it creates; level ``v`` uses the first ``face_counts[v - n0]`` faces.
+  faces it creates (each starting at its corner on ``vs``: ``face_rotation``);
+  level ``v`` uses the first ``face_counts[v - n0]`` faces.
 - ``parent[t]`` is the vertex that split ``t`` splits (``vs``), always ``< t``;
   collapsing ``t`` merges it back into ``parent[t]``. The parents form Hoppe's
   vertex hierarchy: a face corner that reads ``x`` at full detail reads, at
@@ -54,6 +55,7 @@ from ..mesh import Attributes, Materials, Mesh, take_rows
 from ..overlap import both
 from .artefact import (ARRAYS, STORED_FIELDS, WEDGE_ARRAYS, ArtefactError, decode_artefact,
                        encode_artefact, read_artefact, write_artefact)
+from .face_rotation import new_face_turns, turned_corners, turned_rows
 from .replay import Cursor, ancestor_below
 from .renumber import (
     hierarchy,
@@ -509,6 +511,11 @@ def from_collapse_log(mesh: Mesh, log: CollapseLog, metadata=None,
     appearance = {}
     if mesh.attributes is not None:
         appearance = _renumber_wedges(mesh.attributes, log, face_order)
+    # a codec then need not say where each new face starts
+    turn = new_face_turns(faces, parent, face_counts, n0)
+    faces, moved_corners = turned_rows(faces, turn), turned_corners(moved_corners, turn)
+    if "corner_wedges" in appearance:
+        appearance["corner_wedges"] = turned_rows(appearance["corner_wedges"], turn)
     if mesh.face_material is not None:
         appearance["face_material"] = mesh.face_material[face_order]
     return ProgressiveMesh(

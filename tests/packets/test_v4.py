@@ -39,6 +39,9 @@ ALL_FLAGS = (0, EDGE_POSITIONS, MAGNITUDE_CONTEXTS, EDGE_POSITIONS | MAGNITUDE_C
 
 @cache
 def _pm(name):
+    if name.endswith("+batched"):         # the same mesh built with its splits in batches
+        from lodserver.progressive.batches import schedule
+        return schedule(_pm(name.removesuffix("+batched"))).pm
     if name == "every_attribute":
         return every_attribute_pm()
     if name == "book":
@@ -127,6 +130,21 @@ def test_batch_runs_decode_to_the_same_splits(longest):
     batch = _ascending_runs(pm, longest)
     for a, b in ((n0, n), (n0 + 5, n - 9), (n, n0)):
         _check(pm, a, b, batch=batch)
+
+
+@pytest.mark.parametrize("name", ["spot+batched", "every_attribute+batched", "materials+batched"])
+def test_a_batched_build_codes_its_own_schedule(name):
+    # encode_packet_v4 and packet_between_v4 take the mesh's schedule by default:
+    # runs of gaps, exact both ways, and fewer bytes than one batch per split
+    from lodserver.packets.records_v4 import packet_between_v4
+    pm = _pm(name)
+    n0, n = pm.base_vertices, pm.vertex_count
+    assert pm.split_batch is not None and pm.split_batch[-1] + 1 < n - n0
+    for a, b in ((n0, n), (n, n0), (n0 + 5, n - 9), ((n0 + n) // 2, n0 + 1)):
+        data = _check(pm, a, b)
+        assert packet_between_v4(pm, a, b) == data
+    one_each = encode_packet_v4(pm, n0, n, batch=np.arange(n - n0))
+    assert len(_check(pm, n0, n)) < len(one_each)
 
 
 def test_a_batch_with_descending_vertices_is_refused():
@@ -262,7 +280,7 @@ def test_the_split_edge_is_an_exact_rewrite(rows):
 def test_packets_cut_from_kept_segments_are_the_encoded_packets(data):
     from lodserver.packets import encode_v4
     from lodserver.packets.records_v4 import packet_between_v4
-    pm = _pm(data.draw(st.sampled_from(["every_attribute", "materials"])))
+    pm = _pm(data.draw(st.sampled_from(["every_attribute", "materials", "spot+batched"])))
     size = data.draw(st.sampled_from([64, 8192]))
     levels = st.integers(pm.base_vertices, pm.vertex_count)
     a, b = data.draw(levels), data.draw(levels)

@@ -161,6 +161,9 @@ def _scene_pm(name, index=None):
 
 @cache
 def _pm(name):
+    if name.endswith("+batched"):         # built with its splits in batches: coded as runs
+        from lodserver.progressive.batches import schedule
+        return schedule(_pm(name.removesuffix("+batched"))).pm
     if name == "every_attribute":
         return every_attribute_pm()
     if name in ("Fox.glb", "AnimatedMorphCube.glb"):
@@ -225,7 +228,8 @@ def _chain(pm, flag_cycle=(E, 0, E | M, M)):
 
 
 @pytest.mark.parametrize("name", ["spot", "stanford-bunny.obj", "Duck.glb", "Fox.glb",
-                                  "AnimatedMorphCube.glb", "every_attribute"])
+                                  "AnimatedMorphCube.glb", "every_attribute",
+                                  "every_attribute+batched"])
 def test_v4_packets_land_where_the_reference_and_v3_do(page, name):
     pm = _pm(name)
     _run(page, pm, _chain(pm))
