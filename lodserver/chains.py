@@ -84,7 +84,9 @@ class Exported:
 # A level whose edge-collapse mesh overshoots its face budget by more than this is
 # out of reach of edge collapse (locked, non-manifold or separate parts).
 REACH_SLACK = 1.1
-REACH_METHODS = ("none", "cluster")
+REACH_METHODS = ("none", "cluster", "merge")
+# What a chain by ratios does where edge collapse stops short, unless told.
+DEFAULT_REACH = "merge"
 
 
 def check_reach(reach: str) -> str:
@@ -93,7 +95,7 @@ def check_reach(reach: str) -> str:
     return reach
 
 
-def lod_chain(pm: ProgressiveMesh, lods=DEFAULT_LODS, *, reach: str = "none"):
+def lod_chain(pm: ProgressiveMesh, lods=DEFAULT_LODS, *, reach: str = DEFAULT_REACH):
     """The levels of ``pm`` at face ratios ``lods`` (finest first).
 
     Returns ``(meshes, coverage, clustered)``: the meshes, their screen coverage
@@ -103,21 +105,32 @@ def lod_chain(pm: ProgressiveMesh, lods=DEFAULT_LODS, *, reach: str = "none"):
     """
     ratios = check_lods(lods)
     check_reach(reach)
-    meshes, clustered, full = [], [], None
+    meshes, clustered = [], []
     for ratio in ratios:
         mesh = pm.at(pm.level_for(ratio=ratio))
         budget = max(1, round(ratio * pm.face_count))
-        if reach == "cluster" and mesh.face_count > REACH_SLACK * budget:
-            from .simplify.cluster import cluster
-            if full is None:
-                full = pm.at(pm.vertex_count)
-                full = Mesh(full.positions, full.faces)
-            joined = cluster(full, target_faces=budget)
-            if joined.face_count < mesh.face_count:
+        if reach != "none" and mesh.face_count > REACH_SLACK * budget:
+            joined = _reached(pm, budget, reach)
+            if joined is not None and joined.face_count < mesh.face_count:
                 mesh = joined
                 clustered.append(len(meshes))
         meshes.append(mesh)
     return meshes, coverage_from_ratios(ratios), clustered
+
+
+def _reached(pm: ProgressiveMesh, budget: int, reach: str) -> Mesh | None:
+    """The level ``reach`` makes of ``pm``'s full mesh at ``budget`` faces, or None
+    where clustering keeps no face (a part of a few faces asked for fewer)."""
+    from .bake.level import merged_level
+    from .simplify.cluster import cluster
+
+    full = pm.at(pm.vertex_count)
+    try:
+        if reach == "merge":
+            return merged_level(full, budget)
+        return cluster(Mesh(full.positions, full.faces), target_faces=budget)
+    except MeshError:
+        return None
 
 
 def error_chain(pm: ProgressiveMesh, errors):
@@ -166,9 +179,12 @@ class ChainOptions:
         ``STEM_LOD0``... under a root ``STEM``, all in the scene) or ``"both"``. With
         ``separate`` each file's node is ``STEM_LODi`` whatever it says. A scene's
         levels are linked by ``MSFT_lod`` only.
-    reach : str
-        ``"none"``: a level edge collapse cannot bring down to its budget stays
-        at the coarsest it reaches. ``"cluster"``: such a level is made by vertex
+    reach : str, optional
+        ``"merge"`` (the default with ``lods``): a level edge collapse cannot
+        bring down to its budget is the full mesh remeshed by vertex clustering
+        to within 10% of the budget (``bake.level.merged_level``), joining parts
+        and closing small gaps. ``"none"`` (the default with ``errors``): such a
+        level stays at the coarsest edge collapse reaches. ``"cluster"``: such a level is made by vertex
         clustering of the full mesh instead (``cluster.cluster``), which joins
         parts and meets the budget but keeps positions only (no UVs, normals or
         materials: a textured asset's far level is drawn untextured). Not with
@@ -179,11 +195,14 @@ class ChainOptions:
     errors: tuple[float, ...] | None = None
     per_mesh: bool = False
     separate: bool = False
-    reach: str = "none"
+    reach: str | None = None
     compress: str = "none"
     naming: str = "msft"
 
     def __post_init__(self):
+        if self.reach is None:
+            object.__setattr__(self, "reach", "none" if self.errors is not None
+                               else DEFAULT_REACH)
         check_reach(self.reach)
         check_compress(self.compress)
         if self.naming not in LOD_NAMINGS:

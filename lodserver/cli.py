@@ -22,6 +22,7 @@ from .io import SUPPORTED_OUTPUT
 from .io.glb import COMPRESSIONS, DEFAULT_COMPRESS, LOD_NAMINGS
 from .mesh import MeshError
 from .options import METHODS, BuildOptions, Flag, describe_error, field_default_text
+from .chains import REACH_METHODS
 
 DEFAULT_LODS_TEXT = "1,0.5,0.2,0.05"      # chains.DEFAULT_LODS, without importing it
 
@@ -211,7 +212,7 @@ def _export_usage(args) -> str | None:
         return "give --lods or --error, not both"
     if args.errors is not None and args.per_mesh:
         return "--per-mesh applies to --lods; levels by --error are per mesh already"
-    if args.errors is not None and args.reach != "none":
+    if args.errors is not None and args.reach not in (None, "none"):
         return "--reach meets face budgets, and levels by --error have none"
     if args.errors is not None:
         try:
@@ -275,11 +276,11 @@ def _levels(done) -> str:
     if done.clustered:
         levels = ", ".join(str(i) for i in done.clustered)
         text += (f"; level {levels} by vertex clustering (edge collapse stops at "
-                 f"{done.base_faces} faces), positions only")
+                 f"{done.base_faces} faces)")
     elif done.faces[-1] == done.base_faces and len(set(done.faces[-2:])) == 1:
         # the coarser ratios were out of reach: say so rather than ship copies quietly
         text += (f"; the mesh simplifies no further than {done.base_faces} faces "
-                 f"(locked, non-manifold or separate parts; --reach cluster meets the budget)")
+                 f"(locked, non-manifold or separate parts; --reach merge meets the budget)")
     for note in done.notes:     # what a glTF scene's export kept without levels
         text += f"; {note}"
     return text
@@ -529,11 +530,12 @@ def _parser() -> argparse.ArgumentParser:
                         f"gltfpack -cc's form; the viewer needs a decoder such as three.js's "
                         f"MeshoptDecoder); both in vertex cache and fetch order (default "
                         f"{DEFAULT_COMPRESS})")
-    p.add_argument("--reach", choices=("none", "cluster"), default="none",
+    p.add_argument("--reach", choices=REACH_METHODS, default=None,
                    help="levels edge collapse cannot bring down to their budget (locked, "
-                        "non-manifold or separate parts): keep the coarsest it reaches (none, "
-                        "default) or make them by vertex clustering, which joins parts but "
-                        "keeps positions only (cluster)")
+                        "non-manifold or separate parts): remesh the whole surface by vertex "
+                        "clustering to within 10%% of the budget, joining parts (merge, the "
+                        "default with --lods), keep the coarsest edge collapse reaches (none, "
+                        "the default with --error) or cluster keeping positions only (cluster)")
     p.add_argument("--jobs", type=int, default=1,
                    help="folder source: meshes built at once (default 1; each holds its mesh "
                         "in memory); with --scheduler local, the worker processes")

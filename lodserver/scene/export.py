@@ -75,13 +75,14 @@ def export_scene(scene, source: Path, output: Path, chain: ChainOptions, options
     drawn = [sum(len(instances[index]) * levels[index][k].face_count for index in pms)
              for k in range(count)]
     clustered = set()
-    if chain.reach == "cluster":
+    if chain.reach != "none":
         full_drawn = sum(len(instances[index]) * pm.face_count for index, pm in pms.items())
         for k, ratio in enumerate(lods):
             # per mesh: each mesh over its own budget; scene: the meshes stopped at their
             # base, when the scene is over its budget
             if per_mesh or drawn[k] > REACH_SLACK * max(1, ratio * full_drawn):
-                replaced = _cluster_stuck(pms, chosen_levels[k], levels, k, ratio, per_mesh)
+                replaced = _cluster_stuck(pms, chosen_levels[k], levels, k, ratio, per_mesh,
+                                          chain.reach)
                 if replaced:
                     clustered.add(k)
                     # a clustered level has no collapse error: its measured distance
@@ -114,12 +115,14 @@ def export_scene(scene, source: Path, output: Path, chain: ChainOptions, options
 
 
 def _cluster_stuck(pms: dict, chosen: dict, levels: dict, k: int, ratio: float,
-                   per_mesh: bool) -> dict:
+                   per_mesh: bool, reach: str = "cluster") -> dict:
     """Replace level ``k`` of the meshes edge collapse left short, by clustering of
     the full mesh at ``ratio`` of its faces where that has fewer faces. Short: over
     ``REACH_SLACK`` times its own budget (``per_mesh``, as :func:`lod_chain` does),
-    else stopped at its base. Returns mesh index -> the clustered level's error,
-    mesh units: its sampled two-sided Hausdorff distance to the full mesh."""
+    else stopped at its base. ``reach`` names the method (``ChainOptions.reach``).
+    Returns mesh index -> the clustered level's error, mesh units: its sampled
+    two-sided Hausdorff distance to the full mesh."""
+    from ..bake.level import merged_level
     from ..metrics.surface import surface_distance
     from ..simplify.cluster import cluster
 
@@ -131,15 +134,16 @@ def _cluster_stuck(pms: dict, chosen: dict, levels: dict, k: int, ratio: float,
         if not short:
             continue
         full = pm.at(pm.vertex_count)
-        full = Mesh(full.positions, full.faces)
         try:
-            joined = cluster(full, target_faces=budget)
+            joined = (merged_level(full, budget) if reach == "merge" else
+                      cluster(Mesh(full.positions, full.faces), target_faces=budget))
         except MeshError:
             continue    # clustering cannot bring a tiny part (a few faces) to its budget
         if joined.face_count < levels[index][k].face_count:
             levels[index][k] = joined
             try:
-                distance = surface_distance(full, joined, samples=20_000)
+                distance = surface_distance(Mesh(full.positions, full.faces), joined,
+                                            samples=20_000)
                 replaced[index] = distance["hausdorff"] * distance["diagonal"]
             except ValueError:      # a flat or degenerate part: no area to sample
                 replaced[index] = pm.error_at_level(pm.base_vertices)
