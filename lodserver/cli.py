@@ -238,7 +238,8 @@ def _cmd_export(args) -> int:
     else:
         ratios, errors = parse_lods(args.lods or DEFAULT_LODS_TEXT), None
     chain = ChainOptions(lods=ratios, errors=errors, per_mesh=args.per_mesh,
-                         separate=args.separate, reach=args.reach, compress=args.compress,
+                         separate=args.separate, reach=args.reach, atlas=args.atlas_size,
+                         compress=args.compress,
                          naming=args.lod_naming)
     options = options_from(args)
     if is_url(args.source) or Path(args.source).is_dir():
@@ -536,6 +537,9 @@ def _parser() -> argparse.ArgumentParser:
                         "clustering to within 10%% of the budget, joining parts (merge, the "
                         "default with --lods), keep the coarsest edge collapse reaches (none, "
                         "the default with --error) or cluster keeping positions only (cluster)")
+    p.add_argument("--atlas-size", type=int, default=None, metavar="TEXELS",
+                   help="the side of a merged level's baked atlas (--reach merge; default: "
+                        "from the level's screen coverage, 64 to 2048)")
     p.add_argument("--jobs", type=int, default=1,
                    help="folder source: meshes built at once (default 1; each holds its mesh "
                         "in memory); with --scheduler local, the worker processes")

@@ -10,10 +10,11 @@ document is written back with every mesh replaced by its levels
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from pathlib import Path
 
-from ..chains import REACH_SLACK, ChainOptions, Exported
+from ..chains import REACH_SLACK, ChainOptions, Exported, joined_materials
 from ..io import write_atomic
 from ..io.scene_glb import encode_scene
 from ..mesh import Mesh, MeshError
@@ -96,11 +97,11 @@ def export_scene(scene, source: Path, output: Path, chain: ChainOptions, options
     coverage = coverage_from_errors(worst, diagonal) if count else []
     if chain.separate:
         outputs = [output.with_name(f"{output.stem}_lod{i}{output.suffix}") for i in range(count)]
-        blobs = [encode_scene(scene, levels, coverage, level=i, compress=chain.compress)
-                 for i in range(count)]
+        blobs = [encode_scene(*_with_baked(scene, levels, [i]), coverage, level=i,
+                              compress=chain.compress) for i in range(count)]
     else:
-        outputs, blobs = [output], [encode_scene(scene, levels, coverage,
-                                                 compress=chain.compress)]
+        outputs, blobs = [output], [encode_scene(*_with_baked(scene, levels, range(count)),
+                                                 coverage, compress=chain.compress)]
     output.parent.mkdir(parents=True, exist_ok=True)
     for path, blob in zip(outputs, blobs):
         write_atomic(path, blob)
@@ -112,6 +113,28 @@ def export_scene(scene, source: Path, output: Path, chain: ChainOptions, options
     return Exported(source, outputs, faces, coverage, time.perf_counter() - start,
                     base + kept if levels else 0, sorted(clustered), list(scene.notes),
                     [kept_drawn + d for d in drawn], worst)
+
+
+def _with_baked(scene, levels: dict, written) -> tuple:
+    """``(scene, levels)`` to write levels ``written``: the materials of the baked
+    levels among them (``bake.level``, each with its own) appended to the scene's,
+    those levels' faces pointing at them (``chains.joined_materials``)."""
+    baked = [(index, k) for index in levels for k in written
+             if levels[index][k].materials is not None
+             and levels[index][k].materials is not scene.materials]
+    if not baked:
+        return scene, levels
+    materials, moved = joined_materials(scene.materials, [levels[i][k] for i, k in baked])
+    levels = {index: list(chain_) for index, chain_ in levels.items()}
+    for (index, k), (mesh, used) in zip(baked, moved):
+        levels[index][k] = Mesh(mesh.positions, mesh.faces, mesh.attributes, used, materials)
+    for index, chain_ in levels.items():     # every level's faces into the one list
+        for k in written:
+            mesh = chain_[k]
+            if mesh.materials is not materials and mesh.face_material is not None:
+                chain_[k] = Mesh(mesh.positions, mesh.faces, mesh.attributes,
+                                 mesh.face_material, materials)
+    return dataclasses.replace(scene, materials=materials), levels
 
 
 def _cluster_stuck(pms: dict, chosen: dict, levels: dict, k: int, ratio: float,
