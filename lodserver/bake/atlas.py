@@ -25,17 +25,21 @@ def padding(size: int) -> int:
     return int(min(PADDING, max(1, size // 64)))
 
 
-def make_atlas(positions: np.ndarray, faces: np.ndarray, size: int):
-    """Charts of the mesh (positions (n, 3), faces (f, 3)) packed into a ``size``
-    x ``size`` texture.
+def make_atlas(positions: np.ndarray, faces: np.ndarray, size: int, largest: int | None = None):
+    """Charts of the mesh (positions (n, 3), faces (f, 3)) packed into one square
+    texture of ``size`` texels a side, or more where that cannot hold them.
+
+    A clustered level may have hundreds of small charts, each of which takes
+    its padding whatever its size: when they do not fit, the padding drops
+    to one texel, then the side doubles (up to ``largest``, default 4 x size).
 
     Returns
     -------
-    (vertex, uv, corners)
+    (vertex, uv, corners, size)
         ``vertex`` (w,) int64: the mesh vertex of each atlas vertex (a vertex
         on a chart seam appears once per chart); ``uv`` (w, 2) float64 in
         [0, 1], glTF's convention (v down); ``corners`` (f, 3) int64 atlas
-        vertices of each face, in the input's face order.
+        vertices of each face, in the input's face order; ``size`` the side used.
     """
     import xatlas
 
@@ -45,9 +49,29 @@ def make_atlas(positions: np.ndarray, faces: np.ndarray, size: int):
     charts = xatlas.ChartOptions()
     charts.max_iterations = 1        # the default, named so it stays fixed
     charts.fix_winding = True        # clustering may leave charts mirrored
+    largest = largest or 4 * size
+    tries = []
+    side = size
+    while side <= largest:
+        tries += [(side, padding(side)), (side, 1)]
+        side *= 2
+    for side, pad in tries:
+        packed = _pack(atlas, charts, side, pad)
+        if packed is not None:
+            vertex, corners, uv = packed
+            return (np.asarray(vertex, dtype=np.int64), uv,
+                    np.asarray(corners, dtype=np.int64).reshape(-1, 3), side)
+    raise MeshError(f"the far level's charts do not fit one {largest}x{largest} atlas")
+
+
+def _pack(atlas, charts, size: int, pad: int):
+    """xatlas's charts in one ``size`` square with ``pad`` texels between them:
+    ``(vertex, corners, uv)``, or None when they do not fit."""
+    import xatlas
+
     pack = xatlas.PackOptions()
     pack.resolution = int(size)
-    pack.padding = padding(size)
+    pack.padding = pad
     pack.bilinear = True
     pack.blockAlign = False
     pack.bruteForce = False
@@ -56,24 +80,25 @@ def make_atlas(positions: np.ndarray, faces: np.ndarray, size: int):
     # resolution: its packed rectangle, scaled to the square, then smaller
     # until the charts fit one square
     atlas.generate(chart_options=charts, pack_options=pack, verbose=False)
-    scale = atlas.texels_per_unit * _FIT_SHRINK * size / max(atlas.width, atlas.height, 1)
+    scale = first = atlas.texels_per_unit * _FIT_SHRINK * size / max(atlas.width, atlas.height, 1)
     for _ in range(_FIT_STEPS):
         pack.texels_per_unit = float(scale)
         atlas.generate(chart_options=charts, pack_options=pack, verbose=False)
         if atlas.atlas_count == 1 and atlas.width <= size and atlas.height <= size:
-            break
+            vertex, corners, uv = atlas[0]
+            return vertex, corners, np.asarray(uv, dtype=np.float64) * [
+                atlas.width / size, atlas.height / size]
+        if atlas.atlas_count > 1 and scale < _SMALLEST * first:
+            break       # the padding, not the charts, fills the square
         scale *= _FIT_SHRINK / np.sqrt(max(atlas.atlas_count, 1))
-    else:
-        raise MeshError(f"the far level's charts do not fit one {size}x{size} atlas")
-    vertex, corners, uv = atlas[0]
-    uv = np.asarray(uv, dtype=np.float64) * [atlas.width / size, atlas.height / size]
-    return (np.asarray(vertex, dtype=np.int64), uv,
-            np.asarray(corners, dtype=np.int64).reshape(-1, 3))
+    return None
 
 
-# make_atlas's fitting: tries, and how much smaller each asks for than the last
+# make_atlas's fitting: tries, how much smaller each asks for than the last, and
+# the scale below which it is the padding that does not fit
 _FIT_STEPS = 6
 _FIT_SHRINK = 0.97
+_SMALLEST = 0.25
 
 
 def rasterize(uv: np.ndarray, corners: np.ndarray, size: int):

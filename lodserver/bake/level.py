@@ -74,7 +74,7 @@ def bake_level(full: Mesh, level: Mesh, size: int) -> Mesh:
     positions = np.asarray(level.positions, dtype=np.float64)
     faces = _oriented(positions, np.asarray(level.faces), surface, look)
     vertex_normals = _vertex_normals(positions, faces)
-    vertex, uv, corners = make_atlas(positions, faces, size)
+    vertex, uv, corners, size = make_atlas(positions, faces, size)
     faces = vertex[corners]              # xatlas may turn a face to fix its chart's winding
     normal = vertex_normals[vertex]
     tangent = wedge_tangents(positions, faces, corners, uv, normal)
@@ -89,9 +89,7 @@ def bake_level(full: Mesh, level: Mesh, size: int) -> Mesh:
     unit = n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-300)
     source_face, source_bary = surface.nearest(point, unit)
     channels = look.channels(source_face, source_bary, surface.normals)
-    # the full surface's normal as seen from the level's side (a thin part's back)
-    shading = channels["normal"]
-    shading *= np.where(np.sum(shading * unit, axis=1, keepdims=True) < 0, -1.0, 1.0)
+    shading = _towards(channels["normal"], _face_normals(positions, faces)[f])
     maps = _maps(look, channels, encode_normals(shading, n, t, bt))
     images, textures, material = [], [], _material(look)
     for key, (values, slot) in maps.items():
@@ -106,6 +104,30 @@ def bake_level(full: Mesh, level: Mesh, size: int) -> Mesh:
             "images": [{"mimeType": "image/png", "name": f"baked_{key}"} for key in maps]}
     return Mesh(positions, faces, attributes, np.zeros(len(faces), np.int32),
                 Materials(gltf, tuple(images)))
+
+
+# The most a baked normal may lean from its far-level face: a coarse face across a
+# thin part sees the part's sides edge-on, and drawing those would darken it.
+MAX_LEAN = np.radians(70.0)
+
+
+def _face_normals(positions, faces) -> np.ndarray:
+    corner = positions[faces]
+    own = np.cross(corner[:, 1] - corner[:, 0], corner[:, 2] - corner[:, 0])
+    return own / np.maximum(np.linalg.norm(own, axis=1, keepdims=True), 1e-300)
+
+
+def _towards(shading: np.ndarray, face: np.ndarray) -> np.ndarray:
+    """Unit normals ``shading`` (p, 3) on the side of their far-level faces' unit
+    normals ``face`` (p, 3) (the full surface seen from the level's side: a thin
+    part's back), leaning at most :data:`MAX_LEAN` from them. The renderer turns
+    both for a face seen from behind (double-sided), so the front is what counts."""
+    shading = shading * np.where(np.sum(shading * face, axis=1, keepdims=True) < 0, -1.0, 1.0)
+    cos = np.sum(shading * face, axis=1, keepdims=True)
+    across = shading - face * cos
+    across /= np.maximum(np.linalg.norm(across, axis=1, keepdims=True), 1e-300)
+    leaned = face * np.cos(MAX_LEAN) + across * np.sin(MAX_LEAN)
+    return np.where(cos < np.cos(MAX_LEAN), leaned, shading)
 
 
 def _oriented(positions, faces, surface, look) -> np.ndarray:

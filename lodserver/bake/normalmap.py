@@ -72,8 +72,8 @@ def encode_normals(target: np.ndarray, normal: np.ndarray, tangent: np.ndarray,
                    bitangent: np.ndarray) -> np.ndarray:
     """(p, 3) texel values in [0, 1] of unit normals ``target`` (p, 3) in the
     frame a renderer builds from interpolated ``tangent``, ``bitangent`` and
-    ``normal`` (each (p, 3), normalised here as a shader does): the (x, y, z)
-    with ``normalize(T x + B y + N z) = target``, z kept above the surface."""
+    ``normal`` (each (p, 3), normalised here as a shader does): the unit
+    (x, y, z) with ``normalize(T x + B y + N z) = target``."""
     unit = [v / np.maximum(np.linalg.norm(v, axis=1, keepdims=True), 1e-300)
             for v in (tangent, bitangent, normal)]
     frame = np.stack(unit, axis=2)              # (p, 3, 3), columns T, B, N
@@ -81,7 +81,7 @@ def encode_normals(target: np.ndarray, normal: np.ndarray, tangent: np.ndarray,
     frame[bad] = np.eye(3)
     local = np.linalg.solve(frame, target[:, :, None])[:, :, 0]
     local[bad] = [0.0, 0.0, 1.0]
-    # a normal facing away from the far level's surface cannot be drawn on it
-    local[:, 2] = np.maximum(local[:, 2], 0.05)
-    local /= np.linalg.norm(local, axis=1, keepdims=True)
+    # z may be negative: where the interpolated normal runs against the face
+    # (vertices shared by the two sides of a thin part), the map turns it back
+    local /= np.maximum(np.linalg.norm(local, axis=1, keepdims=True), 1e-300)
     return local * 0.5 + 0.5

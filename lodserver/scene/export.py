@@ -16,6 +16,7 @@ from pathlib import Path
 
 from ..chains import REACH_SLACK, ChainOptions, Exported, joined_materials
 from ..io import write_atomic
+from ..io.glb import encode_glb
 from ..io.scene_glb import encode_scene
 from ..mesh import Mesh, MeshError
 from .budget import chain_levels, coverage_from_errors, scene_instances, world_errors
@@ -76,11 +77,15 @@ def export_scene(scene, source: Path, output: Path, chain: ChainOptions, options
     drawn = [sum(len(instances[index]) * levels[index][k].face_count for index in pms)
              for k in range(count)]
     clustered = set()
+    merged = _merge_static(scene, chain, drawn, worst, diagonal) if lods else {}
+    clustered.update(merged)
     if chain.reach != "none":
         full_drawn = sum(len(instances[index]) * pm.face_count for index, pm in pms.items())
         for k, ratio in enumerate(lods):
             # per mesh: each mesh over its own budget; scene: the meshes stopped at their
             # base, when the scene is over its budget
+            if k in merged:
+                continue
             if per_mesh or drawn[k] > REACH_SLACK * max(1, ratio * full_drawn):
                 replaced = _cluster_stuck(pms, chosen_levels[k], levels, k, ratio, per_mesh,
                                           chain.reach)
@@ -92,12 +97,16 @@ def export_scene(scene, source: Path, output: Path, chain: ChainOptions, options
                                                for index, error in replaced.items()))
         drawn = [sum(len(instances[index]) * levels[index][k].face_count for index in pms)
                  for k in range(count)]
+    for k, (mesh, error) in merged.items():
+        drawn[k], worst[k] = mesh.face_count, error
     kept_drawn = sum(scene.as_is_faces[index] * len(scene.mesh_nodes.get(index, ()))
                      for index in scene.as_is)
     coverage = coverage_from_errors(worst, diagonal) if count else []
     if chain.separate:
         outputs = [output.with_name(f"{output.stem}_lod{i}{output.suffix}") for i in range(count)]
-        blobs = [encode_scene(*_with_baked(scene, levels, [i]), coverage, level=i,
+        blobs = [encode_glb(merged[i][0], chain.compress, name=f"{output.stem}_LOD{i}")
+                 if i in merged else
+                 encode_scene(*_with_baked(scene, levels, [i]), coverage, level=i,
                               compress=chain.compress) for i in range(count)]
     else:
         outputs, blobs = [output], [encode_scene(*_with_baked(scene, levels, range(count)),
@@ -106,13 +115,51 @@ def export_scene(scene, source: Path, output: Path, chain: ChainOptions, options
     for path, blob in zip(outputs, blobs):
         write_atomic(path, blob)
     kept = sum(scene.as_is_faces.values())
-    faces = [kept + sum(chain_[k].face_count for chain_ in levels.values()) for k in range(count)]
+    faces = [merged[k][0].face_count if k in merged else
+             kept + sum(chain_[k].face_count for chain_ in levels.values()) for k in range(count)]
     base = sum(pm.faces_at_level(pm.base_vertices) for pm in pms.values())
     # base_faces: the coarsest the simplified meshes reach, with the kept ones beside them
     # (0 when nothing was simplified: no "simplifies no further" for a skinned asset)
     return Exported(source, outputs, faces, coverage, time.perf_counter() - start,
                     base + kept if levels else 0, sorted(clustered), list(scene.notes),
                     [kept_drawn + d for d in drawn], worst)
+
+
+def _merge_static(scene, chain: ChainOptions, drawn: list, worst: list, diagonal: float) -> dict:
+    """Levels of a static scene (``merge.static_reason``) that edge collapse leaves
+    over budget, as one mesh each: every part placed in the world, remeshed and
+    baked (``bake.level.merged_level``). Only with ``reach="merge"``, a whole-scene
+    budget and ``separate`` files: one file's ``MSFT_lod`` chains are per node, so a
+    chain keeps each part's own levels. Returns level -> (mesh, its error: the
+    sampled two-sided Hausdorff distance to the full scene, world units)."""
+    from ..bake.level import merged_level
+    from ..metrics.surface import surface_distance
+    from .merge import static_reason, world_mesh
+
+    if chain.reach != "merge" or chain.per_mesh or not chain.separate \
+            or static_reason(scene) is not None:
+        return {}
+    world, merged = None, {}
+    hints = coverage_from_errors(worst, diagonal)
+    for k, ratio in enumerate(chain.lods):
+        if world is None:
+            world = world_mesh(scene)
+        budget = max(1, round(ratio * world.face_count))
+        if drawn[k] <= REACH_SLACK * budget:
+            continue
+        try:
+            mesh = merged_level(world, budget, atlas=chain.atlas,
+                                coverage=hints[k - 1] if k else 1.0)
+        except MeshError:
+            continue        # a scene of a few faces asked for fewer
+        try:
+            distance = surface_distance(Mesh(world.positions, world.faces),
+                                        Mesh(mesh.positions, mesh.faces), samples=20_000)
+            error = distance["hausdorff"] * distance["diagonal"]
+        except ValueError:      # flat or degenerate: no area to sample
+            error = worst[k]
+        merged[k] = (mesh, max(error, worst[k - 1] if k else 0.0))
+    return merged
 
 
 def _with_baked(scene, levels: dict, written) -> tuple:
@@ -157,6 +204,10 @@ def _cluster_stuck(pms: dict, chosen: dict, levels: dict, k: int, ratio: float,
         if not short:
             continue
         full = pm.at(pm.vertex_count)
+        if reach == "merge" and full.attributes is not None and any(
+                name.startswith(("JOINTS", "WEIGHTS", "TARGET"))
+                for name, _ in full.attributes.layout):
+            continue    # a skinned or morphed part stays a part: clustering drops its skin
         try:
             joined = (merged_level(full, budget) if reach == "merge" else
                       cluster(Mesh(full.positions, full.faces), target_faces=budget))

@@ -229,3 +229,52 @@ def test_an_exported_chain_with_a_merged_level_is_valid(tmp_path, gltf_validator
     done = export_lods(source, tmp_path / "chain.glb", lods=(1, 0.02))
     assert done.clustered == [1]
     assert_valid(gltf_validator, (tmp_path / "chain.glb").read_bytes(), "a chain, merged")
+
+
+def static_scene(path: Path) -> Path:
+    """A glTF scene of 40 small spheres, each its own node (one mesh, one material
+    of its own colour): the parts a static building or vehicle is made of."""
+    from ..io.test_scene import _append, pack_glb
+
+    ball = trimesh.creation.icosphere(2)
+    rng = np.random.default_rng(7)
+    document = {"asset": {"version": "2.0"}, "bufferViews": [], "accessors": [],
+                "meshes": [], "materials": [], "nodes": []}
+    binary = bytearray()
+    position = _append(document, binary, ball.vertices * 0.5, "VEC3", target=34962, bounds=True)
+    normal = _append(document, binary, ball.vertex_normals, "VEC3", target=34962)
+    indices = _append(document, binary, ball.faces.ravel(), "SCALAR", component=5125,
+                      target=34963)
+    for k in range(40):
+        document["materials"].append({"pbrMetallicRoughness": {
+            "baseColorFactor": [*rng.random(3).tolist(), 1.0], "metallicFactor": 0.0}})
+        document["meshes"].append({"primitives": [{
+            "attributes": {"POSITION": position, "NORMAL": normal}, "indices": indices,
+            "material": k}]})
+        document["nodes"].append({"mesh": k, "translation": (rng.random(3) * 8).tolist()})
+    document.update(scene=0, scenes=[{"nodes": list(range(40))}])
+    path.write_bytes(pack_glb(document, bytes(binary)))
+    return path
+
+
+def test_a_static_scene_far_level_is_one_draw_call(tmp_path, gltf_validator):
+    from ..conftest import glb_chunks
+
+    source = static_scene(tmp_path / "parts.glb")
+    lods = (1, 0.01)
+    done = export_lods(source, tmp_path / "out.glb", lods=lods, separate=True)
+    budget = round(lods[1] * done.drawn[0])
+    assert abs(done.drawn[1] - budget) <= WINDOW * budget, (done.drawn, budget)
+    far = done.outputs[1].read_bytes()
+    document, _ = glb_chunks(far)
+    assert len(document["meshes"]) == 1 and len(document["meshes"][0]["primitives"]) == 1
+    assert len(document["materials"]) == 1
+    assert_valid(gltf_validator, far, "a static scene's merged far level")
+    # the parts' colours are in the atlas: many distinct colours, not one grey
+    _, binary = glb_chunks(far)
+    texture = document["materials"][0]["pbrMetallicRoughness"]["baseColorTexture"]["index"]
+    view = document["bufferViews"][document["images"][document["textures"][texture]["source"]]
+                                   ["bufferView"]]
+    start = view.get("byteOffset", 0)
+    pixels = decode(binary[start:start + view["byteLength"]])
+    assert len(np.unique(np.rint(pixels[..., :3] * 255).reshape(-1, 3), axis=0)) > 20
