@@ -96,14 +96,25 @@ def gltfpack(gltfpack_bin: Path, source: Path, out: Path, target: int, base: int
             "seconds": best["seconds"]}
 
 
-def bake_seconds(source: Path, ratios, faces) -> dict:
+def merged_levels(message: str) -> set[int]:
+    """The levels (1-based, as the export numbers them) its message says clustering made."""
+    import re
+
+    found = re.search(r"; level ([0-9, ]+) by vertex clustering", message)
+    return {int(i) for i in found.group(1).split(",")} if found else set()
+
+
+def bake_seconds(source: Path, ratios, merged: set[int]) -> dict:
     """Seconds one ``merged_level`` takes for each level lodserver merged (in-process,
-    on the full-detail mesh the export merged: a static scene's parts in world space)."""
+    on the full-detail mesh the export merged: a static scene's parts in world space,
+    else a single mesh; a moving scene's parts are merged one by one, not timed here)."""
     from lodserver.bake.level import merged_level
     from lodserver.io import load_mesh
     from lodserver.io.scene import load_scene
     from lodserver.scene.merge import static_reason, world_mesh
 
+    if not merged:
+        return {}
     if source.suffix.lower() in (".glb", ".gltf"):
         scene = load_scene(source)
         if static_reason(scene) is not None:
@@ -112,11 +123,10 @@ def bake_seconds(source: Path, ratios, faces) -> dict:
     else:
         full, _ = load_mesh(source)
     times = {}
-    for ratio, count in zip(ratios, faces):
-        budget = round(ratio * full.face_count)
-        if abs(count - budget) <= 0.1 * budget and count < full.face_count:
+    for i, ratio in enumerate(ratios, start=1):
+        if i in merged:
             started = time.perf_counter()
-            merged_level(full, budget)
+            merged_level(full, round(ratio * full.face_count))
             times[ratio] = time.perf_counter() - started
     return times
 
@@ -153,11 +163,9 @@ def main(argv=None) -> int:
         record = {"asset": key, "triangles": base, "export_seconds": seconds,
                   "message": message.strip().splitlines()[-1], "levels": {}}
         candidates = []
-        counts = []
         for i, ratio in enumerate(ratios, start=1):
             ours = folder / f"lodserver_lod{i}.glb"
             count = triangle_count(read_glb(ours)[0])
-            counts.append(count)
             theirs = gltfpack(args.gltfpack, source, folder / f"gltfpack_{ratio:g}.glb",
                               count, base, args.timeout)
             record["levels"][ratio] = {
@@ -168,7 +176,7 @@ def main(argv=None) -> int:
                              "draw_calls": draw_calls(theirs["path"]),
                              "bytes": theirs["path"].stat().st_size, "ratio": theirs["ratio"]}}
             candidates += [(f"lodserver {ratio:g}", ours), (f"gltfpack {ratio:g}", theirs["path"])]
-        record["bake_seconds"] = bake_seconds(source, ratios, counts)
+        record["bake_seconds"] = bake_seconds(source, ratios, merged_levels(record["message"]))
         with serve(ROOT) as served, sync_playwright() as playwright:
             browser = playwright.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS)
             try:

@@ -102,6 +102,7 @@ ATLAS_RANGE = (16, 8192)
 
 
 def check_atlas(atlas: int | None) -> int | None:
+    """``atlas`` (None, or a side within :data:`ATLAS_RANGE`), else ``MeshError``."""
     if atlas is not None and not (isinstance(atlas, int)
                                   and ATLAS_RANGE[0] <= atlas <= ATLAS_RANGE[1]):
         raise MeshError(f"the atlas size must be a whole number of texels from "
@@ -256,9 +257,10 @@ class ChainOptions:
         ``"merge"`` (the default with ``lods``): a level edge collapse cannot
         bring down to its budget is the full mesh remeshed by vertex clustering
         to within 10% of the budget (``bake.level.merged_level``), joining parts
-        and closing small gaps. ``"none"`` (the default with ``errors``): such a
-        level stays at the coarsest edge collapse reaches. ``"cluster"``: such a level is made by vertex
-        clustering of the full mesh instead (``cluster.cluster``), which joins
+        and closing small gaps, its look baked into one atlas and one material.
+        ``"none"`` (the default with ``errors``): such a level stays at the
+        coarsest edge collapse reaches. ``"cluster"``: such a level is made by
+        vertex clustering of the full mesh instead (``cluster.cluster``), which joins
         parts and meets the budget but keeps positions only (no UVs, normals or
         materials: a textured asset's far level is drawn untextured). Not with
         ``errors``.

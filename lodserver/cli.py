@@ -22,7 +22,7 @@ from .io import SUPPORTED_OUTPUT
 from .io.glb import COMPRESSIONS, DEFAULT_COMPRESS, LOD_NAMINGS
 from .mesh import MeshError
 from .options import METHODS, BuildOptions, Flag, describe_error, field_default_text
-from .chains import REACH_METHODS
+from .chains import REACH_METHODS       # the --reach choices, one list for the CLI and the library
 
 DEFAULT_LODS_TEXT = "1,0.5,0.2,0.05"      # chains.DEFAULT_LODS, without importing it
 

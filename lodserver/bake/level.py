@@ -23,7 +23,7 @@ import numpy as np
 from ..mesh import Attributes, Materials, Mesh
 from ..simplify.cluster import cluster_within
 from .atlas import conservative, dilate, make_atlas, rasterize
-from .normalmap import encode_normals, wedge_tangents
+from .normalmap import encode_normals, vertex_normals_of, wedge_tangents
 from .surface import NearestSurface
 from .textures import SurfaceLook, linear_to_srgb
 
@@ -73,7 +73,7 @@ def bake_level(full: Mesh, level: Mesh, size: int) -> Mesh:
     look = SurfaceLook(full)
     positions = np.asarray(level.positions, dtype=np.float64)
     faces = _oriented(positions, np.asarray(level.faces), surface, look)
-    vertex_normals = _vertex_normals(positions, faces)
+    vertex_normals = vertex_normals_of(positions, faces)
     vertex, uv, corners, size = make_atlas(positions, faces, size)
     faces = vertex[corners]              # xatlas may turn a face to fix its chart's winding
     normal = vertex_normals[vertex]
@@ -133,27 +133,13 @@ def _towards(shading: np.ndarray, face: np.ndarray) -> np.ndarray:
 def _oriented(positions, faces, surface, look) -> np.ndarray:
     """``faces`` with each one's winding turned to agree with the full surface's
     shading normal nearest its centre."""
-    corner = positions[faces]
-    centre = corner.mean(axis=1)
-    face, bary = surface.nearest(centre)
+    face, bary = surface.nearest(positions[faces].mean(axis=1))
     source = look.attribute("NORMAL", face, bary)
     source = surface.normals[face] if source is None else source
-    own = np.cross(corner[:, 1] - corner[:, 0], corner[:, 2] - corner[:, 0])
-    flip = np.sum(own * source, axis=1) < 0
+    flip = np.sum(_face_normals(positions, faces) * source, axis=1) < 0
     faces = faces.copy()
     faces[flip] = faces[flip][:, ::-1]
     return faces
-
-
-def _vertex_normals(positions, faces) -> np.ndarray:
-    """(n, 3) unit area-weighted normals of the faces around each vertex."""
-    corner = positions[faces]
-    own = np.cross(corner[:, 1] - corner[:, 0], corner[:, 2] - corner[:, 0])
-    total = np.zeros_like(positions)
-    for k in range(3):
-        np.add.at(total, faces[:, k], own)
-    length = np.linalg.norm(total, axis=1, keepdims=True)
-    return np.where(length > 0, total / np.maximum(length, 1e-300), [[0.0, 0.0, 1.0]])
 
 
 def _material(look: SurfaceLook) -> dict:

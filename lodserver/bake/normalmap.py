@@ -15,6 +15,18 @@ from __future__ import annotations
 import numpy as np
 
 
+def vertex_normals_of(positions: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """(n, 3) unit area-weighted normals of the faces (f, 3) around each vertex of
+    ``positions`` (n, 3); +z for a vertex no face (or only degenerate ones) uses."""
+    corner = positions[faces]
+    own = np.cross(corner[:, 1] - corner[:, 0], corner[:, 2] - corner[:, 0])
+    total = np.zeros_like(positions, dtype=np.float64)
+    for k in range(3):
+        np.add.at(total, faces[:, k], own)
+    length = np.linalg.norm(total, axis=1, keepdims=True)
+    return np.where(length > 0, total / np.maximum(length, 1e-300), [[0.0, 0.0, 1.0]])
+
+
 def face_tangents(corners: np.ndarray, uv: np.ndarray):
     """``corners`` (p, 3, 3) positions of each face, ``uv`` (p, 3, 2) their glTF
     UVs: (tangent (p, 3) unit, sign (p,) +-1 so that ``cross(n, t) * sign`` runs

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..bake.normalmap import vertex_normals_of
 from ..io.animation import node_worlds
 from ..mesh import Attributes, Mesh
 from .budget import instance_matrices
@@ -73,8 +74,9 @@ def world_mesh(scene) -> Mesh:
             positions.append(placed)
             faces.append(mesh.faces[:, order] + vertex_base)
             values.append(turned)
+            # a mesh without attributes: one wedge per vertex
             wedges = (mesh.attributes.corners if mesh.attributes is not None
-                      else _vertex_wedges(mesh))
+                      else np.asarray(mesh.faces))
             corners.append(wedges[:, order] + wedge_base)
             materials.append(mesh.face_material if mesh.face_material is not None
                              else np.full(mesh.face_count, -1, np.int32))
@@ -83,10 +85,6 @@ def world_mesh(scene) -> Mesh:
     return Mesh(np.concatenate(positions), np.concatenate(faces),
                 Attributes(tuple(layout), np.concatenate(values), np.concatenate(corners)),
                 np.concatenate(materials), scene.materials)
-
-
-def _vertex_wedges(mesh: Mesh) -> np.ndarray:
-    return np.asarray(mesh.faces)
 
 
 def _columns(mesh: Mesh, layout) -> np.ndarray:
@@ -103,19 +101,10 @@ def _columns(mesh: Mesh, layout) -> np.ndarray:
                 own = np.concatenate([own, np.ones((count, 1))], axis=1)
             out.append(own)
         elif name == "NORMAL":
-            out.append(_smooth_normals(mesh)[mesh.wedge_vertices() if attributes is not None
+            out.append(vertex_normals_of(mesh.positions, mesh.faces)[mesh.wedge_vertices() if attributes is not None
                                              else np.arange(count)])
         elif name == "COLOR_0":
             out.append(np.ones((count, 4)))
         else:
             out.append(np.zeros((count, width)))
     return np.concatenate(out, axis=1) if out else np.zeros((count, 0))
-
-
-def _smooth_normals(mesh: Mesh) -> np.ndarray:
-    corner = mesh.positions[mesh.faces]
-    own = np.cross(corner[:, 1] - corner[:, 0], corner[:, 2] - corner[:, 0])
-    total = np.zeros_like(mesh.positions)
-    for k in range(3):
-        np.add.at(total, mesh.faces[:, k], own)
-    return total / np.maximum(np.linalg.norm(total, axis=1, keepdims=True), 1e-300)
