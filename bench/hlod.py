@@ -21,8 +21,8 @@ Fox, and the textured bunny10k when present):
    RMS colour difference over the pixels both cover (0..1 units; x255 for
    8-bit levels) and the silhouette mismatch.
 
-Per candidate: triangles, draw calls (primitives drawn, each once per node
-that places it), file bytes, colour error, silhouette mismatch; for lodserver
+Per candidate: triangles and draw calls drawn (each mesh's triangles and
+primitives once per node that places it; budgets are ratios of the input's), file bytes, colour error, silhouette mismatch; for lodserver
 also the time one merge-and-bake of each merged level takes in-process
 (``bake.level.merged_level``). Writes ``bench/out/hlod/results.json`` and
 prints the markdown table (pasted into bench/README.md with the commit).
@@ -57,19 +57,21 @@ GLTFPACK = ROOT / "tests" / "tools" / "node_modules" / ".bin" / "gltfpack"
 VIEWS = [(0.8, 0.35, 1.0), (-1.0, 0.2, -0.6), (0.25, 1.0, 0.35), (0.3, -0.6, 1.0)]
 
 
-def draw_calls(path: Path) -> int:
-    """Primitives drawn: each mesh's primitives once per node of the default scene
-    (and its children) that places it."""
+def drawn(path: Path) -> tuple[int, int]:
+    """(triangles, draw calls) drawn: each mesh's triangles and primitives once per
+    node of the default scene (and its children) that places it."""
     document, _ = read_glb(path)
     nodes = document.get("nodes", [])
     roots = document.get("scenes", [{}])[document.get("scene", 0)].get("nodes", [])
-    count, stack = 0, list(roots)
+    triangles, calls, stack = 0, 0, list(roots)
     while stack:
         node = nodes[stack.pop()]
         if "mesh" in node:
-            count += len(document["meshes"][node["mesh"]]["primitives"])
+            mesh = document["meshes"][node["mesh"]]
+            triangles += triangle_count({"meshes": [mesh], "accessors": document["accessors"]})
+            calls += len(mesh["primitives"])
         stack.extend(node.get("children", ()))
-    return count
+    return triangles, calls
 
 
 def gltfpack(gltfpack_bin: Path, source: Path, out: Path, target: int, base: int,
@@ -80,7 +82,7 @@ def gltfpack(gltfpack_bin: Path, source: Path, out: Path, target: int, base: int
         path = out.with_name(f"{out.stem}_{attempt}.glb")
         seconds, _ = run([str(gltfpack_bin), "-i", str(source), "-o", str(path), "-si",
                           f"{ratio:.6f}", "-sa"], timeout)
-        got = triangle_count(read_glb(path)[0])
+        got = drawn(path)[0]
         runs.append({"path": path, "triangles": got, "ratio": ratio, "seconds": seconds})
         if abs(got - target) <= 0.02 * target or got == 0:
             break
@@ -159,21 +161,21 @@ def main(argv=None) -> int:
                                 "-o", str(folder / "lodserver.glb"), "--separate", "--lods",
                                 lods], args.timeout)
         reference = folder / "lodserver_lod0.glb"
-        base = triangle_count(read_glb(reference)[0])
+        base = drawn(reference)[0]
         record = {"asset": key, "triangles": base, "export_seconds": seconds,
                   "message": message.strip().splitlines()[-1], "levels": {}}
         candidates = []
         for i, ratio in enumerate(ratios, start=1):
             ours = folder / f"lodserver_lod{i}.glb"
-            count = triangle_count(read_glb(ours)[0])
+            count, calls = drawn(ours)
             theirs = gltfpack(args.gltfpack, source, folder / f"gltfpack_{ratio:g}.glb",
                               count, base, args.timeout)
             record["levels"][ratio] = {
                 "budget": round(ratio * base),
-                "lodserver": {"triangles": count, "draw_calls": draw_calls(ours),
+                "lodserver": {"triangles": count, "draw_calls": calls,
                               "bytes": ours.stat().st_size},
                 "gltfpack": {"triangles": theirs["triangles"],
-                             "draw_calls": draw_calls(theirs["path"]),
+                             "draw_calls": drawn(theirs["path"])[1],
                              "bytes": theirs["path"].stat().st_size, "ratio": theirs["ratio"]}}
             candidates += [(f"lodserver {ratio:g}", ours), (f"gltfpack {ratio:g}", theirs["path"])]
         record["bake_seconds"] = bake_seconds(source, ratios, merged_levels(record["message"]))
