@@ -97,8 +97,9 @@ def check_reach(reach: str) -> str:
     return reach
 
 
-# A baked atlas's side, in texels, at least and at most.
-ATLAS_RANGE = (16, 8192)
+# A baked atlas's side, in texels, at least and at most (a bake holds several
+# float arrays per texel: the upper bound keeps it to a few hundred megabytes).
+ATLAS_RANGE = (16, 2048)
 
 
 def check_atlas(atlas: int | None) -> int | None:

@@ -74,7 +74,8 @@ def bake_level(full: Mesh, level: Mesh, size: int) -> Mesh:
     positions = np.asarray(level.positions, dtype=np.float64)
     faces = _oriented(positions, np.asarray(level.faces), surface, look)
     vertex_normals = vertex_normals_of(positions, faces)
-    vertex, uv, corners, size = make_atlas(positions, faces, size)
+    # many small charts may need a larger side, never past the largest atlas
+    vertex, uv, corners, size = make_atlas(positions, faces, size, max(size, MAX_ATLAS))
     faces = vertex[corners]              # xatlas may turn a face to fix its chart's winding
     normal = vertex_normals[vertex]
     tangent = wedge_tangents(positions, faces, corners, uv, normal)

@@ -278,3 +278,16 @@ def test_a_static_scene_far_level_is_one_draw_call(tmp_path, gltf_validator):
     start = view.get("byteOffset", 0)
     pixels = decode(binary[start:start + view["byteLength"]])
     assert len(np.unique(np.rint(pixels[..., :3] * 255).reshape(-1, 3), axis=0)) > 20
+
+
+def test_bad_atlas_sizes_are_refused_with_a_sentence(tmp_path, capsys):
+    from lodserver.cli import main
+
+    source = write_ply(soup(200), tmp_path / "soup.ply")
+    for bad in ("5", "100000"):
+        assert main(["export", str(source), "-o", str(tmp_path / "x.glb"),
+                     "--atlas-size", bad]) == 1
+        err = capsys.readouterr().err
+        assert "the atlas size must be a whole number of texels" in err
+        assert str(tmp_path) not in err
+    assert not (tmp_path / "x.glb").exists()
