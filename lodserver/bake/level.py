@@ -107,6 +107,26 @@ def bake_level(full: Mesh, level: Mesh, size: int) -> Mesh:
                 Materials(gltf, tuple(images)))
 
 
+def with_skin(full: Mesh, level: Mesh) -> Mesh:
+    """``level`` (a merged level of the skinned ``full``, in its bind space) with
+    ``full``'s skin: every ``JOINTS_n``/``WEIGHTS_n`` set of each level vertex
+    copied from the full-detail wedge nearest it (the corner of the nearest
+    point's face with the largest barycentric), so every wedge of a vertex has
+    the same influences and the level moves with the same skeleton."""
+    names = [(name, width) for name, width in full.attributes.layout
+             if name.startswith(("JOINTS_", "WEIGHTS_"))]
+    surface = NearestSurface(full.positions, full.faces)
+    face, bary = surface.nearest(level.positions)
+    wedge = full.attributes.corners[face, np.argmax(bary, axis=1)]
+    skin = np.concatenate([full.attributes.values[wedge, full.attributes.columns(name)]
+                           for name, _ in names], axis=1)
+    own = level.attributes
+    values = np.concatenate([own.values, skin[level.wedge_vertices()]], axis=1)
+    return Mesh(level.positions, level.faces,
+                Attributes(own.layout + tuple(names), values, own.corners),
+                level.face_material, level.materials)
+
+
 # The most a baked normal may lean from its far-level face: a coarse face across a
 # thin part sees the part's sides edge-on, and drawing those would darken it.
 MAX_LEAN = np.radians(70.0)

@@ -192,7 +192,7 @@ def _cluster_stuck(pms: dict, chosen: dict, levels: dict, k: int, ratio: float,
     else stopped at its base. ``reach`` names the method (``ChainOptions.reach``).
     Returns mesh index -> the clustered level's error, mesh units: its sampled
     two-sided Hausdorff distance to the full mesh."""
-    from ..bake.level import merged_level
+    from ..bake.level import merged_level, with_skin
     from ..metrics.surface import surface_distance
     from ..simplify.cluster import cluster
 
@@ -204,13 +204,14 @@ def _cluster_stuck(pms: dict, chosen: dict, levels: dict, k: int, ratio: float,
         if not short:
             continue
         full = pm.at(pm.vertex_count)
-        if reach == "merge" and full.attributes is not None and any(
-                name.startswith(("JOINTS", "WEIGHTS", "TARGET"))
-                for name, _ in full.attributes.layout):
-            continue    # a skinned or morphed part stays a part: clustering drops its skin
+        names = [name for name, _ in full.attributes.layout] if full.attributes else []
+        if reach == "merge" and any(name.startswith("TARGET") for name in names):
+            continue    # a morphed part stays a part: clustering cannot keep its targets
         try:
             joined = (merged_level(full, budget) if reach == "merge" else
                       cluster(Mesh(full.positions, full.faces), target_faces=budget))
+            if reach == "merge" and any(name.startswith("JOINTS_") for name in names):
+                joined = with_skin(full, joined)    # one skeleton: the part keeps its skin
         except MeshError:
             continue    # clustering cannot bring a tiny part (a few faces) to its budget
         if joined.face_count < levels[index][k].face_count:

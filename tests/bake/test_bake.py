@@ -291,3 +291,19 @@ def test_bad_atlas_sizes_are_refused_with_a_sentence(tmp_path, capsys):
         assert "the atlas size must be a whole number of texels" in err
         assert str(tmp_path) not in err
     assert not (tmp_path / "x.glb").exists()
+
+
+def test_a_skinned_part_merged_keeps_its_skin(shared_meshes, tmp_path, gltf_validator):
+    from ..conftest import glb_chunks
+
+    source = shared_meshes / "scenes" / "Fox.glb"
+    done = export_lods(source, tmp_path / "fox.glb", lods=(1, 0.02 / 4), separate=True)
+    assert done.clustered == [1]
+    far = done.outputs[1].read_bytes()
+    document, _ = glb_chunks(far)
+    primitive = document["meshes"][document["nodes"][
+        next(i for i, n in enumerate(document["nodes"]) if "mesh" in n)]["mesh"]]["primitives"][0]
+    assert {"JOINTS_0", "WEIGHTS_0", "TEXCOORD_0"} <= set(primitive["attributes"])
+    assert any("skin" in node for node in document["nodes"])
+    assert document.get("animations")
+    assert_valid(gltf_validator, far, "the Fox's merged far level, skinned")
