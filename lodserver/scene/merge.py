@@ -18,9 +18,14 @@ from ..io.animation import node_worlds
 from ..mesh import Attributes, Mesh
 from .budget import instance_matrices
 
-# The columns a bake reads, and what a part without one gets.
+# The columns a bake reads (a part without one gets a default: _columns).
 _COLUMNS = (("NORMAL", 3), ("TEXCOORD_0", 2), ("TEXCOORD_1", 2), ("COLOR_0", 4),
             ("TANGENT", 4))
+
+
+# The most triangles a merge places in world space at once (every instance of
+# every part): a heavily instanced scene would otherwise hold them all in memory.
+MAX_WORLD_FACES = 5_000_000
 
 
 def static_reason(scene) -> str | None:
@@ -36,6 +41,11 @@ def static_reason(scene) -> str | None:
         if mesh.attributes is not None and any(name.startswith(("TARGET", "JOINTS"))
                                                for name, _ in mesh.attributes.layout):
             return "it has morph targets or skinned meshes"
+    world = node_worlds(scene.document, scene.carried)
+    drawn = sum(len(instance_matrices(scene, index, world)) * mesh.face_count
+                for index, mesh in scene.meshes.items())
+    if drawn > MAX_WORLD_FACES:
+        return f"it draws {drawn} triangles, more than the {MAX_WORLD_FACES} merged at once"
     return None
 
 
