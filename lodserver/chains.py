@@ -16,8 +16,10 @@ import math
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import numpy as np
+
 from .io.glb import LOD_NAMINGS, check_compress, coverage_from_ratios
-from .mesh import Mesh, MeshError
+from .mesh import Materials, Mesh, MeshError
 from .progressive.mesh import ProgressiveMesh
 
 DEFAULT_LODS = (1.0, 0.5, 0.2, 0.05)
@@ -89,7 +91,9 @@ class Exported:
 # A level whose edge-collapse mesh overshoots its face budget by more than this is
 # out of reach of edge collapse (locked, non-manifold or separate parts).
 REACH_SLACK = 1.1
-REACH_METHODS = ("none", "cluster")
+REACH_METHODS = ("none", "cluster", "merge")
+# What a chain by ratios does where edge collapse stops short, unless told.
+DEFAULT_REACH = "merge"
 
 
 def check_reach(reach: str) -> str:
@@ -98,31 +102,115 @@ def check_reach(reach: str) -> str:
     return reach
 
 
-def lod_chain(pm: ProgressiveMesh, lods=DEFAULT_LODS, *, reach: str = "none"):
+# A baked atlas's side, in texels, at least and at most (a bake holds several
+# float arrays per texel: the upper bound keeps it to a few hundred megabytes).
+ATLAS_RANGE = (16, 2048)
+
+
+def check_atlas(atlas: int | None) -> int | None:
+    """``atlas`` (None, or a side within :data:`ATLAS_RANGE`), else ``MeshError``."""
+    if atlas is not None and not (isinstance(atlas, int)
+                                  and ATLAS_RANGE[0] <= atlas <= ATLAS_RANGE[1]):
+        raise MeshError(f"the atlas size must be a whole number of texels from "
+                        f"{ATLAS_RANGE[0]} to {ATLAS_RANGE[1]}, got {str(atlas)[:20]}")
+    return atlas
+
+
+def shared_materials(meshes: list[Mesh]) -> list[Mesh]:
+    """The levels of one chain with one materials list: a baked level's own
+    material, textures, samplers and images appended to the first level's (which
+    ``io.glb.encode_lod_chain`` writes once for all), its indices moved along."""
+    shared, moved = joined_materials(meshes[0].materials, meshes[1:])
+    if shared is meshes[0].materials:
+        return list(meshes)
+    first = meshes[0]
+    return [Mesh(first.positions, first.faces, first.attributes, first.face_material, shared),
+            *(Mesh(m.positions, m.faces, m.attributes, used, shared) for m, used in moved)]
+
+
+def joined_materials(base: Materials | None, meshes) -> tuple:
+    """``base`` with the materials of ``meshes`` that have their own (a baked
+    level's) appended: ``(materials, [(mesh, face_material into them)])``; ``base``
+    itself, and each mesh's own ``face_material``, when none has its own."""
+    gltf = {key: list((base.gltf if base is not None else {}).get(key) or [])
+            for key in ("materials", "textures", "samplers", "images")}
+    images = list(base.images) if base is not None else []
+    moved = []
+    for mesh in meshes:
+        if mesh.materials is None or mesh.materials is base:
+            moved.append((mesh, mesh.face_material))
+            continue
+        own = mesh.materials.gltf
+        offsets = {key: len(gltf[key]) for key in gltf}
+        for texture in own.get("textures", ()):
+            texture = dict(texture)
+            for key, kind in (("source", "images"), ("sampler", "samplers")):
+                if key in texture:
+                    texture[key] += offsets[kind]
+            gltf["textures"].append(texture)
+        for material in own.get("materials", ()):
+            gltf["materials"].append(_moved_textures(material, offsets["textures"]))
+        gltf["samplers"] += own.get("samplers", [])
+        gltf["images"] += own.get("images", [])
+        images += mesh.materials.images
+        moved.append((mesh, None if mesh.face_material is None else np.where(
+            mesh.face_material >= 0, mesh.face_material + offsets["materials"], -1)))
+    if len(gltf["materials"]) == (base.count if base is not None else 0):
+        return base, moved
+    return Materials({key: value for key, value in gltf.items() if value}, tuple(images)), moved
+
+
+def _moved_textures(record, offset: int):
+    """A material record with every texture info's ``index`` moved by ``offset``."""
+    if isinstance(record, dict):
+        return {key: (value + offset if key == "index" and isinstance(value, int)
+                      else _moved_textures(value, offset)) for key, value in record.items()}
+    if isinstance(record, list):
+        return [_moved_textures(value, offset) for value in record]
+    return record
+
+
+def lod_chain(pm: ProgressiveMesh, lods=DEFAULT_LODS, *, reach: str = DEFAULT_REACH,
+              atlas: int | None = None):
     """The levels of ``pm`` at face ratios ``lods`` (finest first).
 
     Returns ``(meshes, coverage, clustered)``: the meshes, their screen coverage
     hints (:func:`gltf.coverage_from_ratios`) and the indices of the levels made
-    by clustering (``reach``, as :class:`ChainOptions` says). Raises
+    by clustering (``reach``, as :class:`ChainOptions` says; ``atlas`` the side
+    of a merged level's baked atlas, None: from its screen coverage). Raises
     :class:`MeshError` on bad ratios or ``reach``.
     """
     ratios = check_lods(lods)
     check_reach(reach)
-    meshes, clustered, full = [], [], None
-    for ratio in ratios:
+    coverage = coverage_from_ratios(ratios)
+    meshes, clustered = [], []
+    for k, ratio in enumerate(ratios):
         mesh = pm.at(pm.level_for(ratio=ratio))
         budget = max(1, round(ratio * pm.face_count))
-        if reach == "cluster" and mesh.face_count > REACH_SLACK * budget:
-            from .simplify.cluster import cluster
-            if full is None:
-                full = pm.at(pm.vertex_count)
-                full = Mesh(full.positions, full.faces)
-            joined = cluster(full, target_faces=budget)
-            if joined.face_count < mesh.face_count:
+        if reach != "none" and mesh.face_count > REACH_SLACK * budget:
+            # drawn up to the finer level's coverage: the atlas is sized for that
+            joined = _reached(pm, budget, reach, atlas, coverage[k - 1] if k else 1.0)
+            if joined is not None and joined.face_count < mesh.face_count:
                 mesh = joined
                 clustered.append(len(meshes))
         meshes.append(mesh)
-    return meshes, coverage_from_ratios(ratios), clustered
+    return meshes, coverage, clustered
+
+
+def _reached(pm: ProgressiveMesh, budget: int, reach: str, atlas: int | None = None,
+             coverage: float = 1.0) -> Mesh | None:
+    """The level ``reach`` makes of ``pm``'s full mesh at ``budget`` faces, or None
+    where clustering keeps no face (a part of a few faces asked for fewer)."""
+    from .bake.level import merged_level
+    from .simplify.cluster import cluster
+
+    full = pm.at(pm.vertex_count)
+    try:
+        if reach == "merge":
+            return merged_level(full, budget, atlas=atlas, coverage=coverage)
+        return cluster(Mesh(full.positions, full.faces), target_faces=budget)
+    except MeshError:
+        return None
 
 
 def error_chain(pm: ProgressiveMesh, errors):
@@ -176,10 +264,14 @@ class ChainOptions:
         in every level; ``"auto"`` scales each level's images to its screen size
         (the sides by ``sqrt`` of its share of the finest level's faces, a power
         of two, at least 64 px); or one scale in (0, 1] per level.
-    reach : str
-        ``"none"``: a level edge collapse cannot bring down to its budget stays
-        at the coarsest it reaches. ``"cluster"``: such a level is made by vertex
-        clustering of the full mesh instead (``cluster.cluster``), which joins
+    reach : str, optional
+        ``"merge"`` (the default with ``lods``): a level edge collapse cannot
+        bring down to its budget is the full mesh remeshed by vertex clustering
+        to within 10% of the budget (``bake.level.merged_level``), joining parts
+        and closing small gaps, its look baked into one atlas and one material.
+        ``"none"`` (the default with ``errors``): such a level stays at the
+        coarsest edge collapse reaches. ``"cluster"``: such a level is made by
+        vertex clustering of the full mesh instead (``cluster.cluster``), which joins
         parts and meets the budget but keeps positions only (no UVs, normals or
         materials: a textured asset's far level is drawn untextured). Not with
         ``errors``.
@@ -189,13 +281,18 @@ class ChainOptions:
     errors: tuple[float, ...] | None = None
     per_mesh: bool = False
     separate: bool = False
-    reach: str = "none"
+    reach: str | None = None
+    atlas: int | None = None
     compress: str = "none"
     naming: str = "msft"
     texture_scale: str | tuple[float, ...] | None = None
 
     def __post_init__(self):
+        if self.reach is None:
+            object.__setattr__(self, "reach", "none" if self.errors is not None
+                               else DEFAULT_REACH)
         check_reach(self.reach)
+        check_atlas(self.atlas)
         check_compress(self.compress)
         if self.naming not in LOD_NAMINGS:
             raise MeshError(f"LOD naming must be one of {', '.join(LOD_NAMINGS)}, "

@@ -22,6 +22,7 @@ from .io import SUPPORTED_OUTPUT
 from .io.glb import COMPRESSIONS, DEFAULT_COMPRESS, LOD_NAMINGS
 from .mesh import MeshError
 from .options import METHODS, BuildOptions, Flag, describe_error, field_default_text
+from .chains import REACH_METHODS       # the --reach choices, one list for the CLI and the library
 
 DEFAULT_LODS_TEXT = "1,0.5,0.2,0.05"      # chains.DEFAULT_LODS, without importing it
 
@@ -236,7 +237,7 @@ def _export_usage(args) -> str | None:
         return "give --lods or --error, not both"
     if args.errors is not None and args.per_mesh:
         return "--per-mesh applies to --lods; levels by --error are per mesh already"
-    if args.errors is not None and args.reach != "none":
+    if args.errors is not None and args.reach not in (None, "none"):
         return "--reach meets face budgets, and levels by --error have none"
     if args.errors is not None:
         try:
@@ -263,8 +264,8 @@ def _cmd_export(args) -> int:
     else:
         ratios, errors = parse_lods(args.lods or DEFAULT_LODS_TEXT), None
     chain = ChainOptions(lods=ratios, errors=errors, per_mesh=args.per_mesh,
-                         separate=args.separate, reach=args.reach, compress=args.compress,
-                         naming=args.lod_naming,
+                         separate=args.separate, reach=args.reach, atlas=args.atlas_size,
+                         compress=args.compress, naming=args.lod_naming,
                          texture_scale=args.texture_scale)
     options = options_from(args)
     if args.progressive:
@@ -359,11 +360,11 @@ def _levels(done) -> str:
     if done.clustered:
         levels = ", ".join(str(i) for i in done.clustered)
         text += (f"; level {levels} by vertex clustering (edge collapse stops at "
-                 f"{done.base_faces} faces), positions only")
+                 f"{done.base_faces} faces)")
     elif done.faces[-1] == done.base_faces and len(set(done.faces[-2:])) == 1:
         # the coarser ratios were out of reach: say so rather than ship copies quietly
         text += (f"; the mesh simplifies no further than {done.base_faces} faces "
-                 f"(locked, non-manifold or separate parts; --reach cluster meets the budget)")
+                 f"(locked, non-manifold or separate parts; --reach merge meets the budget)")
     for note in done.notes:     # what a glTF scene's export kept without levels
         text += f"; {note}"
     return text
@@ -632,11 +633,15 @@ def _parser() -> argparse.ArgumentParser:
                         "a power of two, at least 64 px), or give one scale in (0, 1] per "
                         "level; PNG, JPEG and WebP stay in their format, KTX2 is kept as it "
                         "is (default: every level keeps the full-size images)")
-    p.add_argument("--reach", choices=("none", "cluster"), default="none",
+    p.add_argument("--reach", choices=REACH_METHODS, default=None,
                    help="levels edge collapse cannot bring down to their budget (locked, "
-                        "non-manifold or separate parts): keep the coarsest it reaches (none, "
-                        "default) or make them by vertex clustering, which joins parts but "
-                        "keeps positions only (cluster)")
+                        "non-manifold or separate parts): remesh the whole surface by vertex "
+                        "clustering to within 10%% of the budget, joining parts (merge, the "
+                        "default with --lods), keep the coarsest edge collapse reaches (none, "
+                        "the default with --error) or cluster keeping positions only (cluster)")
+    p.add_argument("--atlas-size", type=int, default=None, metavar="TEXELS",
+                   help="the side of a merged level's baked atlas (--reach merge; default: "
+                        "from the level's screen coverage, 64 to 2048)")
     p.add_argument("--jobs", type=int, default=1,
                    help="folder source: meshes built at once (default 1; each holds its mesh "
                         "in memory); with --scheduler local, the worker processes")

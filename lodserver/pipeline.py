@@ -34,7 +34,7 @@ from contextlib import nullcontext
 from dataclasses import dataclass, field, replace
 from pathlib import Path, PurePosixPath
 
-from .chains import ChainOptions, Exported, error_chain, lod_chain
+from .chains import ChainOptions, Exported, error_chain, lod_chain, shared_materials
 from .folders import (MANIFEST, MANIFEST_VERSION, Folder, fetch_with_references, filesystem,
                       is_url, listing)
 from .io.glb import encode_glb, encode_lod_chain, lod_name
@@ -111,7 +111,8 @@ def export_lods(source, output, chain: ChainOptions | None = None, *,
     if chain.errors is not None:
         (meshes, coverage), clustered = error_chain(pm, chain.errors), []
     else:
-        meshes, coverage, clustered = lod_chain(pm, chain.lods, reach=chain.reach)
+        meshes, coverage, clustered = lod_chain(pm, chain.lods, reach=chain.reach,
+                                                atlas=chain.atlas)
     outputs, notes, seconds = _write_chain(output, chain, meshes, coverage)
     return Exported(source, outputs, [mesh.face_count for mesh in meshes], coverage,
                     time.perf_counter() - start, pm.faces_at_level(pm.base_vertices),
@@ -126,6 +127,7 @@ def _write_chain(output: Path, chain: ChainOptions, meshes, coverage):
                                               separate=chain.separate)
     output.parent.mkdir(parents=True, exist_ok=True)
     if not chain.separate:
+        meshes = shared_materials(meshes)      # a baked level's material joins the rest
         write_atomic(output, encode_lod_chain(meshes, coverage, chain.compress,
                                               naming=chain.naming, name=output.stem))
         return [output], notes, []
@@ -249,6 +251,8 @@ def export_folder(source, output, chain: ChainOptions | None = None, *, jobs: in
     # (recorded when not the default, so the manifests of earlier runs stay as they were)
     if chain.compress != "none":
         recorded["compress"] = chain.compress
+    if chain.atlas is not None:
+        recorded["atlas"] = chain.atlas
     if chain.naming != "msft":
         recorded["naming"] = chain.naming
     if chain.texture_scale is not None:

@@ -26,7 +26,7 @@ PACKAGE = REPO / "lodserver"
 LAYERS = [
     ("lodserver.mesh", "lodserver.overlap", "lodserver.numba_cache"),
     ("lodserver.io",),
-    ("lodserver.simplify", "lodserver.metrics"),
+    ("lodserver.simplify", "lodserver.metrics", "lodserver.bake"),
     ("lodserver.options",),
     ("lodserver.progressive",),
     ("lodserver.build", "lodserver.packets"),

@@ -154,7 +154,7 @@ def test_manifest_records_sources_options_and_outputs(tmp_path):
     assert manifest["version"] == 2 and sorted(manifest["sources"]) == ["props/ball.ply",
                                                                         "spot.obj"]
     entry = manifest["sources"]["spot.obj"]
-    assert entry["options"] == {"lods": [1.0, 0.5], "separate": False, "reach": "none",
+    assert entry["options"] == {"lods": [1.0, 0.5], "separate": False, "reach": "merge",
                                 "build": BuildOptions().recorded()}
     assert entry["outputs"] == ["spot.glb"] and len(entry["sha256"]) == 64
     # an unreadable manifest only means everything is rebuilt
@@ -175,7 +175,7 @@ def _soup(path, count=300):
 
 def test_reach_cluster_meets_budgets_edge_collapse_cannot(tmp_path):
     source = _soup(tmp_path / "soup.ply")
-    stuck = export_lods(source, tmp_path / "stuck.glb", lods=(1, 0.2))
+    stuck = export_lods(source, tmp_path / "stuck.glb", lods=(1, 0.2), reach="none")
     assert stuck.faces == [300, 300] and stuck.clustered == [] and stuck.base_faces == 300
     reached = export_lods(source, tmp_path / "reached.glb", lods=(1, 0.2), reach="cluster")
     assert reached.faces[0] == 300 and reached.faces[1] <= 1.1 * 60
@@ -188,8 +188,9 @@ def test_reach_cluster_meets_budgets_edge_collapse_cannot(tmp_path):
 
 def test_cli_says_which_levels_were_clustered(tmp_path, capsys):
     source = _soup(tmp_path / "soup.ply")
-    assert main(["export", str(source), "-o", str(tmp_path / "a.glb"), "--lods", "1,0.2"]) == 0
-    assert "--reach cluster meets the budget" in capsys.readouterr().err
+    assert main(["export", str(source), "-o", str(tmp_path / "a.glb"), "--lods", "1,0.2",
+                 "--reach", "none"]) == 0
+    assert "--reach merge meets the budget" in capsys.readouterr().err
     assert main(["export", str(source), "-o", str(tmp_path / "b.glb"), "--lods", "1,0.2",
                  "--reach", "cluster"]) == 0
     assert "level 1 by vertex clustering" in capsys.readouterr().err
@@ -223,7 +224,7 @@ def test_export_takes_the_build_options_and_creates_the_output_folder(tmp_path, 
     """export of a mesh file builds with the build flags; -o's folder need not exist."""
     out = tmp_path / "new" / "deeper" / "spot.glb"
     assert main(["export", str(DATA / "spot.obj"), "-o", str(out), "--lods", "1,0.1",
-                 "--no-attributes", "--min-vertices", "2000"]) == 0
+                 "--no-attributes", "--min-vertices", "2000", "--reach", "none"]) == 0
     document = _glb_json(out)
     coarse = document["meshes"][1]["primitives"][0]
     # positions only (no TEXCOORD_0), and the build stopped at 2000 vertices

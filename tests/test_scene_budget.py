@@ -350,7 +350,7 @@ def test_reach_cluster_in_a_scene_meets_the_budget(tmp_path):
                     nodes=[{"mesh": 0}, {"mesh": 1, "translation": [0.0, 0.0, 5.0]}])
     source = tmp_path / "soup.glb"
     source.write_bytes(pack_glb(document, bytes(binary)))
-    stuck = export_lods(source, tmp_path / "stuck.glb", lods=(1, 0.2))
+    stuck = export_lods(source, tmp_path / "stuck.glb", lods=(1, 0.2), reach="none")
     reached = export_lods(source, tmp_path / "reached.glb", lods=(1, 0.2), reach="cluster")
     assert stuck.clustered == [] and reached.clustered == [1]
     full = stuck.drawn[0]

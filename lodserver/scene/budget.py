@@ -435,6 +435,15 @@ def _node_matrices(scene, number: int, world: list) -> np.ndarray:
     return base[None]
 
 
+def instance_matrices(scene, part: int, world) -> np.ndarray:
+    """(k, 4, 4) world transforms of every instance of ``part`` (a glTF mesh index)
+    in its rest pose, ``world`` the nodes' world matrices (``io.animation.node_worlds``);
+    a skinned node's by its first joint's bind pose."""
+    drawn = [_node_matrices(scene, number, world)[:, 0]
+             for number in scene.mesh_nodes.get(part, ())]
+    return np.concatenate(drawn) if drawn else np.zeros((0, 4, 4))
+
+
 def scene_instances(scene, pms: dict | None = None) -> tuple[dict, float]:
     """Per part, one world scale factor per instance, and the scene's world diagonal.
 

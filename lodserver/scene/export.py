@@ -14,8 +14,9 @@ import dataclasses
 import time
 from pathlib import Path
 
-from ..chains import REACH_SLACK, ChainOptions, Exported
+from ..chains import REACH_SLACK, ChainOptions, Exported, joined_materials
 from ..io import write_atomic
+from ..io.glb import encode_glb
 from ..io.scene_glb import encode_scene
 from ..mesh import Mesh, MeshError
 from .budget import chain_levels, coverage_from_errors, scene_instances, world_errors
@@ -77,13 +78,18 @@ def export_scene(scene, source: Path, output: Path, chain: ChainOptions, options
     drawn = [sum(len(instances[index]) * levels[index][k].face_count for index in pms)
              for k in range(count)]
     clustered = set()
-    if chain.reach == "cluster":
+    merged = _merge_static(scene, chain, drawn, worst, diagonal) if lods else {}
+    clustered.update(merged)
+    if chain.reach != "none":
         full_drawn = sum(len(instances[index]) * pm.face_count for index, pm in pms.items())
         for k, ratio in enumerate(lods):
             # per mesh: each mesh over its own budget; scene: the meshes stopped at their
             # base, when the scene is over its budget
+            if k in merged:
+                continue
             if per_mesh or drawn[k] > REACH_SLACK * max(1, ratio * full_drawn):
-                replaced = _cluster_stuck(pms, chosen_levels[k], levels, k, ratio, per_mesh)
+                replaced = _cluster_stuck(pms, chosen_levels[k], levels, k, ratio, per_mesh,
+                                          chain.reach)
                 if replaced:
                     clustered.add(k)
                     # a clustered level has no collapse error: its measured distance
@@ -92,6 +98,8 @@ def export_scene(scene, source: Path, output: Path, chain: ChainOptions, options
                                                for index, error in replaced.items()))
         drawn = [sum(len(instances[index]) * levels[index][k].face_count for index in pms)
                  for k in range(count)]
+    for k, (mesh, error) in merged.items():
+        drawn[k], worst[k] = mesh.face_count, error
     kept_drawn = sum(scene.as_is_faces[index] * len(scene.mesh_nodes.get(index, ()))
                      for index in scene.as_is)
     coverage = coverage_from_errors(worst, diagonal) if count else []
@@ -102,12 +110,14 @@ def export_scene(scene, source: Path, output: Path, chain: ChainOptions, options
         blobs = []
         for i in range(count):
             begun = time.perf_counter()
-            blobs.append(encode_scene(scenes[i], levels, coverage, level=i,
-                                      compress=chain.compress))
+            blobs.append(encode_glb(merged[i][0], chain.compress, name=f"{output.stem}_LOD{i}")
+                         if i in merged else
+                         encode_scene(*_with_baked(scenes[i], levels, [i], scene.materials),
+                                      coverage, level=i, compress=chain.compress))
             seconds.append(time.perf_counter() - begun)
     else:
-        outputs, blobs = [output], [encode_scene(scenes[0], levels, coverage,
-                                                 compress=chain.compress)]
+        outputs, blobs = [output], [encode_scene(*_with_baked(scenes[0], levels, range(count)),
+                                                 coverage, compress=chain.compress)]
     output.parent.mkdir(parents=True, exist_ok=True)
     for i, (path, blob) in enumerate(zip(outputs, blobs)):
         begun = time.perf_counter()
@@ -115,7 +125,8 @@ def export_scene(scene, source: Path, output: Path, chain: ChainOptions, options
         if seconds:
             seconds[i] += time.perf_counter() - begun
     kept = sum(scene.as_is_faces.values())
-    faces = [kept + sum(chain_[k].face_count for chain_ in levels.values()) for k in range(count)]
+    faces = [merged[k][0].face_count if k in merged else
+             kept + sum(chain_[k].face_count for chain_ in levels.values()) for k in range(count)]
     base = sum(pm.faces_at_level(pm.base_vertices) for pm in pms.values())
     # base_faces: the coarsest the simplified meshes reach, with the kept ones beside them
     # (0 when nothing was simplified: no "simplifies no further" for a skinned asset)
@@ -124,13 +135,78 @@ def export_scene(scene, source: Path, output: Path, chain: ChainOptions, options
                     [kept_drawn + d for d in drawn], worst, diagonal, seconds)
 
 
+def _merge_static(scene, chain: ChainOptions, drawn: list, worst: list, diagonal: float) -> dict:
+    """Levels of a static scene (``merge.static_reason``) that edge collapse leaves
+    over budget, as one mesh each: every part placed in the world, remeshed and
+    baked (``bake.level.merged_level``). Only with ``reach="merge"``, a whole-scene
+    budget and ``separate`` files: one file's ``MSFT_lod`` chains are per node, so a
+    chain keeps each part's own levels. Returns level -> (mesh, its error: the
+    sampled two-sided Hausdorff distance to the full scene, world units)."""
+    from ..bake.level import merged_level
+    from ..metrics.surface import surface_distance
+    from .merge import static_reason, world_mesh
+
+    if chain.reach != "merge" or chain.per_mesh or not chain.separate \
+            or static_reason(scene) is not None:
+        return {}
+    world, merged = None, {}
+    hints = coverage_from_errors(worst, diagonal)
+    for k, ratio in enumerate(chain.lods):
+        if world is None:
+            world = world_mesh(scene)
+        budget = max(1, round(ratio * world.face_count))
+        if drawn[k] <= REACH_SLACK * budget:
+            continue
+        try:
+            mesh = merged_level(world, budget, atlas=chain.atlas,
+                                coverage=hints[k - 1] if k else 1.0)
+        except MeshError:
+            continue        # a scene of a few faces asked for fewer
+        try:
+            distance = surface_distance(Mesh(world.positions, world.faces),
+                                        Mesh(mesh.positions, mesh.faces), samples=20_000)
+            error = distance["hausdorff"] * distance["diagonal"]
+        except ValueError:      # flat or degenerate: no area to sample
+            error = worst[k]
+        merged[k] = (mesh, max(error, worst[k - 1] if k else 0.0))
+    return merged
+
+
+def _with_baked(scene, levels: dict, written, unbaked=None) -> tuple:
+    """``(scene, levels)`` to write levels ``written``: the materials of the baked
+    levels among them (``bake.level``, each with its own) appended to the scene's,
+    those levels' faces pointing at them (``chains.joined_materials``). ``unbaked``:
+    the materials the other levels name, when not ``scene``'s own (a file's texture
+    level: the same materials in the same order, its images scaled)."""
+    unbaked = scene.materials if unbaked is None else unbaked
+    baked = [(index, k) for index in levels for k in written
+             if levels[index][k].materials is not None
+             and levels[index][k].materials is not unbaked
+             and levels[index][k].materials is not scene.materials]
+    if not baked:
+        return scene, levels
+    materials, moved = joined_materials(scene.materials, [levels[i][k] for i, k in baked])
+    levels = {index: list(chain_) for index, chain_ in levels.items()}
+    for (index, k), (mesh, used) in zip(baked, moved):
+        levels[index][k] = Mesh(mesh.positions, mesh.faces, mesh.attributes, used, materials)
+    for index, chain_ in levels.items():     # every level's faces into the one list
+        for k in written:
+            mesh = chain_[k]
+            if mesh.materials is not materials and mesh.face_material is not None:
+                chain_[k] = Mesh(mesh.positions, mesh.faces, mesh.attributes,
+                                 mesh.face_material, materials)
+    return dataclasses.replace(scene, materials=materials), levels
+
+
 def _cluster_stuck(pms: dict, chosen: dict, levels: dict, k: int, ratio: float,
-                   per_mesh: bool) -> dict:
+                   per_mesh: bool, reach: str = "cluster") -> dict:
     """Replace level ``k`` of the meshes edge collapse left short, by clustering of
     the full mesh at ``ratio`` of its faces where that has fewer faces. Short: over
     ``REACH_SLACK`` times its own budget (``per_mesh``, as :func:`lod_chain` does),
-    else stopped at its base. Returns mesh index -> the clustered level's error,
-    mesh units: its sampled two-sided Hausdorff distance to the full mesh."""
+    else stopped at its base. ``reach`` names the method (``ChainOptions.reach``).
+    Returns mesh index -> the clustered level's error, mesh units: its sampled
+    two-sided Hausdorff distance to the full mesh."""
+    from ..bake.level import merged_level, with_skin
     from ..metrics.surface import surface_distance
     from ..simplify.cluster import cluster
 
@@ -142,15 +218,21 @@ def _cluster_stuck(pms: dict, chosen: dict, levels: dict, k: int, ratio: float,
         if not short:
             continue
         full = pm.at(pm.vertex_count)
-        full = Mesh(full.positions, full.faces)
+        names = [name for name, _ in full.attributes.layout] if full.attributes else []
+        if reach == "merge" and any(name.startswith("TARGET") for name in names):
+            continue    # a morphed part stays a part: clustering cannot keep its targets
         try:
-            joined = cluster(full, target_faces=budget)
+            joined = (merged_level(full, budget) if reach == "merge" else
+                      cluster(Mesh(full.positions, full.faces), target_faces=budget))
+            if reach == "merge" and any(name.startswith("JOINTS_") for name in names):
+                joined = with_skin(full, joined)    # one skeleton: the part keeps its skin
         except MeshError:
             continue    # clustering cannot bring a tiny part (a few faces) to its budget
         if joined.face_count < levels[index][k].face_count:
             levels[index][k] = joined
             try:
-                distance = surface_distance(full, joined, samples=20_000)
+                distance = surface_distance(Mesh(full.positions, full.faces), joined,
+                                            samples=20_000)
                 replaced[index] = distance["hausdorff"] * distance["diagonal"]
             except ValueError:      # a flat or degenerate part: no area to sample
                 replaced[index] = pm.error_at_level(pm.base_vertices)

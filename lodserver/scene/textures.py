@@ -285,10 +285,11 @@ def level_meshes(meshes: list[Mesh], levels: TextureLevels, *, separate: bool) -
     """``meshes`` (a chain's levels, finest first) drawn with their texture levels:
     each with its own materials (``separate``), or all with the chain's materials,
     level k's faces naming its copies (``offsets[k]``). A level without materials
-    (a clustered one) stays without them."""
+    (a clustered one) stays without them, and one with materials of its own (a
+    merged level's baked atlas, already sized for its coverage) keeps those."""
     out = []
     for k, mesh in enumerate(meshes):
-        if mesh.materials is None:
+        if mesh.materials is None or mesh.materials is not meshes[0].materials:
             out.append(mesh)
             continue
         if separate:

@@ -178,9 +178,85 @@ def _surviving_faces(unit, faces, cells):
 
 def _cluster_grid(positions, faces, quadrics, lo, extent, cells):
     """One clustering at ``cells`` cells along the longest side; None if no face survives."""
-    size = extent / cells
-    coords = np.minimum(((positions - lo) / size).astype(np.int64), cells - 1)
-    keys = (coords[:, 0] * (cells + 1) + coords[:, 1]) * (cells + 1) + coords[:, 2]
+    return _cluster_cells(positions, faces, quadrics, lo, extent / cells, 0.0, radix=cells)
+
+
+def cluster_within(mesh: Mesh, target_faces: int, slack: float = 0.1) -> Mesh:
+    """Vertex clustering that lands within ``slack`` of ``target_faces``.
+
+    :func:`cluster`'s search steps the resolution by whole cells, and at a few
+    hundred faces one cell more or less changes the count by far more than 10%.
+    Here the cell size is continuous and the grid may be shifted by half a cell:
+    a bisection over the size (the count grows as cells shrink, not strictly)
+    keeps the result nearest to the target, stopping as soon as one lies in
+    ``[(1 - slack) * target, (1 + slack) * target]``.
+
+    Returns
+    -------
+    Mesh
+        Positions (k, 3), faces (f, 3): the result nearest ``target_faces``
+        among those tried (within the window whenever one was found).
+
+    Raises
+    ------
+    MeshError
+        When no grid keeps a face (a mesh of a few faces asked for fewer).
+    """
+    if target_faces < 1:
+        raise ValueError(f"target_faces must be at least 1, got {target_faces}")
+    positions = np.asarray(mesh.positions, dtype=np.float64)
+    faces = np.ascontiguousarray(mesh.faces, dtype=np.int64)
+    lo, extent = unit_box(positions)
+    quadrics = vertex_quadrics(positions, faces, boundary_weight=0)
+    low, high = (1 - slack) * target_faces, (1 + slack) * target_faces
+    best, best_miss = None, np.inf
+
+    def attempt(size, shift):
+        nonlocal best, best_miss
+        result = _cluster_cells(positions, faces, quadrics, lo, size, shift)
+        count = 0 if result is None else result.face_count
+        miss = abs(np.log(max(count, 1) / target_faces))
+        if result is not None and miss < best_miss:
+            best, best_miss = result, miss
+        return count
+
+    # cells along the longest side, bisected in log space between a coarse grid
+    # (few faces) and a fine one (many)
+    coarse, fine = 1.0, float(_MAX_CELLS)
+    guess = max(1.0, 2.0 * np.sqrt(target_faces))
+    for _ in range(_BISECT_STEPS):
+        for shift in _SHIFTS:
+            count = attempt(extent / guess, shift)
+            if low <= count <= high:
+                return best
+        if count > target_faces:
+            fine = guess
+        else:
+            coarse = guess
+        if fine <= _MAX_CELLS - 1 and fine / coarse < 1.0 + 1e-4:
+            break
+        guess = np.sqrt(coarse * fine) if fine < _MAX_CELLS else guess * 2.0
+    if best is None:
+        raise MeshError(f"vertex clustering cannot reach {target_faces} faces")
+    return best
+
+
+# cluster_within's search: bisection steps over the cell size, and the grid
+# shifts (fractions of a cell) tried at each size, since a shifted grid cuts
+# a mesh's parts differently and so gives another count.
+_BISECT_STEPS = 40
+_SHIFTS = (0.0, 0.5)
+
+
+def _cluster_cells(positions, faces, quadrics, lo, size, shift, radix=None):
+    """One clustering on a grid of cubic cells of edge ``size`` whose origin is
+    ``shift`` cells below ``lo`` (``radix`` cells along each side: by default as
+    many as the box needs); None if no face survives."""
+    origin = lo - shift * size
+    if radix is None:
+        radix = max(1, int(np.ceil(float(np.max(positions.max(axis=0) - origin)) / size)))
+    coords = np.minimum(np.floor((positions - origin) / size).astype(np.int64), radix - 1)
+    keys = (coords[:, 0] * radix + coords[:, 1]) * radix + coords[:, 2]
     used = np.nonzero(np.bincount(faces.ravel(), minlength=len(positions)))[0]
     cell_keys, cell_of_used = np.unique(keys[used], return_inverse=True)
     cell_of = np.full(len(positions), -1, dtype=np.int64)
@@ -194,8 +270,8 @@ def _cluster_grid(positions, faces, quadrics, lo, extent, cells):
     representative = np.empty((k, 3))
     cell_representatives(q, mean, representative)
     # Keep each representative inside its cell: a far-off optimum would fold faces.
-    cell_lo = lo + np.stack([cell_keys // ((cells + 1) ** 2), (cell_keys // (cells + 1)) % (cells + 1),
-                             cell_keys % (cells + 1)], axis=1) * size
+    cell_lo = origin + np.stack([cell_keys // (radix * radix), (cell_keys // radix) % radix,
+                                 cell_keys % radix], axis=1) * size
     representative = np.clip(representative, cell_lo, cell_lo + size)
 
     remapped = cell_of[faces]
