@@ -12,8 +12,6 @@
 // as the class's own methods, which cost less in those hot loops than calls
 // to another module's functions.
 
-import { grow } from './arrays.js';
-import { NONE } from './fans.js';
 import { offGrid, PacketError } from './packet.js';
 
 // Collapses start-1 down to stop from the packet's stream readers (streamNames() order).
@@ -37,7 +35,7 @@ function applyCollapses(start, stop, readers) {
     for (let c = 3 * this.faceCount; c < 3 * (this.faceCount + removed); c++) {
       this.unlink(c, faces[c]);
     }
-    for (let c = this.head[t]; c !== NONE; c = this.head[t]) this.moveCorner(c, s);
+    this.moveAll(t, s);
     // floor((q_s + q_t) / 2) + r; both are non-negative, so >> 1 is the floor.
     const ps = 3 * s, pt = 3 * t;
     const f0 = positions[ps], f1 = positions[ps + 1], f2 = positions[ps + 2];
@@ -67,7 +65,8 @@ function applyCollapses(start, stop, readers) {
 // are s's now): the last wedges go, each merged into its parent.
 function collapseWedges(t, s, ratio, readers) {
   const wedgeCount = readers[7], wedgeParent = readers[8];
-  const { wedges, corners, components, head, next } = this;
+  const { wedges, corners, components, ring } = this;
+  const from = this.ringAt[s], to = from + this.ringSize[s];   // corners(s)
   const { attributeOffset, attributeComponents, attributeLimit } = this;
   const top = this.wedgeCount;
   const m = wedgeCount.varint();
@@ -83,20 +82,15 @@ function collapseWedges(t, s, ratio, readers) {
     if (u === 0) {
       if (smallest === -2) {
         smallest = -1;
-        for (let c = head[s]; c !== NONE; c = next[c]) {
-          const w = corners[c];
+        for (let i = from; i < to; i++) {
+          const w = corners[ring[i]];
           if (w < bottom && (smallest < 0 || w < smallest)) smallest = w;
         }
       }
       p = smallest >= 0 ? smallest : 0;
     } else {
       if (known < 0) {
-        let n = 0;
-        for (let c = head[s]; c !== NONE; c = next[c]) {
-          if (n === this.cornerList.length) this.cornerList = grow(this.cornerList, n);
-          this.cornerList[n++] = c;
-        }
-        known = this.heldWedges(this.cornerList, n, bottom);
+        known = this.heldWedges(ring, from, to, bottom);
       }
       p = u < known ? this.wedgeList[u] : u - known;
     }
@@ -123,7 +117,8 @@ function collapseWedges(t, s, ratio, readers) {
   }
   this.wedgeCount = bottom;
   // corners holding a removed wedge take its parent (repeatedly)
-  for (let c = head[s]; c !== NONE; c = next[c]) {
+  for (let i = from; i < to; i++) {
+    const c = ring[i];
     let w = corners[c];
     if (w < bottom) {
       this.wedgeVertex[w] = s;

@@ -4,10 +4,14 @@
 // (Hoppe 1996's vl/vr rule); the reference is lodserver/packets/reference.py
 // (predict_fan).
 //
-// corners(v), the corners c = 3 * face + slot holding v, are linked lists
-// threaded through the corners (head per vertex, next per corner):
-// a vertex's corners are found without a search, and moving a corner costs a
-// walk over one vertex's few corners.
+// corners(v), the corners c = 3 * face + slot holding v, are kept per vertex in
+// a block of one shared pool (ring): the block of v starts at ringAt[v], holds
+// ringSize[v] corners, in no particular order (every use sorts them or takes a
+// minimum), and has room for ringRoom[v]. A vertex's corners are read from one
+// run of memory, not chased through a list threaded across the face array (a
+// cache miss per corner on a large mesh); a vertex whose block fills moves to
+// a block twice as big at the pool's end, and a vertex a collapse empties
+// keeps its block for when a split makes it again.
 //
 // The per-record scratch: aroundCorners/Nexts/Prevs (the corners gathered
 // around one vertex, each with its next and prev vertex in its face),
@@ -20,22 +24,40 @@
 
 export const NONE = -1;            // no corner, no vertex
 
+export const FIRST_ROOM = 8;        // corners a vertex's first block holds (valence 6 is typical)
+
+// Corner c holds v now: appended to v's block (moved to a bigger one when full).
 function link(c, v) {
-  this.next[c] = this.head[v];
-  this.head[v] = c;
+  const n = this.ringSize[v];
+  if (n === this.ringRoom[v]) this.growRing(v, n);
+  this.ring[this.ringAt[v] + n] = c;
+  this.ringSize[v] = n + 1;
 }
 
-// Singly linked: the walk to c's predecessor is short (a vertex's valence)
-// and usually over a list just gathered, so cheaper than keeping back links.
-function unlink(c, v) {
-  const { head, next } = this;
-  if (head[v] === c) {
-    head[v] = next[c];
-    return;
+// v's block moved to the pool's end with twice its room (the pool itself
+// doubling when it has no room left); its n corners copied.
+function growRing(v, n) {
+  const room = Math.max(FIRST_ROOM, 2 * this.ringRoom[v]);
+  const at = this.ringEnd;
+  if (at + room > this.ring.length) {
+    const bigger = new Int32Array(2 * Math.max(this.ring.length, room));
+    bigger.set(this.ring.subarray(0, at));
+    this.ring = bigger;
   }
-  let p = head[v];
-  while (next[p] !== c) p = next[p];
-  next[p] = next[c];
+  this.ring.copyWithin(at, this.ringAt[v], this.ringAt[v] + n);
+  this.ringAt[v] = at;
+  this.ringRoom[v] = room;
+  this.ringEnd = at + room;
+}
+
+// Corner c no longer holds v: the block's last corner takes its place.
+function unlink(c, v) {
+  const { ring } = this;
+  const at = this.ringAt[v], last = at + this.ringSize[v] - 1;
+  let i = last;
+  while (ring[i] !== c) i--;
+  ring[i] = ring[last];
+  this.ringSize[v]--;
 }
 
 // Corner c now holds vertex v.
@@ -46,17 +68,31 @@ function moveCorner(c, v) {
   this.markCorners(c, c + 1);
 }
 
+// Every corner of t holds s now (a collapse of t into s); t keeps its empty block.
+function moveAll(t, s) {
+  const { faces } = this;
+  const at = this.ringAt[t], n = this.ringSize[t];
+  for (let i = at; i < at + n; i++) {
+    const c = this.ring[i];      // read afresh: linking to s may move the pool
+    faces[c] = s;
+    this.link(c, s);
+    this.markCorners(c, c + 1);
+  }
+  this.ringSize[t] = 0;
+}
+
 // corners(v) into the scratch, each with its next and prev vertex in the face.
 function gatherCorners(v) {
-  const { faces, next } = this;
-  let n = 0;
-  for (let c = this.head[v]; c !== NONE; c = next[c]) {
-    if (n === this.aroundCorners.length) this.growScratch();
+  const { faces, ring } = this;
+  const n = this.ringSize[v], at = this.ringAt[v];
+  while (n > this.aroundCorners.length) this.growScratch();
+  const { aroundCorners, aroundNexts, aroundPrevs } = this;
+  for (let i = 0; i < n; i++) {
+    const c = ring[at + i];
     const slot = c % 3;
-    this.aroundCorners[n] = c;
-    this.aroundNexts[n] = faces[slot === 2 ? c - 2 : c + 1];
-    this.aroundPrevs[n] = faces[slot === 0 ? c + 2 : c - 1];
-    n++;
+    aroundCorners[i] = c;
+    aroundNexts[i] = faces[slot === 2 ? c - 2 : c + 1];
+    aroundPrevs[i] = faces[slot === 0 ? c + 2 : c - 1];
   }
   this.aroundCount = n;
 }
@@ -159,6 +195,6 @@ function predictFan(s, t, k) {
 
 // The methods of LodState this module defines.
 export const fanMethods = {
-  link, unlink, moveCorner, gatherCorners, growScratch, gatherNeighbours, decodeVertex,
+  link, growRing, unlink, moveCorner, moveAll, gatherCorners, growScratch, gatherNeighbours, decodeVertex,
   listedCorners, predictFan,
 };

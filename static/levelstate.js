@@ -26,7 +26,7 @@
 
 import { grow } from './arrays.js';
 import { collapseMethods } from './collapses.js';
-import { fanMethods, NONE } from './fans.js';
+import { fanMethods, FIRST_ROOM, NONE } from './fans.js';
 import {
   attributeGrid, makeReader, PacketError, readPacket, sameGrid, streamNames,
 } from './packet.js';
@@ -97,12 +97,16 @@ export class LodState {
     this.faces = new Uint32Array(3 * faceCapacity);        // vertex per corner
     this.vertexCount = 0;
     this.faceCount = 0;
-    this.head = new Int32Array(vertexCapacity).fill(NONE); // a corner of each vertex
+    // corners(v): ringSize[v] corners from ring[ringAt[v]], room for ringRoom[v] (fans.js)
+    this.ringAt = new Int32Array(vertexCapacity);
+    this.ringSize = new Int32Array(vertexCapacity);
+    this.ringRoom = new Int32Array(vertexCapacity);
+    this.ring = new Int32Array(FIRST_ROOM * Math.max(vertexCapacity, 1));
+    this.ringEnd = 0;                                      // the pool's used length
     // The vertex each vertex t was split from (its parent s, the same in both
     // directions), once a split or a collapse of t named it: what geomorphs
     // glide a new vertex out of, and a vanishing one into.
     this.parent = new Int32Array(vertexCapacity).fill(NONE);
-    this.next = new Int32Array(3 * faceCapacity);          // next corner of the same vertex
     // Scratch for one record (fans.js): corners of a vertex with their next and prev vertices.
     this.aroundCorners = new Int32Array(64);
     this.aroundNexts = new Int32Array(64);
@@ -158,7 +162,7 @@ export class LodState {
   }
 
   get vertexCapacity() {
-    return this.head.length;
+    return this.ringSize.length;
   }
 
   get faceCapacity() {

@@ -14,7 +14,6 @@
 // to another module's functions.
 
 import { grow } from './arrays.js';
-import { NONE } from './fans.js';
 import { offGrid, PacketError } from './packet.js';
 
 const FAN_PREDICTED = 0;
@@ -119,7 +118,7 @@ function applySplits(start, stop, readers) {
 // without building the sorted list.
 function splitWedges(s, t, moves, firstFace, readers) {
   const wedgeCount = readers[7], wedgeParent = readers[8], wedgeCorner = readers[9];
-  const { wedges, corners, components, faces, fine, head, next } = this;
+  const { wedges, corners, components, faces, fine, ring, ringAt, ringSize } = this;
   const { attributeOffset, attributeComponents, attributeLimit } = this;
   const bottom = this.wedgeCount;
   const m = wedgeCount.varint();
@@ -137,7 +136,7 @@ function splitWedges(s, t, moves, firstFace, readers) {
     let p;
     if (u === 0) p = this.smallestWedge(this.aroundCorners, this.aroundCount, bottom, 0);
     else {
-      if (known < 0) known = this.heldWedges(this.aroundCorners, this.aroundCount, bottom);
+      if (known < 0) known = this.heldWedges(this.aroundCorners, 0, this.aroundCount, bottom);
       p = u < known ? this.wedgeList[u] : u - known;
     }
     if (!(p >= 0 && p < x)) {
@@ -204,18 +203,20 @@ function splitWedges(s, t, moves, firstFace, readers) {
     let w;
     if (u === 0) {
       w = -1;
-      for (let d = head[v]; d !== NONE; d = next[d]) {
+      for (let i = ringAt[v], end = i + ringSize[v]; i < end; i++) {
+        const d = ring[i];
         if (d < limit && (w < 0 || corners[d] < w)) w = corners[d];
       }
       if (w < 0) w = this.candidate(0, 0, bottom, top);
     } else {
       let n = 0;
-      for (let d = head[v]; d !== NONE; d = next[d]) {
+      for (let i = ringAt[v], end = i + ringSize[v]; i < end; i++) {
+        const d = ring[i];
         if (d >= limit) continue;
         if (n === this.cornerList.length) this.cornerList = grow(this.cornerList, n);
         this.cornerList[n++] = d;
       }
-      w = this.candidate(u, this.heldWedges(this.cornerList, n, top), bottom, top);
+      w = this.candidate(u, this.heldWedges(this.cornerList, 0, n, top), bottom, top);
     }
     this.setWedge(c, w);
   }
