@@ -66,7 +66,7 @@ function applyCollapses(start, stop, readers) {
 function collapseWedges(t, s, ratio, readers) {
   const wedgeCount = readers[7], wedgeParent = readers[8];
   const { wedges, corners, components, ring } = this;
-  const from = this.ringAt[s], to = from + this.ringSize[s];   // corners(s)
+  const from = this.ringInfo[4 * s], to = from + this.ringInfo[4 * s + 1];   // corners(s)
   const { attributeOffset, attributeComponents, attributeLimit } = this;
   const top = this.wedgeCount;
   const m = wedgeCount.varint();

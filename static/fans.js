@@ -5,9 +5,10 @@
 // (predict_fan).
 //
 // corners(v), the corners c = 3 * face + slot holding v, are kept per vertex in
-// a block of one shared pool (ring): the block of v starts at ringAt[v], holds
-// ringSize[v] corners, in no particular order (every use sorts them or takes a
-// minimum), and has room for ringRoom[v]. A vertex's corners are read from one
+// a block of one shared pool (ring): the block of v starts at ringInfo[4v],
+// holds ringInfo[4v + 1] corners, in no particular order (every use sorts them
+// or takes a minimum), and has room for ringInfo[4v + 2] (one 16-byte row per
+// vertex, so a vertex's three numbers are one memory read). A vertex's corners are read from one
 // run of memory, not chased through a list threaded across the face array (a
 // cache miss per corner on a large mesh); a vertex whose block fills moves to
 // a block twice as big at the pool's end, and a vertex a collapse empties
@@ -28,36 +29,39 @@ export const FIRST_ROOM = 8;        // corners a vertex's first block holds (val
 
 // Corner c holds v now: appended to v's block (moved to a bigger one when full).
 function link(c, v) {
-  const n = this.ringSize[v];
-  if (n === this.ringRoom[v]) this.growRing(v, n);
-  this.ring[this.ringAt[v] + n] = c;
-  this.ringSize[v] = n + 1;
+  const info = this.ringInfo, row = 4 * v;
+  const n = info[row + 1];
+  if (n === info[row + 2]) this.growRing(v, n);
+  this.ring[info[row] + n] = c;
+  info[row + 1] = n + 1;
 }
 
 // v's block moved to the pool's end with twice its room (the pool itself
 // doubling when it has no room left); its n corners copied.
 function growRing(v, n) {
-  const room = Math.max(FIRST_ROOM, 2 * this.ringRoom[v]);
+  const info = this.ringInfo, row = 4 * v;
+  const room = Math.max(FIRST_ROOM, 2 * info[row + 2]);
   const at = this.ringEnd;
   if (at + room > this.ring.length) {
     const bigger = new Int32Array(2 * Math.max(this.ring.length, room));
     bigger.set(this.ring.subarray(0, at));
     this.ring = bigger;
   }
-  this.ring.copyWithin(at, this.ringAt[v], this.ringAt[v] + n);
-  this.ringAt[v] = at;
-  this.ringRoom[v] = room;
+  this.ring.copyWithin(at, info[row], info[row] + n);
+  info[row] = at;
+  info[row + 2] = room;
   this.ringEnd = at + room;
 }
 
 // Corner c no longer holds v: the block's last corner takes its place.
 function unlink(c, v) {
   const { ring } = this;
-  const at = this.ringAt[v], last = at + this.ringSize[v] - 1;
+  const info = this.ringInfo, row = 4 * v;
+  const last = info[row] + info[row + 1] - 1;
   let i = last;
   while (ring[i] !== c) i--;
   ring[i] = ring[last];
-  this.ringSize[v]--;
+  info[row + 1]--;
 }
 
 // Corner c now holds vertex v.
@@ -71,20 +75,20 @@ function moveCorner(c, v) {
 // Every corner of t holds s now (a collapse of t into s); t keeps its empty block.
 function moveAll(t, s) {
   const { faces } = this;
-  const at = this.ringAt[t], n = this.ringSize[t];
+  const at = this.ringInfo[4 * t], n = this.ringInfo[4 * t + 1];
   for (let i = at; i < at + n; i++) {
     const c = this.ring[i];      // read afresh: linking to s may move the pool
     faces[c] = s;
     this.link(c, s);
     this.markCorners(c, c + 1);
   }
-  this.ringSize[t] = 0;
+  this.ringInfo[4 * t + 1] = 0;
 }
 
 // corners(v) into the scratch, each with its next and prev vertex in the face.
 function gatherCorners(v) {
   const { faces, ring } = this;
-  const n = this.ringSize[v], at = this.ringAt[v];
+  const at = this.ringInfo[4 * v], n = this.ringInfo[4 * v + 1];
   while (n > this.aroundCorners.length) this.growScratch();
   const { aroundCorners, aroundNexts, aroundPrevs } = this;
   for (let i = 0; i < n; i++) {

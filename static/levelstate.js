@@ -97,12 +97,13 @@ export class LodState {
     this.faces = new Uint32Array(3 * faceCapacity);        // vertex per corner
     this.vertexCount = 0;
     this.faceCount = 0;
-    // corners(v): ringSize[v] corners from ring[ringAt[v]], room for ringRoom[v] (fans.js)
-    this.ringAt = new Int32Array(vertexCapacity);
-    this.ringSize = new Int32Array(vertexCapacity);
-    this.ringRoom = new Int32Array(vertexCapacity);
+    // corners(v) (fans.js): ring[at .. at + size), room for `room`, where
+    // ringInfo[4v ..] = at, size, room (the fourth column unused)
+    this.ringInfo = new Int32Array(4 * vertexCapacity);
     this.ring = new Int32Array(FIRST_ROOM * Math.max(vertexCapacity, 1));
     this.ringEnd = 0;                                      // the pool's used length
+    this.sources = new Int32Array(1024);                   // s of each record of a packet
+    this.sink = 0;                                         // where reads ahead go (splits.js)
     // The vertex each vertex t was split from (its parent s, the same in both
     // directions), once a split or a collapse of t named it: what geomorphs
     // glide a new vertex out of, and a vanishing one into.
@@ -162,7 +163,7 @@ export class LodState {
   }
 
   get vertexCapacity() {
-    return this.ringSize.length;
+    return this.ringInfo.length / 4;
   }
 
   get faceCapacity() {

@@ -25,9 +25,29 @@ function applySplits(start, stop, readers) {
   const { positions, faces, gridSize } = this;
   const hasWedges = this.attributes.length > 0;
   const material = this.faceMaterial ? readers[readers.length - 1] : null;
+  // Every record's s first (the vertex stream is read on its own), so each
+  // record can touch the memory of the next ones' s before it needs it.
+  if (stop - start > this.sources.length) this.sources = new Int32Array(2 * (stop - start));
+  const sources = this.sources;
   for (let t = start; t < stop; t++) {
     const s = t - 1 - vertex.varint();
     if (s < 0) throw new PacketError(`split ${t} names a vertex below 0`);
+    sources[t - start] = s;
+  }
+  let sink = 0;
+  for (let t = start; t < stop; t++) {
+    const s = sources[t - start];
+    // Reads whose values are not used (summed into a field, so they are kept):
+    // they start the cache misses of the next records' s while this one runs.
+    // Two records ahead, its row and position; one ahead, its corners and faces.
+    if (t + 2 < stop) {
+      const u = sources[t + 2 - start];
+      sink += this.ringInfo[4 * u] + positions[3 * u];
+    }
+    if (t + 1 < stop) {
+      const info = this.ringInfo, ring = this.ring, row = 4 * sources[t + 1 - start];
+      for (let i = info[row], end = i + info[row + 1]; i < end; i++) sink += faces[ring[i]];
+    }
     this.parent[t] = s;
     // held(s) and neighbours(s) are taken before the record changes anything.
     this.gatherCorners(s);
@@ -109,6 +129,7 @@ function applySplits(start, stop, readers) {
       this.touchVertex(t);
     }
   }
+  this.sink = sink;
 }
 
 // The wedge part of split t (docs/packets.md), after its geometry part: the
@@ -118,7 +139,7 @@ function applySplits(start, stop, readers) {
 // without building the sorted list.
 function splitWedges(s, t, moves, firstFace, readers) {
   const wedgeCount = readers[7], wedgeParent = readers[8], wedgeCorner = readers[9];
-  const { wedges, corners, components, faces, fine, ring, ringAt, ringSize } = this;
+  const { wedges, corners, components, faces, fine, ring, ringInfo } = this;
   const { attributeOffset, attributeComponents, attributeLimit } = this;
   const bottom = this.wedgeCount;
   const m = wedgeCount.varint();
@@ -203,14 +224,14 @@ function splitWedges(s, t, moves, firstFace, readers) {
     let w;
     if (u === 0) {
       w = -1;
-      for (let i = ringAt[v], end = i + ringSize[v]; i < end; i++) {
+      for (let i = ringInfo[4 * v], end = i + ringInfo[4 * v + 1]; i < end; i++) {
         const d = ring[i];
         if (d < limit && (w < 0 || corners[d] < w)) w = corners[d];
       }
       if (w < 0) w = this.candidate(0, 0, bottom, top);
     } else {
       let n = 0;
-      for (let i = ringAt[v], end = i + ringSize[v]; i < end; i++) {
+      for (let i = ringInfo[4 * v], end = i + ringInfo[4 * v + 1]; i < end; i++) {
         const d = ring[i];
         if (d >= limit) continue;
         if (n === this.cornerList.length) this.cornerList = grow(this.cornerList, n);
