@@ -10,7 +10,10 @@ streams; v4: checksum, rANS symbols, back to version 3's streams) and
 level's json form. Prints milliseconds and splits per second, median of the
 repeats (the first repeat, JIT warm-up, dropped). The v4 result is checked
 against the v3 result (the same positions and faces). The full -> base packet
-(collapses, version 3) is timed too, applied to the state the v3 packet left.
+(collapses, version 3) is timed too, applied to the state the v3 packet left,
+and so is ``LevelMesh.update`` (``static/levelmesh.js``) of the full level the
+v3 packet reached: what the viewer does to its buffers before three.js uploads
+them (positions to floats, vertex normals), without the GL calls.
 
 ``--against DIR`` serves another build's ``static/`` (say the main checkout's)
 on a second page of the same browser and times it too, the two pages
@@ -45,11 +48,17 @@ STATIC = Path(__file__).resolve().parents[1] / "static"
 ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--no-first-run",
         "--disable-background-networking", "--disable-component-update", "--disable-sync"]
 
+# A blank page with the viewer's import map (three.js from static/vendor/).
+PAGE = ('<!doctype html><script type="importmap">{"imports": {"three": '
+        '"/vendor/three/build/three.module.js", "three/addons/": "/vendor/three/examples/jsm/"}}'
+        '</script>')
+
 # One repeat: each packet up (base -> full) on a fresh state, then the packet
 # down applied to the state the first one left; the time of each read and apply
 # and a hash of each end state.
 TIME_JS = """async ({ document, capacity, packets, down }) => {
   const { LodState } = await import('/vsplit.js');
+  const { LevelMesh } = await import('/levelmesh.js');
   const bytesOf = (b64) => Uint8Array.from(atob(b64), (c) => c.charCodeAt(0));
   const hash = (state) => {
     let h = 0;
@@ -74,8 +83,13 @@ TIME_JS = """async ({ document, capacity, packets, down }) => {
     await run(state, bytesOf(b64));
     first = first || state;
   }
+  const mesh = new LevelMesh(first);
+  const t0 = performance.now();
+  mesh.update(first.takeDirty());
+  const update = performance.now() - t0;
+  mesh.dispose();
   await run(first, bytesOf(down));
-  return { times, ends };
+  return { times, ends, update };
 }"""
 
 
@@ -115,6 +129,7 @@ def measure(pages, name, repeats, bits):
         "down": base64.b64encode(packets["v3 down"]).decode()}
     totals = {build: {v: [] for v in packets} for build in pages}
     reads = {build: {v: [] for v in packets} for build in pages}
+    updates = {build: [] for build in pages}
     for _ in range(repeats):
         for build, page in pages.items():
             result = page.evaluate(TIME_JS, argument)
@@ -122,6 +137,7 @@ def measure(pages, name, repeats, bits):
             assert ends[0] == ends[1], f"{build}: v3 and v4 end on different states: {ends}"
             assert ends[0][:2] == [n, int(pm.face_counts[-1])], ends
             assert ends[2][:2] == [n0, int(pm.face_counts[0])], ends
+            updates[build].append(result["update"])
             for version, times in zip(packets, result["times"]):
                 totals[build][version].append(times["read"] + times["apply"])
                 reads[build][version].append(times["read"])
@@ -135,6 +151,8 @@ def measure(pages, name, repeats, bits):
                   f"apply {total - read:7.1f} ms  read+apply {total:7.1f} ms = "
                   f"{splits / total * 1e3 / 1e6:.2f} M splits/s (all: "
                   f"{', '.join(f'{x:.0f}' for x in totals[build][version])} ms)")
+        print(f"  {build:5s} LevelMesh.update of the full level: "
+              f"{statistics.median(updates[build][1:]):7.1f} ms")
     if len(pages) == 2:
         here, other = pages
         for version in packets:
@@ -165,7 +183,9 @@ def main():
             pages = {}
             for build, url in urls.items():
                 pages[build] = browser.new_page()
-                pages[build].goto(f"{url}/packet.js")
+                pages[build].route(f"{url}/bench.html", lambda route: route.fulfill(
+                    body=PAGE, content_type="text/html"))
+                pages[build].goto(f"{url}/bench.html")
             for name in args.meshes:
                 measure(pages, name, args.repeats, args.bits)
         finally:
