@@ -10,9 +10,11 @@
 // or takes a minimum), and has room for ringInfo[4v + 2] (one 16-byte row per
 // vertex, so a vertex's three numbers are one memory read). A vertex's corners are read from one
 // run of memory, not chased through a list threaded across the face array (a
-// cache miss per corner on a large mesh); a vertex whose block fills moves to
-// a block twice as big at the pool's end, and a vertex a collapse empties
-// keeps its block for when a split makes it again.
+// cache miss per corner on a large mesh). Every vertex starts with a home block
+// of FIRST_ROOM corners at FIRST_ROOM * v (vertices made one after another have
+// their blocks side by side); a vertex whose block fills moves to a block twice
+// as big at the pool's end, and a vertex a collapse empties keeps its block
+// for when a split makes it again.
 //
 // The per-record scratch: aroundCorners/Nexts/Prevs (the corners gathered
 // around one vertex, each with its next and prev vertex in its face),
@@ -25,7 +27,19 @@
 
 export const NONE = -1;            // no corner, no vertex
 
-export const FIRST_ROOM = 8;        // corners a vertex's first block holds (valence 6 is typical)
+const FIRST_ROOM = 8;               // corners a vertex's home block holds (valence 6 is typical)
+
+// The rows and pool of vertexCapacity vertices, each with its empty home block:
+// { ringInfo, ring, ringEnd } for LodState's fields.
+export function homeRings(vertexCapacity) {
+  const ringInfo = new Int32Array(4 * vertexCapacity);
+  for (let v = 0; v < vertexCapacity; v++) {
+    ringInfo[4 * v] = FIRST_ROOM * v;
+    ringInfo[4 * v + 2] = FIRST_ROOM;
+  }
+  const ringEnd = FIRST_ROOM * vertexCapacity;
+  return { ringInfo, ring: new Int32Array(Math.max(ringEnd, FIRST_ROOM)), ringEnd };
+}
 
 // Corner c holds v now: appended to v's block (moved to a bigger one when full).
 function link(c, v) {
@@ -40,7 +54,7 @@ function link(c, v) {
 // doubling when it has no room left); its n corners copied.
 function growRing(v, n) {
   const info = this.ringInfo, row = 4 * v;
-  const room = Math.max(FIRST_ROOM, 2 * info[row + 2]);
+  const room = 2 * info[row + 2];
   const at = this.ringEnd;
   if (at + room > this.ring.length) {
     const bigger = new Int32Array(2 * Math.max(this.ring.length, room));

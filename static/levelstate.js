@@ -26,7 +26,7 @@
 
 import { grow } from './arrays.js';
 import { collapseMethods } from './collapses.js';
-import { fanMethods, FIRST_ROOM, NONE } from './fans.js';
+import { fanMethods, homeRings, NONE } from './fans.js';
 import {
   attributeGrid, makeReader, PacketError, readPacket, sameGrid, streamNames,
 } from './packet.js';
@@ -99,9 +99,10 @@ export class LodState {
     this.faceCount = 0;
     // corners(v) (fans.js): ring[at .. at + size), room for `room`, where
     // ringInfo[4v ..] = at, size, room (the fourth column unused)
-    this.ringInfo = new Int32Array(4 * vertexCapacity);
-    this.ring = new Int32Array(FIRST_ROOM * Math.max(vertexCapacity, 1));
-    this.ringEnd = 0;                                      // the pool's used length
+    const rings = homeRings(vertexCapacity);
+    this.ringInfo = rings.ringInfo;
+    this.ring = rings.ring;
+    this.ringEnd = rings.ringEnd;                          // the pool's used length
     this.sources = new Int32Array(1024);                   // s of each record of a packet
     this.sink = 0;                                         // where reads ahead go (splits.js)
     // The vertex each vertex t was split from (its parent s, the same in both

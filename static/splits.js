@@ -18,6 +18,13 @@ import { offGrid, PacketError } from './packet.js';
 
 const FAN_PREDICTED = 0;
 const IS_VS = 0, IS_NEW = 1;       // corner kinds in a new face's pattern; 2 = another vertex
+// From this many vertices the state's arrays outgrow a core's cache and
+// applySplits reads ahead (below it, the reads ahead would only cost).
+const READ_AHEAD_VERTICES = 1 << 16;
+// The kinds of the three corners of each pattern code 0..26 (its base-3 digits,
+// first corner first), looked up rather than divided out per corner.
+const PATTERN_KINDS = Uint8Array.from({ length: 81 },
+                                      (_, i) => Math.floor((i / 3 | 0) / 3 ** (2 - i % 3)) % 3);
 
 // Splits start .. stop-1 from the packet's stream readers (streamNames() order).
 function applySplits(start, stop, readers) {
@@ -35,16 +42,17 @@ function applySplits(start, stop, readers) {
     sources[t - start] = s;
   }
   let sink = 0;
+  const ahead = this.vertexCapacity >= READ_AHEAD_VERTICES;
   for (let t = start; t < stop; t++) {
     const s = sources[t - start];
     // Reads whose values are not used (summed into a field, so they are kept):
     // they start the cache misses of the next records' s while this one runs.
     // Two records ahead, its row and position; one ahead, its corners and faces.
-    if (t + 2 < stop) {
+    if (ahead && t + 2 < stop) {
       const u = sources[t + 2 - start];
       sink += this.ringInfo[4 * u] + positions[3 * u];
     }
-    if (t + 1 < stop) {
+    if (ahead && t + 1 < stop) {
       const info = this.ringInfo, ring = this.ring, row = 4 * sources[t + 1 - start];
       for (let i = info[row], end = i + info[row + 1]; i < end; i++) sink += faces[ring[i]];
     }
@@ -59,8 +67,8 @@ function applySplits(start, stop, readers) {
       const code = pattern.byte();
       if (code > 26) throw new PacketError(`split ${t} has a face pattern out of range`);
       // the base-3 digits of code, first corner first
-      for (let j = 0, digits = code; j < 3; j++) {
-        const kind = j === 0 ? (digits / 9) | 0 : j === 1 ? ((digits / 3) | 0) % 3 : digits % 3;
+      for (let j = 0; j < 3; j++) {
+        const kind = PATTERN_KINDS[3 * code + j];
         let v;
         if (kind === IS_VS) v = s;
         else if (kind === IS_NEW) v = t;
