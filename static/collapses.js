@@ -12,6 +12,7 @@
 // as the class's own methods, which cost less in those hot loops than calls
 // to another module's functions.
 
+import { READ_AHEAD_VERTICES } from './fans.js';
 import { offGrid, PacketError } from './packet.js';
 
 // Collapses start-1 down to stop from the packet's stream readers (streamNames() order).
@@ -19,6 +20,8 @@ function applyCollapses(start, stop, readers) {
   const [vertex, count, , , , , position] = readers;
   const { positions, faces, gridSize } = this;
   const hasWedges = this.attributes.length > 0;
+  let sink = 0;
+  const ahead = this.vertexCapacity >= READ_AHEAD_VERTICES;
   for (let t = start - 1; t >= stop; t--) {
     this.gatherCorners(t);
     this.gatherNeighbours(t);
@@ -34,6 +37,16 @@ function applyCollapses(start, stop, readers) {
     this.faceCount -= removed;
     for (let c = 3 * this.faceCount; c < 3 * (this.faceCount + removed); c++) {
       this.unlink(c, faces[c]);
+    }
+    // Reads whose values are not used (summed into a field, so they are kept):
+    // the vertices of the faces just below, which the next record removes (its
+    // s and the other vertices of its split's faces), their rows and positions.
+    if (ahead) {
+      const info = this.ringInfo;
+      for (let c = Math.max(3 * this.faceCount - 6, 0); c < 3 * this.faceCount; c++) {
+        const u = faces[c];
+        sink = (sink + info[4 * u] + positions[3 * u]) | 0;
+      }
     }
     this.moveAll(t, s);
     // floor((q_s + q_t) / 2) + r; both are non-negative, so >> 1 is the floor.
@@ -59,6 +72,7 @@ function applyCollapses(start, stop, readers) {
       this.touchVertex(s);
     }
   }
+  this.sink = sink;
 }
 
 // The wedge part of collapse t into s, after its geometry part (t's corners

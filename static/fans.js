@@ -8,9 +8,9 @@
 // a block of one shared pool (ring): the block of v starts at ringInfo[4v],
 // holds ringInfo[4v + 1] corners, in no particular order (every use sorts them
 // or takes a minimum), and has room for ringInfo[4v + 2] (one 16-byte row per
-// vertex, so a vertex's three numbers are one memory read). A vertex's corners are read from one
-// run of memory, not chased through a list threaded across the face array (a
-// cache miss per corner on a large mesh). Every vertex starts with a home block
+// vertex, so a vertex's three numbers are one memory read). A vertex's corners
+// are read from one run of memory, not chased through a list threaded across
+// the face array (a cache miss per corner on a large mesh). Every vertex starts with a home block
 // of FIRST_ROOM corners at FIRST_ROOM * v (vertices made one after another have
 // their blocks side by side); a vertex whose block fills moves to a block twice
 // as big at the pool's end, and a vertex a collapse empties keeps its block
@@ -28,6 +28,10 @@
 export const NONE = -1;            // no corner, no vertex
 
 const FIRST_ROOM = 8;               // corners a vertex's home block holds (valence 6 is typical)
+// From this many vertices the state's arrays outgrow a core's cache, and the
+// record loops (splits.js, collapses.js) read the memory of the next records
+// ahead; below it, those reads would only cost.
+export const READ_AHEAD_VERTICES = 1 << 16;
 
 // The rows and pool of vertexCapacity vertices, each with its empty home block:
 // { ringInfo, ring, ringEnd } for LodState's fields.
@@ -213,6 +217,6 @@ function predictFan(s, t, k) {
 
 // The methods of LodState this module defines.
 export const fanMethods = {
-  link, growRing, unlink, moveCorner, moveAll, gatherCorners, growScratch, gatherNeighbours, decodeVertex,
-  listedCorners, predictFan,
+  link, growRing, unlink, moveCorner, moveAll, gatherCorners, growScratch, gatherNeighbours,
+  decodeVertex, listedCorners, predictFan,
 };

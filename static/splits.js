@@ -14,13 +14,11 @@
 // to another module's functions.
 
 import { grow } from './arrays.js';
+import { READ_AHEAD_VERTICES } from './fans.js';
 import { offGrid, PacketError } from './packet.js';
 
 const FAN_PREDICTED = 0;
 const IS_VS = 0, IS_NEW = 1;       // corner kinds in a new face's pattern; 2 = another vertex
-// From this many vertices the state's arrays outgrow a core's cache and
-// applySplits reads ahead (below it, the reads ahead would only cost).
-const READ_AHEAD_VERTICES = 1 << 16;
 // The kinds of the three corners of each pattern code 0..26 (its base-3 digits,
 // first corner first), looked up rather than divided out per corner.
 const PATTERN_KINDS = Uint8Array.from({ length: 81 },
@@ -50,11 +48,13 @@ function applySplits(start, stop, readers) {
     // Two records ahead, its row and position; one ahead, its corners and faces.
     if (ahead && t + 2 < stop) {
       const u = sources[t + 2 - start];
-      sink += this.ringInfo[4 * u] + positions[3 * u];
+      sink = (sink + this.ringInfo[4 * u] + positions[3 * u]) | 0;
     }
     if (ahead && t + 1 < stop) {
       const info = this.ringInfo, ring = this.ring, row = 4 * sources[t + 1 - start];
-      for (let i = info[row], end = i + info[row + 1]; i < end; i++) sink += faces[ring[i]];
+      for (let i = info[row], end = i + info[row + 1]; i < end; i++) {
+        sink = (sink + faces[ring[i]]) | 0;
+      }
     }
     this.parent[t] = s;
     // held(s) and neighbours(s) are taken before the record changes anything.
