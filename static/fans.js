@@ -54,14 +54,16 @@ function link(c, v) {
   info[row + 1] = n + 1;
 }
 
-// v's block moved to the pool's end with twice its room (the pool itself
-// doubling when it has no room left); its n corners copied.
+// v's block moved to the pool's end with twice its room; its n corners copied.
+// The pool grows by a quarter when it has no room left: it starts full of home
+// blocks and only the few vertices of high valence move, so doubling it would
+// mostly add room no vertex takes.
 function growRing(v, n) {
   const info = this.ringInfo, row = 4 * v;
   const room = 2 * info[row + 2];
   const at = this.ringEnd;
   if (at + room > this.ring.length) {
-    const bigger = new Int32Array(2 * Math.max(this.ring.length, room));
+    const bigger = new Int32Array(this.ring.length + Math.max(room, this.ring.length >> 2));
     bigger.set(this.ring.subarray(0, at));
     this.ring = bigger;
   }
