@@ -12,8 +12,7 @@
 // as the class's own methods, which cost less in those hot loops than calls
 // to another module's functions.
 
-import { grow } from './arrays.js';
-import { NONE } from './fans.js';
+import { READ_AHEAD_VERTICES } from './fans.js';
 import { offGrid, PacketError } from './packet.js';
 
 // Collapses start-1 down to stop from the packet's stream readers (streamNames() order).
@@ -21,6 +20,8 @@ function applyCollapses(start, stop, readers) {
   const [vertex, count, , , , , position] = readers;
   const { positions, faces, gridSize } = this;
   const hasWedges = this.attributes.length > 0;
+  let sink = 0;
+  const ahead = this.vertexCapacity >= READ_AHEAD_VERTICES;
   for (let t = start - 1; t >= stop; t--) {
     this.gatherCorners(t);
     this.gatherNeighbours(t);
@@ -37,7 +38,17 @@ function applyCollapses(start, stop, readers) {
     for (let c = 3 * this.faceCount; c < 3 * (this.faceCount + removed); c++) {
       this.unlink(c, faces[c]);
     }
-    for (let c = this.head[t]; c !== NONE; c = this.head[t]) this.moveCorner(c, s);
+    // Reads whose values are not used (summed into a field, so they are kept):
+    // the vertices of the faces just below, which the next record removes (its
+    // s and the other vertices of its split's faces), their rows and positions.
+    if (ahead) {
+      const info = this.ringInfo;
+      for (let c = Math.max(3 * this.faceCount - 6, 0); c < 3 * this.faceCount; c++) {
+        const u = faces[c];
+        sink = (sink + info[4 * u] + positions[3 * u]) | 0;
+      }
+    }
+    this.moveAll(t, s);
     // floor((q_s + q_t) / 2) + r; both are non-negative, so >> 1 is the floor.
     const ps = 3 * s, pt = 3 * t;
     const f0 = positions[ps], f1 = positions[ps + 1], f2 = positions[ps + 2];
@@ -61,13 +72,15 @@ function applyCollapses(start, stop, readers) {
       this.touchVertex(s);
     }
   }
+  this.sink = sink;
 }
 
 // The wedge part of collapse t into s, after its geometry part (t's corners
 // are s's now): the last wedges go, each merged into its parent.
 function collapseWedges(t, s, ratio, readers) {
   const wedgeCount = readers[7], wedgeParent = readers[8];
-  const { wedges, corners, components, head, next } = this;
+  const { wedges, corners, components, ring } = this;
+  const from = this.ringInfo[4 * s], to = from + this.ringInfo[4 * s + 1];   // corners(s)
   const { attributeOffset, attributeComponents, attributeLimit } = this;
   const top = this.wedgeCount;
   const m = wedgeCount.varint();
@@ -83,20 +96,15 @@ function collapseWedges(t, s, ratio, readers) {
     if (u === 0) {
       if (smallest === -2) {
         smallest = -1;
-        for (let c = head[s]; c !== NONE; c = next[c]) {
-          const w = corners[c];
+        for (let i = from; i < to; i++) {
+          const w = corners[ring[i]];
           if (w < bottom && (smallest < 0 || w < smallest)) smallest = w;
         }
       }
       p = smallest >= 0 ? smallest : 0;
     } else {
       if (known < 0) {
-        let n = 0;
-        for (let c = head[s]; c !== NONE; c = next[c]) {
-          if (n === this.cornerList.length) this.cornerList = grow(this.cornerList, n);
-          this.cornerList[n++] = c;
-        }
-        known = this.heldWedges(this.cornerList, n, bottom);
+        known = this.heldWedges(ring, from, to, bottom);
       }
       p = u < known ? this.wedgeList[u] : u - known;
     }
@@ -123,7 +131,8 @@ function collapseWedges(t, s, ratio, readers) {
   }
   this.wedgeCount = bottom;
   // corners holding a removed wedge take its parent (repeatedly)
-  for (let c = head[s]; c !== NONE; c = next[c]) {
+  for (let i = from; i < to; i++) {
+    const c = ring[i];
     let w = corners[c];
     if (w < bottom) {
       this.wedgeVertex[w] = s;

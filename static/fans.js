@@ -4,10 +4,17 @@
 // (Hoppe 1996's vl/vr rule); the reference is lodserver/packets/reference.py
 // (predict_fan).
 //
-// corners(v), the corners c = 3 * face + slot holding v, are linked lists
-// threaded through the corners (head per vertex, next per corner):
-// a vertex's corners are found without a search, and moving a corner costs a
-// walk over one vertex's few corners.
+// corners(v), the corners c = 3 * face + slot holding v, are kept per vertex in
+// a block of one shared pool (ring): the block of v starts at ringInfo[4v],
+// holds ringInfo[4v + 1] corners, in no particular order (every use sorts them
+// or takes a minimum), and has room for ringInfo[4v + 2] (one 16-byte row per
+// vertex, so a vertex's three numbers are one memory read). A vertex's corners
+// are read from one run of memory, not chased through a list threaded across
+// the face array (a cache miss per corner on a large mesh). Every vertex starts with a home block
+// of FIRST_ROOM corners at FIRST_ROOM * v (vertices made one after another have
+// their blocks side by side); a vertex whose block fills moves to a block twice
+// as big at the pool's end, and a vertex a collapse empties keeps its block
+// for when a split makes it again.
 //
 // The per-record scratch: aroundCorners/Nexts/Prevs (the corners gathered
 // around one vertex, each with its next and prev vertex in its face),
@@ -20,22 +27,61 @@
 
 export const NONE = -1;            // no corner, no vertex
 
-function link(c, v) {
-  this.next[c] = this.head[v];
-  this.head[v] = c;
+const FIRST_ROOM = 8;               // corners a vertex's home block holds (valence 6 is typical)
+// From this many vertices the state's arrays outgrow a core's cache, and the
+// record loops (splits.js, collapses.js) read the memory of the next records
+// ahead; below it, those reads would only cost.
+export const READ_AHEAD_VERTICES = 1 << 16;
+
+// The rows and pool of vertexCapacity vertices, each with its empty home block:
+// { ringInfo, ring, ringEnd } for LodState's fields.
+export function homeRings(vertexCapacity) {
+  const ringInfo = new Int32Array(4 * vertexCapacity);
+  for (let v = 0; v < vertexCapacity; v++) {
+    ringInfo[4 * v] = FIRST_ROOM * v;
+    ringInfo[4 * v + 2] = FIRST_ROOM;
+  }
+  const ringEnd = FIRST_ROOM * vertexCapacity;
+  return { ringInfo, ring: new Int32Array(Math.max(ringEnd, FIRST_ROOM)), ringEnd };
 }
 
-// Singly linked: the walk to c's predecessor is short (a vertex's valence)
-// and usually over a list just gathered, so cheaper than keeping back links.
-function unlink(c, v) {
-  const { head, next } = this;
-  if (head[v] === c) {
-    head[v] = next[c];
-    return;
+// Corner c holds v now: appended to v's block (moved to a bigger one when full).
+function link(c, v) {
+  const info = this.ringInfo, row = 4 * v;
+  const n = info[row + 1];
+  if (n === info[row + 2]) this.growRing(v, n);
+  this.ring[info[row] + n] = c;
+  info[row + 1] = n + 1;
+}
+
+// v's block moved to the pool's end with twice its room; its n corners copied.
+// The pool grows by a quarter when it has no room left: it starts full of home
+// blocks and only the few vertices of high valence move, so doubling it would
+// mostly add room no vertex takes.
+function growRing(v, n) {
+  const info = this.ringInfo, row = 4 * v;
+  const room = 2 * info[row + 2];
+  const at = this.ringEnd;
+  if (at + room > this.ring.length) {
+    const bigger = new Int32Array(this.ring.length + Math.max(room, this.ring.length >> 2));
+    bigger.set(this.ring.subarray(0, at));
+    this.ring = bigger;
   }
-  let p = head[v];
-  while (next[p] !== c) p = next[p];
-  next[p] = next[c];
+  this.ring.copyWithin(at, info[row], info[row] + n);
+  info[row] = at;
+  info[row + 2] = room;
+  this.ringEnd = at + room;
+}
+
+// Corner c no longer holds v: the block's last corner takes its place.
+function unlink(c, v) {
+  const { ring } = this;
+  const info = this.ringInfo, row = 4 * v;
+  const last = info[row] + info[row + 1] - 1;
+  let i = last;
+  while (ring[i] !== c) i--;
+  ring[i] = ring[last];
+  info[row + 1]--;
 }
 
 // Corner c now holds vertex v.
@@ -46,17 +92,31 @@ function moveCorner(c, v) {
   this.markCorners(c, c + 1);
 }
 
+// Every corner of t holds s now (a collapse of t into s); t keeps its empty block.
+function moveAll(t, s) {
+  const { faces } = this;
+  const at = this.ringInfo[4 * t], n = this.ringInfo[4 * t + 1];
+  for (let i = at; i < at + n; i++) {
+    const c = this.ring[i];      // read afresh: linking to s may move the pool
+    faces[c] = s;
+    this.link(c, s);
+    this.markCorners(c, c + 1);
+  }
+  this.ringInfo[4 * t + 1] = 0;
+}
+
 // corners(v) into the scratch, each with its next and prev vertex in the face.
 function gatherCorners(v) {
-  const { faces, next } = this;
-  let n = 0;
-  for (let c = this.head[v]; c !== NONE; c = next[c]) {
-    if (n === this.aroundCorners.length) this.growScratch();
+  const { faces, ring } = this;
+  const at = this.ringInfo[4 * v], n = this.ringInfo[4 * v + 1];
+  while (n > this.aroundCorners.length) this.growScratch();
+  const { aroundCorners, aroundNexts, aroundPrevs } = this;
+  for (let i = 0; i < n; i++) {
+    const c = ring[at + i];
     const slot = c % 3;
-    this.aroundCorners[n] = c;
-    this.aroundNexts[n] = faces[slot === 2 ? c - 2 : c + 1];
-    this.aroundPrevs[n] = faces[slot === 0 ? c + 2 : c - 1];
-    n++;
+    aroundCorners[i] = c;
+    aroundNexts[i] = faces[slot === 2 ? c - 2 : c + 1];
+    aroundPrevs[i] = faces[slot === 0 ? c + 2 : c - 1];
   }
   this.aroundCount = n;
 }
@@ -159,6 +219,6 @@ function predictFan(s, t, k) {
 
 // The methods of LodState this module defines.
 export const fanMethods = {
-  link, unlink, moveCorner, gatherCorners, growScratch, gatherNeighbours, decodeVertex,
-  listedCorners, predictFan,
+  link, growRing, unlink, moveCorner, moveAll, gatherCorners, growScratch, gatherNeighbours,
+  decodeVertex, listedCorners, predictFan,
 };

@@ -168,15 +168,15 @@ export class LevelMesh {
   showWedges(dirty) {
     const { geometry } = this.mesh;
     const position = geometry.getAttribute('position');
-    const { positions, head, next, corners, wedgeVertex, wedges, components } = this.state;
+    const { positions, ring, ringInfo, corners, wedgeVertex, wedges, components } = this.state;
     const { step } = this.state.grid;
     const p = position.array;
     let low = Infinity, high = -1;
     for (const v of dirty.vertices) {
       const x = positions[3 * v] * step, y = positions[3 * v + 1] * step;
       const z = positions[3 * v + 2] * step;
-      for (let c = head[v]; c !== -1; c = next[c]) {
-        const w = corners[c];
+      for (let i = ringInfo[4 * v], end = i + ringInfo[4 * v + 1]; i < end; i++) {
+        const w = corners[ring[i]];
         p[3 * w] = x;
         p[3 * w + 1] = y;
         p[3 * w + 2] = z;

@@ -26,7 +26,7 @@
 
 import { grow } from './arrays.js';
 import { collapseMethods } from './collapses.js';
-import { fanMethods, NONE } from './fans.js';
+import { fanMethods, homeRings, NONE } from './fans.js';
 import {
   attributeGrid, makeReader, PacketError, readPacket, sameGrid, streamNames,
 } from './packet.js';
@@ -97,12 +97,18 @@ export class LodState {
     this.faces = new Uint32Array(3 * faceCapacity);        // vertex per corner
     this.vertexCount = 0;
     this.faceCount = 0;
-    this.head = new Int32Array(vertexCapacity).fill(NONE); // a corner of each vertex
+    // corners(v) (fans.js): ring[at .. at + size), room for `room`, where
+    // ringInfo[4v ..] = at, size, room (the fourth column unused)
+    const rings = homeRings(vertexCapacity);
+    this.ringInfo = rings.ringInfo;
+    this.ring = rings.ring;
+    this.ringEnd = rings.ringEnd;                          // the pool's used length
+    this.sources = new Int32Array(1024);                   // s of each record of a packet
+    this.sink = 0;                                         // where reads ahead go (splits.js)
     // The vertex each vertex t was split from (its parent s, the same in both
     // directions), once a split or a collapse of t named it: what geomorphs
     // glide a new vertex out of, and a vanishing one into.
     this.parent = new Int32Array(vertexCapacity).fill(NONE);
-    this.next = new Int32Array(3 * faceCapacity);          // next corner of the same vertex
     // Scratch for one record (fans.js): corners of a vertex with their next and prev vertices.
     this.aroundCorners = new Int32Array(64);
     this.aroundNexts = new Int32Array(64);
@@ -158,7 +164,7 @@ export class LodState {
   }
 
   get vertexCapacity() {
-    return this.head.length;
+    return this.ringInfo.length / 4;
   }
 
   get faceCapacity() {

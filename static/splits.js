@@ -14,11 +14,15 @@
 // to another module's functions.
 
 import { grow } from './arrays.js';
-import { NONE } from './fans.js';
+import { READ_AHEAD_VERTICES } from './fans.js';
 import { offGrid, PacketError } from './packet.js';
 
 const FAN_PREDICTED = 0;
 const IS_VS = 0, IS_NEW = 1;       // corner kinds in a new face's pattern; 2 = another vertex
+// The kinds of the three corners of each pattern code 0..26 (its base-3 digits,
+// first corner first), looked up rather than divided out per corner.
+const PATTERN_KINDS = Uint8Array.from({ length: 81 },
+                                      (_, i) => Math.floor((i / 3 | 0) / 3 ** (2 - i % 3)) % 3);
 
 // Splits start .. stop-1 from the packet's stream readers (streamNames() order).
 function applySplits(start, stop, readers) {
@@ -26,9 +30,32 @@ function applySplits(start, stop, readers) {
   const { positions, faces, gridSize } = this;
   const hasWedges = this.attributes.length > 0;
   const material = this.faceMaterial ? readers[readers.length - 1] : null;
+  // Every record's s first (the vertex stream is read on its own), so each
+  // record can touch the memory of the next ones' s before it needs it.
+  if (stop - start > this.sources.length) this.sources = new Int32Array(2 * (stop - start));
+  const sources = this.sources;
   for (let t = start; t < stop; t++) {
     const s = t - 1 - vertex.varint();
     if (s < 0) throw new PacketError(`split ${t} names a vertex below 0`);
+    sources[t - start] = s;
+  }
+  let sink = 0;
+  const ahead = this.vertexCapacity >= READ_AHEAD_VERTICES;
+  for (let t = start; t < stop; t++) {
+    const s = sources[t - start];
+    // Reads whose values are not used (summed into a field, so they are kept):
+    // they start the cache misses of the next records' s while this one runs.
+    // Two records ahead, its row and position; one ahead, its corners and faces.
+    if (ahead && t + 2 < stop) {
+      const u = sources[t + 2 - start];
+      sink = (sink + this.ringInfo[4 * u] + positions[3 * u]) | 0;
+    }
+    if (ahead && t + 1 < stop) {
+      const info = this.ringInfo, ring = this.ring, row = 4 * sources[t + 1 - start];
+      for (let i = info[row], end = i + info[row + 1]; i < end; i++) {
+        sink = (sink + faces[ring[i]]) | 0;
+      }
+    }
     this.parent[t] = s;
     // held(s) and neighbours(s) are taken before the record changes anything.
     this.gatherCorners(s);
@@ -40,8 +67,8 @@ function applySplits(start, stop, readers) {
       const code = pattern.byte();
       if (code > 26) throw new PacketError(`split ${t} has a face pattern out of range`);
       // the base-3 digits of code, first corner first
-      for (let j = 0, digits = code; j < 3; j++) {
-        const kind = j === 0 ? (digits / 9) | 0 : j === 1 ? ((digits / 3) | 0) % 3 : digits % 3;
+      for (let j = 0; j < 3; j++) {
+        const kind = PATTERN_KINDS[3 * code + j];
         let v;
         if (kind === IS_VS) v = s;
         else if (kind === IS_NEW) v = t;
@@ -110,6 +137,7 @@ function applySplits(start, stop, readers) {
       this.touchVertex(t);
     }
   }
+  this.sink = sink;
 }
 
 // The wedge part of split t (docs/packets.md), after its geometry part: the
@@ -119,7 +147,7 @@ function applySplits(start, stop, readers) {
 // without building the sorted list.
 function splitWedges(s, t, moves, firstFace, readers) {
   const wedgeCount = readers[7], wedgeParent = readers[8], wedgeCorner = readers[9];
-  const { wedges, corners, components, faces, fine, head, next } = this;
+  const { wedges, corners, components, faces, fine, ring, ringInfo } = this;
   const { attributeOffset, attributeComponents, attributeLimit } = this;
   const bottom = this.wedgeCount;
   const m = wedgeCount.varint();
@@ -137,7 +165,7 @@ function splitWedges(s, t, moves, firstFace, readers) {
     let p;
     if (u === 0) p = this.smallestWedge(this.aroundCorners, this.aroundCount, bottom, 0);
     else {
-      if (known < 0) known = this.heldWedges(this.aroundCorners, this.aroundCount, bottom);
+      if (known < 0) known = this.heldWedges(this.aroundCorners, 0, this.aroundCount, bottom);
       p = u < known ? this.wedgeList[u] : u - known;
     }
     if (!(p >= 0 && p < x)) {
@@ -204,18 +232,20 @@ function splitWedges(s, t, moves, firstFace, readers) {
     let w;
     if (u === 0) {
       w = -1;
-      for (let d = head[v]; d !== NONE; d = next[d]) {
+      for (let i = ringInfo[4 * v], end = i + ringInfo[4 * v + 1]; i < end; i++) {
+        const d = ring[i];
         if (d < limit && (w < 0 || corners[d] < w)) w = corners[d];
       }
       if (w < 0) w = this.candidate(0, 0, bottom, top);
     } else {
       let n = 0;
-      for (let d = head[v]; d !== NONE; d = next[d]) {
+      for (let i = ringInfo[4 * v], end = i + ringInfo[4 * v + 1]; i < end; i++) {
+        const d = ring[i];
         if (d >= limit) continue;
         if (n === this.cornerList.length) this.cornerList = grow(this.cornerList, n);
         this.cornerList[n++] = d;
       }
-      w = this.candidate(u, this.heldWedges(this.cornerList, n, top), bottom, top);
+      w = this.candidate(u, this.heldWedges(this.cornerList, 0, n, top), bottom, top);
     }
     this.setWedge(c, w);
   }

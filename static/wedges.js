@@ -147,13 +147,13 @@ function smallestWedge(cornerIds, n, below, none) {
   return w < 0 ? none : w;
 }
 
-// wedges(L) of the corners cornerIds[0 .. n), those below `below`, ascending,
-// into this.wedgeList; their number.
-function heldWedges(cornerIds, n, below) {
-  if (n > this.wedgeList.length) this.wedgeList = new Int32Array(2 * n);
+// wedges(L) of the corners cornerIds[start .. end), those below `below`,
+// ascending, into this.wedgeList; their number.
+function heldWedges(cornerIds, start, end, below) {
+  if (end - start > this.wedgeList.length) this.wedgeList = new Int32Array(2 * (end - start));
   const list = this.wedgeList, corners = this.corners;
   let size = 0;
-  for (let i = 0; i < n; i++) {
+  for (let i = start; i < end; i++) {
     const w = corners[cornerIds[i]];
     if (w >= below) continue;
     let j = size - 1;
