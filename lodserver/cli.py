@@ -434,86 +434,16 @@ def _cmd_info(args) -> int:
     return 0
 
 
-def _server_settings(args):
-    """The ``LODSERVER_*`` settings (``--data`` is one of them), and the store they
-    name opened once as a check; (settings, None), or (None, one sentence) when a
-    variable is invalid or the catalogue, the store or the data directory is unusable."""
-    from pydantic import ValidationError
-
-    from .api.main import open_store
-    from .api.settings import Settings
-    from .service.catalog import CatalogUnavailable
-    from .service.store import StoreError
-
-    if args.data is not None:
-        os.environ["LODSERVER_DATA_DIR"] = str(args.data)
-    try:
-        settings = Settings()
-    except ValidationError as exc:
-        # pydantic's own text repeats the value, which may hold a password
-        return None, "; ".join(f"LODSERVER_{'_'.join(map(str, e['loc'])).upper()}: "
-                               f"{e['msg'].removeprefix('Value error, ')}" for e in exc.errors())
-    try:
-        open_store(settings).close()
-    except (CatalogUnavailable, StoreError, ValueError) as exc:
-        return None, str(exc)
-    return settings, None
-
-
 def _cmd_serve(args) -> int:
-    import uvicorn
+    from .api.run import serve
 
-    # The app reads its settings from LODSERVER_* variables; checked here first,
-    # so that a wrong URL is one sentence and exit code 1, not a traceback.
-    settings, problem = _server_settings(args)
-    if problem:
-        print(f"lodserver serve: {problem}", file=sys.stderr)
-        return 1
-    from .api.protocol import head_deadline_protocol
-
-    uvicorn.run("lodserver.api.main:create_app", factory=True, host=args.host, port=args.port,
-                log_level=args.log_level, http=head_deadline_protocol(settings.header_seconds))
-    return 0
+    return serve(data=args.data, host=args.host, port=args.port, log_level=args.log_level)
 
 
 def _cmd_worker(args) -> int:
-    import logging
-    import signal
-    import threading
+    from .api.run import work
 
-    from .api.main import build_runner, open_store
-    from .service.catalog import redact_url
-    from .service.parsing import ParsePool
-
-    if args.workers is not None:
-        os.environ["LODSERVER_WORKERS"] = str(args.workers)
-    settings, problem = _server_settings(args)
-    if problem is None and settings.workers == 0:
-        problem = "a worker with 0 builds at a time would do nothing; pass --workers 1 or more"
-    if problem:
-        print(f"lodserver worker: {problem}", file=sys.stderr)
-        return 1
-    logging.basicConfig(level=args.log_level.upper(), stream=sys.stderr,
-                        format="%(asctime)s %(levelname)s %(name)s: %(message)s")
-    stop = threading.Event()
-    for signum in (signal.SIGTERM, signal.SIGINT):
-        signal.signal(signum, lambda *_: stop.set())
-    store = open_store(settings)
-    parser = ParsePool(workers=settings.parse_workers, queue=settings.parse_queue,
-                       memory_bytes=settings.parse_memory_bytes)
-    runner = build_runner(store, settings, parser)
-    try:
-        runner.start(warm=settings.warm_kernels)
-        where = redact_url(settings.catalog_url) if settings.catalog_url else "the data directory"
-        print(f"lodserver worker: building from the queue of {where}, {settings.workers} at a "
-              "time; Ctrl-C or SIGTERM stops it (builds under way go back to the queue)",
-              file=sys.stderr, flush=True)
-        while not stop.wait(1.0):
-            pass
-    finally:
-        runner.shutdown()
-        store.close()
-    return 0
+    return work(data=args.data, workers=args.workers, log_level=args.log_level)
 
 
 # --- the parser ----------------------------------------------------------------------
