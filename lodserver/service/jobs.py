@@ -32,8 +32,6 @@ from collections import OrderedDict, deque
 from dataclasses import dataclass, field
 from pathlib import Path
 
-import numpy as np
-
 from ..build import build
 from ..io import LoadReport
 from ..io.fileset import FileSetLimits

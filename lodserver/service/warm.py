@@ -17,8 +17,9 @@ read-only. The warm-up therefore builds what an upload builds, the same way:
 
 from __future__ import annotations
 
-import numpy as np
 from multiprocessing.reduction import ForkingPickler
+
+import numpy as np
 
 from ..build import build
 from ..mesh import Attributes, Mesh
@@ -31,17 +32,18 @@ POSES = 2
 
 
 def warm_up() -> None:
-    """Build the warm-up meshes (``warm_meshes``) and encode a small one's packets
-    both ways, so numba loads (or compiles) every kernel before a real build or
-    the first packet request."""
+    """Build the warm-up meshes (``warm_meshes``) and encode the packets of the
+    small one and of an octahedron without attributes both ways, so numba
+    loads (or compiles) every kernel before a real build or the first packet
+    request."""
     from ..packets import encode_packet, packet_between
 
-    for mesh, poses in warm_meshes():
-        pm = build(mesh, poses=poses)
+    small, _ = [build(mesh, poses=poses) for mesh, poses in warm_meshes()]
     positions = np.array([[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1.0]])
     faces = np.array([[0, 2, 4], [2, 1, 4], [1, 3, 4], [3, 0, 4],
                       [2, 0, 5], [1, 2, 5], [3, 1, 5], [0, 3, 5]])
-    for pm in (build(Mesh(positions, faces)), pm):
+    # packets with and without wedges; the small mesh's, as the encoders run the same
+    for pm in (build(Mesh(positions, faces)), small):
         pm.at(pm.base_vertices)
         encode_packet(pm, pm.base_vertices, pm.vertex_count)
         encode_packet(pm, pm.vertex_count, pm.base_vertices)
