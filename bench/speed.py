@@ -13,7 +13,7 @@ and ``at`` of 100 random levels (worst and median).
     python bench/speed.py                  # every size (about 25 min on 2 busy cores)
     python bench/speed.py --quick          # 1.1M only, 1 repeat (about 3 min)
     python bench/speed.py --sizes 1m,4m --methods lodserver,meshoptimizer --repeats 3
-    python bench/speed.py --sizes 1m --only-command --first-run --repeats 3
+    python bench/speed.py --sizes 1m --no-methods --command --first-run --repeats 3
 
 ``--command`` adds the whole ``lodserver build FILE.ply -o OUT.pm`` (a child
 process from start to exit: imports, the PLY load, the build and the save),
@@ -360,8 +360,8 @@ def parse_args(argv=None):
                              f"with {REFERENCE} (--repeats pairs)")
     parser.add_argument("--first-run", action="store_true",
                         help="also `lodserver build` of the sample on an empty numba cache")
-    parser.add_argument("--only-command", action="store_true",
-                        help="the whole command and the first run only (no method table)")
+    parser.add_argument("--no-methods", action="store_true",
+                        help="skip the per-method runs (with --command or --first-run)")
     add_io_arguments(parser, "speed")
     args = parser.parse_args(argv)
     args.sizes = (args.sizes or ("1m" if args.quick else ",".join(SIZES))).split(",")
@@ -401,7 +401,7 @@ def main(argv=None):
             _log("first run on an empty numba cache ...")
             results["first_run"] = first_run(args.repeats, args.timeout, work)
             result_path.write_text(json.dumps(results, indent=1))
-        if args.command or args.only_command:
+        if args.command:
             results["command"] = {}
             for size, (input_path, faces) in inputs.items():
                 _log(f"{size} ({faces:,} faces): the whole command ...")
@@ -410,7 +410,7 @@ def main(argv=None):
                 result_path.write_text(json.dumps(results, indent=1))
         # method by method over the sizes, so a run cut short still has the first
         # methods (lodserver and meshoptimizer) at every size
-        for method in ([] if args.only_command else args.methods):
+        for method in ([] if args.no_methods else args.methods):
             for size, (input_path, faces) in inputs.items():
                 entry = results["sizes"][size]
                 _log(f"{size} ({faces:,} faces): {method} ...")
@@ -427,7 +427,7 @@ def main(argv=None):
     result_path.write_text(json.dumps(results, indent=1))
     if "command" in results or "first_run" in results:
         print(command_table(results), "\n")
-    if not args.only_command:
+    if not args.no_methods:
         print(speed_table(results), "\n")
         print(scaling_table(results), "\n")
         print(levels_table(results))
