@@ -334,12 +334,15 @@ def command_table(results) -> str:
                                           entry["ratios"])):
             lines.append([size, entry["faces"], i + 1, _g(c), _g(p), _g(r)])
         lines.append([size, entry["faces"], "median", "", "", _g(entry["median_ratio"])])
-    first = results.get("first_run")
-    if first:
-        for i, (c, w) in enumerate(zip(first["cold_s"], first["warm_s"])):
-            lines.append(["first run", first["sample"], i + 1, f"{_g(c)} (empty cache)",
-                          f"{_g(w)} (filled)", ""])
     return markdown_table(header, lines)
+
+
+def first_run_table(results) -> str:
+    first = results["first_run"]
+    lines = [[first["sample"], i + 1, _g(c), _g(w), _g(c / w)]
+             for i, (c, w) in enumerate(zip(first["cold_s"], first["warm_s"]))]
+    return markdown_table(["sample", "run", "empty numba cache s", "filled cache s",
+                           "empty / filled"], lines)
 
 
 def parse_args(argv=None):
@@ -425,7 +428,9 @@ def main(argv=None):
         shutil.rmtree(work, ignore_errors=True)
     results["machine"]["cpu_busy_after"] = cpu_busy()
     result_path.write_text(json.dumps(results, indent=1))
-    if "command" in results or "first_run" in results:
+    if "first_run" in results:
+        print(first_run_table(results), "\n")
+    if "command" in results:
         print(command_table(results), "\n")
     if not args.no_methods:
         print(speed_table(results), "\n")
