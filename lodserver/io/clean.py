@@ -13,8 +13,9 @@ from __future__ import annotations
 from dataclasses import asdict, dataclass, field
 
 import numpy as np
+from numba import njit
 
-from ..mesh import Attributes, Materials, Mesh, MeshError, attribute_rule
+from ..mesh import Attributes, Materials, Mesh, MeshError, attribute_rule, read_only
 
 
 @dataclass
@@ -234,8 +235,9 @@ def _first_occurrences(rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
     Parameters
     ----------
-    rows : (k, d) array
-        Rows to compare (with ``==``, so ``0.0`` equals ``-0.0``).
+    rows : (k, d) float64 or integer array
+        Rows to compare (with ``==``, so ``0.0`` equals ``-0.0`` and a row
+        holding NaN equals no other row).
 
     Returns
     -------
@@ -244,17 +246,58 @@ def _first_occurrences(rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     inverse : (k,) int64
         Group of each row, so ``rows[first][inverse]`` equals ``rows``.
     """
-    # lexsort is stable, so within a group of equal rows the earliest comes first.
-    order = np.lexsort(rows.T[::-1])
-    ordered = rows[order]
-    starts = np.ones(len(rows), dtype=bool)
-    starts[1:] = (ordered[1:] != ordered[:-1]).any(axis=1)
-    group_first = order[starts]
-    rank = np.empty(len(group_first), dtype=np.int64)
-    rank[np.argsort(group_first)] = np.arange(len(group_first))
-    inverse = np.empty(len(rows), dtype=np.int64)
-    inverse[order] = rank[np.cumsum(starts) - 1]
-    return np.sort(group_first), inverse
+    rows = np.asarray(rows)
+    if rows.ndim != 2:
+        rows = rows.reshape(len(rows), -1)
+    if np.issubdtype(rows.dtype, np.floating):
+        rows = read_only(rows, np.float64)
+        # adding 0.0 turns -0.0 into 0.0, so equal rows hash alike
+        bits = read_only((rows + 0.0).view(np.int64))
+    else:
+        rows = read_only(rows, np.int64)
+        bits = rows
+    return _group_rows(rows, bits)
+
+
+@njit(cache=True, nogil=True)
+def _group_rows(rows, bits):
+    """``_first_occurrences`` in one pass over the rows with a hash table
+    (open addressing on ``bits``, each row's words as int64): a sort of the
+    rows costs k log k comparisons of whole rows, this about one per row."""
+    k, d = rows.shape
+    size = 2
+    while size < 2 * k:
+        size *= 2
+    mask = size - 1
+    table = np.full(size, -1, np.int64)
+    first = np.empty(k, np.int64)
+    inverse = np.empty(k, np.int64)
+    groups = 0
+    for i in range(k):
+        h = np.uint64(14695981039346656037)
+        for c in range(d):
+            h = (h ^ np.uint64(bits[i, c])) * np.uint64(1099511628211)
+        h ^= h >> np.uint64(31)
+        slot = np.int64(h & np.uint64(mask))
+        while True:
+            g = table[slot]
+            if g < 0:
+                table[slot] = groups
+                first[groups] = i
+                inverse[i] = groups
+                groups += 1
+                break
+            j = first[g]
+            equal = True
+            for c in range(d):
+                if rows[i, c] != rows[j, c]:
+                    equal = False
+                    break
+            if equal:
+                inverse[i] = g
+                break
+            slot = (slot + 1) & mask
+    return first[:groups].copy(), inverse
 
 
 def fan_triangulate(corners: np.ndarray, sizes: np.ndarray) -> np.ndarray:

@@ -12,6 +12,7 @@ read-only. The warm-up therefore builds what an upload builds, the same way:
   partitioned run of a large upload);
 - each sent through multiprocessing's pickle, as the parse workers send a
   parsed mesh back;
+- the loaders' welding (``io.clean``) once, for the parse workers' cache;
 - then the packets of a small progressive mesh both ways.
 """
 
@@ -22,6 +23,7 @@ from multiprocessing.reduction import ForkingPickler
 import numpy as np
 
 from ..build import build
+from ..io import clean_mesh
 from ..mesh import Attributes, Mesh
 from ..simplify.parts import PARALLEL_MIN_VERTICES
 
@@ -38,7 +40,10 @@ def warm_up() -> None:
     request."""
     from ..packets import encode_packet, packet_between
 
-    small, _ = [build(mesh, poses=poses) for mesh, poses in warm_meshes()]
+    meshes = warm_meshes()
+    # the loaders' welding, which the parse workers load from the same on-disk cache
+    clean_mesh(meshes[0][0].positions, meshes[0][0].faces)
+    small, _ = [build(mesh, poses=poses) for mesh, poses in meshes]
     positions = np.array([[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1.0]])
     faces = np.array([[0, 2, 4], [2, 1, 4], [1, 3, 4], [3, 0, 4],
                       [2, 0, 5], [1, 2, 5], [3, 1, 5], [0, 3, 5]])
