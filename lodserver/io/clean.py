@@ -256,14 +256,38 @@ def _first_occurrences(rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     else:
         rows = read_only(rows, np.int64)
         bits = rows
-    return _group_rows(rows, bits)
+    first, inverse, hashed = _group_rows(rows, bits, PROBES_PER_ROW)
+    return (first, inverse) if hashed else _sorted_first_occurrences(rows)
+
+
+# Hash-table probes per row (on average) past which grouping falls back to a
+# sort: rows crafted to collide (a hostile upload) would otherwise make the
+# table's pass quadratic, while a sort's cost does not depend on the values.
+PROBES_PER_ROW = 32
+
+
+def _sorted_first_occurrences(rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``_first_occurrences`` by a lexsort of the rows (the same result)."""
+    # lexsort is stable, so within a group of equal rows the earliest comes first.
+    order = np.lexsort(rows.T[::-1])
+    ordered = rows[order]
+    starts = np.ones(len(rows), dtype=bool)
+    starts[1:] = (ordered[1:] != ordered[:-1]).any(axis=1)
+    group_first = order[starts]
+    rank = np.empty(len(group_first), dtype=np.int64)
+    rank[np.argsort(group_first)] = np.arange(len(group_first))
+    inverse = np.empty(len(rows), dtype=np.int64)
+    inverse[order] = rank[np.cumsum(starts) - 1]
+    return np.sort(group_first), inverse
 
 
 @njit(cache=True, nogil=True)
-def _group_rows(rows, bits):
+def _group_rows(rows, bits, probes_per_row):
     """``_first_occurrences`` in one pass over the rows with a hash table
     (open addressing on ``bits``, each row's words as int64): a sort of the
-    rows costs k log k comparisons of whole rows, this about one per row."""
+    rows costs k log k comparisons of whole rows, this about one per row.
+    Returns (first, inverse, True), or (_, _, False) once the probes pass
+    ``probes_per_row`` per row (then the caller sorts instead)."""
     k, d = rows.shape
     size = 2
     while size < 2 * k:
@@ -273,6 +297,8 @@ def _group_rows(rows, bits):
     first = np.empty(k, np.int64)
     inverse = np.empty(k, np.int64)
     groups = 0
+    probes = 0
+    budget = probes_per_row * k + 1024
     for i in range(k):
         h = np.uint64(14695981039346656037)
         for c in range(d):
@@ -297,7 +323,10 @@ def _group_rows(rows, bits):
                 inverse[i] = g
                 break
             slot = (slot + 1) & mask
-    return first[:groups].copy(), inverse
+            probes += 1
+            if probes > budget:
+                return first[:0].copy(), inverse, False
+    return first[:groups].copy(), inverse, True
 
 
 def fan_triangulate(corners: np.ndarray, sizes: np.ndarray) -> np.ndarray:
