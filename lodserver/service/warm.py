@@ -5,11 +5,11 @@ numba compiles a kernel once per signature, and a signature is every
 argument's type: an array's dtype, dimensions, layout and whether it is
 read-only. The warm-up therefore builds what an upload builds, the same way:
 
-- a mesh with every kind of attribute (SOLVED normals, UVs and colours; the
-  CARRIED tangents and skin) and poses, the inputs of a skinned part;
-- once small (the whole-mesh kernel) and once with
-  ``simplify.parts.PARALLEL_MIN_VERTICES`` vertices (the Morton order and the
-  partitioned run of a large upload);
+- a small mesh with every kind of attribute (SOLVED normals, UVs and
+  colours; the CARRIED tangents and skin) and poses, the inputs of a skinned
+  part (the whole-mesh kernel);
+- one with ``simplify.parts.PARALLEL_MIN_VERTICES`` vertices and normals
+  (the Morton order and the partitioned run of a large upload);
 - each sent through multiprocessing's pickle, as the parse workers send a
   parsed mesh back;
 - the loaders' welding (``io.clean``) once, for the parse workers' cache;
@@ -56,13 +56,19 @@ def warm_up() -> None:
         packet_between(pm, pm.vertex_count, pm.base_vertices)
 
 
-def warm_meshes() -> list[tuple[Mesh, np.ndarray]]:
-    """``(mesh, poses)`` pairs the warm-up builds: a small torus and one of
-    ``PARALLEL_MIN_VERTICES`` vertices, each with every attribute kind and
-    ``POSES`` poses (P, n, 3, 4), each through multiprocessing's pickle."""
+def warm_meshes() -> list[tuple[Mesh, np.ndarray | None]]:
+    """``(mesh, poses)`` pairs the warm-up builds, each through multiprocessing's
+    pickle: a small torus with every attribute kind and ``POSES`` poses (P, n,
+    3, 4), and one of ``PARALLEL_MIN_VERTICES`` vertices with its normals only
+    and no poses (the partitioned run's kernels take the same array types
+    whatever the attributes, as long as there are some, and the large build
+    is then a fraction of the warm-up)."""
     side = int(np.ceil(np.sqrt(PARALLEL_MIN_VERTICES)))
-    return [ForkingPickler.loads(ForkingPickler.dumps(_torus(rows, cols)))
-            for rows, cols in ((12, 16), (side, side))]
+    mesh, _ = _torus(side, side)
+    normals = mesh.attributes.values[:, :3]
+    large = (Mesh(mesh.positions, mesh.faces,
+                  Attributes((("NORMAL", 3),), normals, mesh.attributes.corners)), None)
+    return [ForkingPickler.loads(ForkingPickler.dumps(pair)) for pair in (_torus(12, 16), large)]
 
 
 def _torus(rows: int, cols: int) -> tuple[Mesh, np.ndarray]:
