@@ -13,6 +13,13 @@ and ``at`` of 100 random levels (worst and median).
     python bench/speed.py                  # every size (about 25 min on 2 busy cores)
     python bench/speed.py --quick          # 1.1M only, 1 repeat (about 3 min)
     python bench/speed.py --sizes 1m,4m --methods lodserver,meshoptimizer --repeats 3
+    python bench/speed.py --sizes 1m --no-methods --command --first-run --repeats 3
+
+``--command`` adds the whole ``lodserver build FILE.ply -o OUT.pm`` (a child
+process from start to exit: imports, the PLY load, the build and the save),
+each run paired with meshoptimizer ``simplify`` run right after it, and the
+ratio of each pair; ``--first-run`` the sample's build on an empty numba cache
+(every kernel compiled) and then on the cache it filled.
 
 Inputs are Loop-subdivided scans from ``../shared/meshes``, made on first use
 and cached in ``bench/out/`` (``bunny_loop2.npz`` is the same file
@@ -235,6 +242,109 @@ def levels_table(results) -> str:
     return markdown_table(header, lines)
 
 
+# --- the whole command and the first run (issue 29) ----------------------------------
+
+SAMPLE = Path(__file__).resolve().parents[1] / "tests" / "data" / "spot.obj"
+
+
+def write_ply(npz: Path) -> Path:
+    """``npz``'s welded mesh as a binary little-endian PLY beside it (float64
+    coordinates, int32 indices), the file the whole command reads; made once."""
+    path = npz.with_suffix(".ply")
+    if path.exists():
+        return path
+    with np.load(npz) as data:
+        positions, faces = data["positions"], data["faces"]
+    header = (f"ply\nformat binary_little_endian 1.0\nelement vertex {len(positions)}\n"
+              "property double x\nproperty double y\nproperty double z\n"
+              f"element face {len(faces)}\nproperty list uchar int vertex_indices\n"
+              "end_header\n").encode()
+    rows = np.empty(len(faces), dtype=[("count", "u1"), ("corners", "<i4", (3,))])
+    rows["count"], rows["corners"] = 3, faces
+    partial = path.with_suffix(".partial.ply")
+    with open(partial, "wb") as out:
+        out.write(header)
+        out.write(np.ascontiguousarray(positions, dtype="<f8").tobytes())
+        out.write(rows.tobytes())
+    os.replace(partial, path)
+    return path
+
+
+def timed_command(command: list[str], timeout: float, env: dict | None = None) -> float:
+    """Wall seconds of ``command`` in a child process, from its start to its exit
+    (interpreter start, imports, load and save included); WorkerFailed if it fails."""
+    import subprocess
+    import sys
+    import time
+
+    started = time.perf_counter()
+    try:
+        done = subprocess.run([sys.executable, *command], capture_output=True, text=True,
+                              timeout=timeout, env={**os.environ, **(env or {})})
+    except subprocess.TimeoutExpired:
+        raise WorkerFailed(f"timeout after {timeout:g} s") from None
+    seconds = time.perf_counter() - started
+    if done.returncode:
+        lines = done.stderr.strip().splitlines()
+        raise WorkerFailed(lines[-1] if lines else f"exit code {done.returncode}")
+    return seconds
+
+
+def whole_command(input_path: Path, faces: int, repeats: int, timeout: float,
+                  work: Path) -> dict:
+    """``lodserver build FILE.ply -o OUT.pm`` in a child process, each run paired
+    with meshoptimizer's ``simplify`` to 10% in a child right after it (its
+    load excluded, in its favour): the walls, the peer's call times and each
+    pair's ratio."""
+    ply = write_ply(input_path)
+    command = ["-m", "lodserver.cli", "build", str(ply), "-o", str(work / "command.pm")]
+    timed_command(command, timeout)     # untimed: fills the numba cache, so no pair compiles
+    commands, peers = [], []
+    for _ in range(repeats):
+        commands.append(timed_command(command, timeout))
+        row = run_method(REFERENCE, input_path, faces, 1, 0, timeout, work)
+        if row["status"] != "ok":
+            raise WorkerFailed(row["reason"])
+        peers.append(row["time_s"])
+    ratios = [c / p for c, p in zip(commands, peers)]
+    return {"input": ply.name, "faces": faces, "command_s": commands,
+            f"{REFERENCE}_s": peers, "ratios": ratios,
+            "median_ratio": statistics.median(ratios)}
+
+
+def first_run(repeats: int, timeout: float, work: Path) -> dict:
+    """``lodserver build`` of the sample on an empty numba cache (every kernel
+    compiled), then again on the cache that run filled; each ``repeats`` times
+    with a new empty cache, alternating."""
+    cold, warm = [], []
+    for i in range(repeats):
+        cache = work / f"empty-numba-cache-{i}"
+        command = ["-m", "lodserver.cli", "build", str(SAMPLE), "-o", str(work / "sample.pm")]
+        for times in (cold, warm):
+            times.append(timed_command(command, timeout, {"NUMBA_CACHE_DIR": str(cache)}))
+        shutil.rmtree(cache, ignore_errors=True)
+    return {"sample": SAMPLE.name, "cold_s": cold, "warm_s": warm}
+
+
+def command_table(results) -> str:
+    header = ["size", "faces", "run", "lodserver build s", f"{REFERENCE} s", "ratio"]
+    lines = []
+    for size, entry in results.get("command", {}).items():
+        for i, (c, p, r) in enumerate(zip(entry["command_s"], entry[f"{REFERENCE}_s"],
+                                          entry["ratios"])):
+            lines.append([size, entry["faces"], i + 1, _g(c), _g(p), _g(r)])
+        lines.append([size, entry["faces"], "median", "", "", _g(entry["median_ratio"])])
+    return markdown_table(header, lines)
+
+
+def first_run_table(results) -> str:
+    first = results["first_run"]
+    lines = [[first["sample"], i + 1, _g(c), _g(w), _g(c / w)]
+             for i, (c, w) in enumerate(zip(first["cold_s"], first["warm_s"]))]
+    return markdown_table(["sample", "run", "empty numba cache s", "filled cache s",
+                           "empty / filled"], lines)
+
+
 def parse_args(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0].replace("\n", " "))
     parser.add_argument("--sizes", help=f"comma-separated, from: {', '.join(SIZES)} (default: all)")
@@ -248,6 +358,13 @@ def parse_args(argv=None):
     parser.add_argument("--timeout", type=float, default=900.0,
                         help="seconds per child process before it counts as failed; 900")
     parser.add_argument("--quick", action="store_true", help="1m only, 1 repeat")
+    parser.add_argument("--command", action="store_true",
+                        help="also the whole `lodserver build` of each size's PLY, paired "
+                             f"with {REFERENCE} (--repeats pairs)")
+    parser.add_argument("--first-run", action="store_true",
+                        help="also `lodserver build` of the sample on an empty numba cache")
+    parser.add_argument("--no-methods", action="store_true",
+                        help="skip the per-method runs (with --command or --first-run)")
     add_io_arguments(parser, "speed")
     args = parser.parse_args(argv)
     args.sizes = (args.sizes or ("1m" if args.quick else ",".join(SIZES))).split(",")
@@ -283,9 +400,20 @@ def main(argv=None):
             results["sizes"][size] = {"input": input_path.name, "faces": faces, "rows": [],
                                       "repeats": args.repeats if size == "1m"
                                       else args.repeats_large}
+        if args.first_run:
+            _log("first run on an empty numba cache ...")
+            results["first_run"] = first_run(args.repeats, args.timeout, work)
+            result_path.write_text(json.dumps(results, indent=1))
+        if args.command:
+            results["command"] = {}
+            for size, (input_path, faces) in inputs.items():
+                _log(f"{size} ({faces:,} faces): the whole command ...")
+                results["command"][size] = whole_command(input_path, faces, args.repeats,
+                                                         args.timeout, work)
+                result_path.write_text(json.dumps(results, indent=1))
         # method by method over the sizes, so a run cut short still has the first
         # methods (lodserver and meshoptimizer) at every size
-        for method in args.methods:
+        for method in ([] if args.no_methods else args.methods):
             for size, (input_path, faces) in inputs.items():
                 entry = results["sizes"][size]
                 _log(f"{size} ({faces:,} faces): {method} ...")
@@ -300,9 +428,14 @@ def main(argv=None):
         shutil.rmtree(work, ignore_errors=True)
     results["machine"]["cpu_busy_after"] = cpu_busy()
     result_path.write_text(json.dumps(results, indent=1))
-    print(speed_table(results), "\n")
-    print(scaling_table(results), "\n")
-    print(levels_table(results))
+    if "first_run" in results:
+        print(first_run_table(results), "\n")
+    if "command" in results:
+        print(command_table(results), "\n")
+    if not args.no_methods:
+        print(speed_table(results), "\n")
+        print(scaling_table(results), "\n")
+        print(levels_table(results))
     _log(f"\nwrote {result_path}")
 
 

@@ -2,9 +2,13 @@
 
 from __future__ import annotations
 
+import sys
+import threading
+import time
 from pathlib import Path
 
 import numpy as np
+from numba.core import event as numba_event
 
 from .simplify.carried import complete_log, solved_part
 from .simplify.collapse import decimate
@@ -13,7 +17,7 @@ from .options import METHODS, BuildOptions, distance_from
 from .progressive.batches import schedule
 from .progressive.mesh import ProgressiveMesh, from_collapse_log
 
-__all__ = ["build", "BuildOptions", "METHODS", "distance_from", "kernels_cold"]
+__all__ = ["build", "BuildOptions", "METHODS", "distance_from", "kernels_cold", "CompileTicker"]
 
 # About what the first build on a small machine spends compiling the kernels
 # numba has not cached yet (an empty NUMBA_CACHE_DIR): told to the user so the
@@ -129,3 +133,84 @@ def kernels_cold(method: str = "qem") -> bool:
         return not cache._cache_file._load_index()
     except Exception:       # the kernel or numba's internals moved: say nothing, build on
         return False
+
+
+class CompileTicker:
+    """A line on ``stream`` that moves while numba compiles: the kernel being
+    compiled, how many are done and the seconds so far, rewritten in place
+    every ``every`` s from a thread of its own (a kernel can take seconds to
+    compile, and a line that sits still looks hung). Nothing is written while
+    nothing compiles (a filled cache), nor when ``stream`` is not a terminal
+    unless ``always``. ``stop()`` ends the line.
+
+    It listens to numba's compile events (``numba.core.event``), which numba
+    sends from the compiling thread for each kernel, nested ones included.
+    """
+
+    def __init__(self, stream=None, every: float = 0.25, always: bool = False):
+        self.stream = sys.stderr if stream is None else stream
+        self.every = every
+        self.enabled = always or getattr(self.stream, "isatty", lambda: False)()
+        self.compiling: list[str] = []      # names of the kernels being compiled, outermost first
+        self.done = 0
+        self.started: float | None = None
+        self.shown = False
+        self._stop = threading.Event()
+        self._lock = threading.Lock()
+        self._listener = _CompileListener(self)
+        if self.enabled:
+            numba_event.register("numba:compile", self._listener)
+            self._thread = threading.Thread(target=self._run, name="compile-ticker", daemon=True)
+            self._thread.start()
+
+    def line(self) -> str:
+        """What the line says now."""
+        with self._lock:
+            current = self.compiling[-1] if self.compiling else "done"
+            elapsed = time.monotonic() - (self.started or time.monotonic())
+            return (f"compiling kernels (first run only): {self.done} compiled, "
+                    f"{elapsed:.0f} s, now {current}")
+
+    def _run(self) -> None:
+        while not self._stop.wait(self.every):
+            if self.compiling:      # quiet between compiles: a progress bar may be showing
+                self._write()
+
+    def _write(self) -> None:
+        self.stream.write("\r" + self.line().ljust(100)[:100])
+        self.stream.flush()
+        self.shown = True
+
+    def stop(self) -> None:
+        """Stop listening; finish the line if one was shown."""
+        if not self.enabled or self._stop.is_set():
+            return
+        self._stop.set()
+        self._thread.join()
+        numba_event.unregister("numba:compile", self._listener)
+        if self.shown:
+            self._write()
+            self.stream.write("\n")
+            self.stream.flush()
+
+
+class _CompileListener(numba_event.Listener):
+    """numba's compile events into a ``CompileTicker``'s counts."""
+
+    def __init__(self, ticker: CompileTicker):
+        self.ticker = ticker
+
+    def on_start(self, event) -> None:
+        function = getattr(event.data.get("dispatcher"), "py_func", None)
+        ticker = self.ticker
+        with ticker._lock:
+            if ticker.started is None:
+                ticker.started = time.monotonic()
+            ticker.compiling.append(getattr(function, "__name__", "kernel"))
+
+    def on_end(self, event) -> None:
+        ticker = self.ticker
+        with ticker._lock:
+            if ticker.compiling:
+                ticker.compiling.pop()
+            ticker.done += 1

@@ -43,8 +43,11 @@ class _Progress:
     """
 
     def __init__(self, desc: str = "decimating"):
+        from .build import CompileTicker
+
         self.desc = desc
         self.bar = None
+        self.compiling = CompileTicker()    # a moving line while kernels compile
 
     def __call__(self, done: int, expected: int) -> None:
         if self.bar is None:
@@ -56,6 +59,7 @@ class _Progress:
         self.bar.update(done - self.bar.n)
 
     def close(self) -> None:
+        self.compiling.stop()
         if self.bar is not None:
             self.bar.close()
 

@@ -147,6 +147,9 @@ class Attributes:
         object.__setattr__(self, "values", values)
         object.__setattr__(self, "corners", corners)
 
+    def __setstate__(self, state):
+        self.__dict__.update(_restore_read_only(state, ("values", "corners")))
+
     @property
     def width(self) -> int:
         return self.values.shape[1]
@@ -242,6 +245,10 @@ class Mesh:
             material.setflags(write=False)
             object.__setattr__(self, "face_material", material)
 
+    def __setstate__(self, state):
+        self.__dict__.update(_restore_read_only(state, ("positions", "faces",
+                                                        "face_material")))
+
     def wedge_vertices(self) -> np.ndarray:
         """(w,) int64: the vertex of every wedge (-1 for a wedge no corner uses)."""
         owner = np.full(self.attributes.wedge_count, -1, dtype=np.int64)
@@ -291,12 +298,40 @@ def to_unit_box(positions, lo, extent):
     return np.ascontiguousarray((np.asarray(positions, dtype=np.float64) - lo) / extent)
 
 
+def read_only(array, dtype=None) -> np.ndarray:
+    """``array`` as a C-contiguous, read-only view (of ``dtype`` when given;
+    copied only when its layout or type differ).
+
+    numba types a read-only array apart from a writable one and compiles a
+    kernel once for each; a kernel's input that it only reads is handed to it
+    through this, whoever made the array, so that each kernel has one
+    signature and the warm-up's compilation is the one a real build uses."""
+    view = np.ascontiguousarray(array, dtype=dtype).view()
+    view.flags.writeable = False
+    return view
+
+
+def _restore_read_only(state: dict, names) -> dict:
+    """``state`` (an unpickled ``__dict__``) with its arrays ``names`` made read-only:
+    pickles before protocol 5, which multiprocessing uses to send a parsed
+    mesh back, bring arrays back writable."""
+    for name in names:
+        if state.get(name) is not None:
+            state[name] = read_only(state[name])
+    return state
+
+
+def take_rows(values, order) -> np.ndarray:
+    """``values[order]`` for (n, d) ``values`` and (k,) int64 ``order``:
+    (k, d) of ``values``' dtype, a new writable array."""
+    return _take_rows(read_only(values), read_only(order, np.int64))
+
+
 @njit(cache=True, nogil=True)
-def take_rows(values, order):
-    """``values[order]`` for (n, d) ``values`` and (k,) ``order``: one compiled
-    gather. numpy's fancy indexing of short rows is a loop per row, with
-    its per-row overhead, which dominates on the millions of rows a
-    progressive mesh reorders."""
+def _take_rows(values, order):
+    """``take_rows``'s one compiled gather. numpy's fancy indexing of short
+    rows is a loop per row, with its per-row overhead, which dominates on
+    the millions of rows a progressive mesh reorders."""
     out = np.empty((order.shape[0], values.shape[1]), values.dtype)
     for i in range(order.shape[0]):
         for j in range(values.shape[1]):

@@ -19,7 +19,7 @@ from .server import _free_port
 
 PACKAGE = Path(__file__).resolve().parents[1] / "lodserver"
 # A cheap compiled kernel: its cache files are named after it.
-CALL_TAKE_ROWS = ("import numpy as np; from lodserver.mesh import take_rows; "
+CALL_TAKE_ROWS = ("import numpy as np; from lodserver.mesh import _take_rows as take_rows; "
                   "take_rows(np.zeros((3, 2)), np.array([0, 2])); "
                   "print(sum(take_rows.stats.cache_hits.values()), "
                   "sum(take_rows.stats.cache_misses.values()))")
@@ -66,7 +66,7 @@ def test_kernels_compile_into_a_private_folder_when_every_cache_folder_is_read_o
     folder = Path(folder)
     assert folder == tmp_path / "tmp" / f"lodserver-numba-{os.getuid()}"
     assert folder.stat().st_mode & 0o777 == 0o700
-    saved = list(folder.rglob("mesh.take_rows-*.nbi"))
+    saved = list(folder.rglob("mesh._take_rows-*.nbi"))
     assert len(saved) == 1 and not saved[0].is_symlink()
     assert list((tmp_path / "cache").iterdir()) == []
 
@@ -81,7 +81,7 @@ def test_the_kernels_of_a_read_only_cache_are_loaded_not_compiled_again(read_onl
     out = _finish(read_only(sys.executable, "-c", CALL_TAKE_ROWS, stdout=subprocess.PIPE,
                             text=True))
     assert out.split() == ["1", "0"]            # a cache hit, nothing compiled
-    index = list((tmp_path / "tmp").rglob("mesh.take_rows-*.nbi"))
+    index = list((tmp_path / "tmp").rglob("mesh._take_rows-*.nbi"))
     assert len(index) == 1 and index[0].is_symlink()
     assert {path: path.stat().st_mtime_ns
             for path in (tmp_path / "cache").rglob("*")} == before

@@ -13,8 +13,9 @@ from __future__ import annotations
 from dataclasses import asdict, dataclass, field
 
 import numpy as np
+from numba import njit
 
-from ..mesh import Attributes, Materials, Mesh, MeshError, attribute_rule
+from ..mesh import Attributes, Materials, Mesh, MeshError, attribute_rule, read_only
 
 
 @dataclass
@@ -234,8 +235,9 @@ def _first_occurrences(rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
     Parameters
     ----------
-    rows : (k, d) array
-        Rows to compare (with ``==``, so ``0.0`` equals ``-0.0``).
+    rows : (k, d) float64 or integer array
+        Rows to compare (with ``==``, so ``0.0`` equals ``-0.0`` and a row
+        holding NaN equals no other row).
 
     Returns
     -------
@@ -244,6 +246,28 @@ def _first_occurrences(rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     inverse : (k,) int64
         Group of each row, so ``rows[first][inverse]`` equals ``rows``.
     """
+    rows = np.asarray(rows)
+    if rows.ndim != 2:
+        rows = rows.reshape(len(rows), -1)
+    if np.issubdtype(rows.dtype, np.floating):
+        rows = read_only(rows, np.float64)
+        # adding 0.0 turns -0.0 into 0.0, so equal rows hash alike
+        bits = read_only((rows + 0.0).view(np.int64))
+    else:
+        rows = read_only(rows, np.int64)
+        bits = rows
+    first, inverse, hashed = _group_rows(rows, bits, PROBES_PER_ROW)
+    return (first, inverse) if hashed else _sorted_first_occurrences(rows)
+
+
+# Hash-table probes per row (on average) past which grouping falls back to a
+# sort: rows crafted to collide (a hostile upload) would otherwise make the
+# table's pass quadratic, while a sort's cost does not depend on the values.
+PROBES_PER_ROW = 32
+
+
+def _sorted_first_occurrences(rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``_first_occurrences`` by a lexsort of the rows (the same result)."""
     # lexsort is stable, so within a group of equal rows the earliest comes first.
     order = np.lexsort(rows.T[::-1])
     ordered = rows[order]
@@ -255,6 +279,54 @@ def _first_occurrences(rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     inverse = np.empty(len(rows), dtype=np.int64)
     inverse[order] = rank[np.cumsum(starts) - 1]
     return np.sort(group_first), inverse
+
+
+@njit(cache=True, nogil=True)
+def _group_rows(rows, bits, probes_per_row):
+    """``_first_occurrences`` in one pass over the rows with a hash table
+    (open addressing on ``bits``, each row's words as int64): a sort of the
+    rows costs k log k comparisons of whole rows, this about one per row.
+    Returns (first, inverse, True), or (_, _, False) once the probes pass
+    ``probes_per_row`` per row (then the caller sorts instead)."""
+    k, d = rows.shape
+    size = 2
+    while size < 2 * k:
+        size *= 2
+    mask = size - 1
+    table = np.full(size, -1, np.int64)
+    first = np.empty(k, np.int64)
+    inverse = np.empty(k, np.int64)
+    groups = 0
+    probes = 0
+    budget = probes_per_row * k + 1024
+    for i in range(k):
+        h = np.uint64(14695981039346656037)
+        for c in range(d):
+            h = (h ^ np.uint64(bits[i, c])) * np.uint64(1099511628211)
+        h ^= h >> np.uint64(31)
+        slot = np.int64(h & np.uint64(mask))
+        while True:
+            g = table[slot]
+            if g < 0:
+                table[slot] = groups
+                first[groups] = i
+                inverse[i] = groups
+                groups += 1
+                break
+            j = first[g]
+            equal = True
+            for c in range(d):
+                if rows[i, c] != rows[j, c]:
+                    equal = False
+                    break
+            if equal:
+                inverse[i] = g
+                break
+            slot = (slot + 1) & mask
+            probes += 1
+            if probes > budget:
+                return first[:0].copy(), inverse, False
+    return first[:groups].copy(), inverse, True
 
 
 def fan_triangulate(corners: np.ndarray, sizes: np.ndarray) -> np.ndarray:

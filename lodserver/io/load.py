@@ -18,7 +18,6 @@ from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
-import trimesh
 
 from ..mesh import Mesh, MeshError
 from .clean import LoadReport, clean_mesh
@@ -169,6 +168,8 @@ def file_kind(
 def _read_with_trimesh(path: Path, kind: str) -> dict:
     """Positions (n, 3) and triangles (m, 3) of every geometry instance in the file,
     plus a PLY's vertex normals, colours and UVs as corner values."""
+    import trimesh      # here: only STL and OFF files need it, and its import is slow
+
     try:
         scene = trimesh.load_scene(str(path), file_type=kind, process=False)
     except Exception as exc:

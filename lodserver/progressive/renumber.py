@@ -12,6 +12,8 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
+from ..mesh import read_only
+
 
 @njit(cache=True, nogil=True)
 def reverse_blocks(values, offsets):
@@ -46,9 +48,16 @@ def reversed_corners(corners, offsets, new_face):
     return out
 
 
-@njit(cache=True, nogil=True)
 def renumbered_faces(faces, face_order, new_id):
-    """(m, 3) int64: row ``i`` is ``new_id[faces[face_order[i]]]``."""
+    """(m, 3) int64: row ``i`` is ``new_id[faces[face_order[i]]]``, for
+    (m, 3) ``faces`` and (m,) ``face_order``, (n,) ``new_id``, all int64."""
+    return _renumbered_faces(read_only(faces, np.int64), read_only(face_order, np.int64),
+                             read_only(new_id, np.int64))
+
+
+@njit(cache=True, nogil=True)
+def _renumbered_faces(faces, face_order, new_id):
+    """``renumbered_faces``'s compiled pass."""
     out = np.empty((face_order.shape[0], 3), dtype=np.int64)
     for i in range(face_order.shape[0]):
         f = face_order[i]
@@ -82,8 +91,15 @@ def split_face_order(killed_faces, killed_offsets, m):
     return order, new_face
 
 
-@njit(cache=True, nogil=True)
 def hierarchy(parent, n0, full, coarse):
+    """``_hierarchy`` on read-only views of its inputs (one compiled signature
+    for a mesh just built and one loaded from its artefact)."""
+    return _hierarchy(read_only(parent, np.int64), int(n0), read_only(full),
+                      read_only(coarse))
+
+
+@njit(cache=True, nogil=True)
+def _hierarchy(parent, n0, full, coarse):
     """The values a split writes going forward, from the vertex (or wedge)
     hierarchy, in one pass from the last split down.
 

@@ -32,8 +32,6 @@ from collections import OrderedDict, deque
 from dataclasses import dataclass, field
 from pathlib import Path
 
-import numpy as np
-
 from ..build import build
 from ..io import LoadReport
 from ..io.fileset import FileSetLimits
@@ -47,6 +45,7 @@ from .errors import StoreUnavailable
 from .parsing import ParsePool, ParserClosed, check_mesh_file
 from .store import (Claim, LeaseLostError, MeshRecord, Store, StorageFullError, StoreError,
                     UnknownMeshError, is_disk_full)
+from .warm import warm_up
 
 __all__ = ["JobRunner", "LEASE_SECONDS", "POLL_SECONDS", "warm_up"]
 
@@ -65,22 +64,6 @@ POLL_SECONDS = 1.0
 OUTAGE_PAUSE = 2.0
 _DISK_FULL = ("the server ran out of disk space while building; upload the mesh again once "
               "space is freed")
-
-
-def warm_up() -> None:
-    """Build a tiny mesh and encode its packets both ways, so numba loads (or
-    compiles) every kernel before a real build or the first packet request."""
-    from ..packets import encode_packet, packet_between
-
-    positions = np.array([[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1.0]])
-    faces = np.array([[0, 2, 4], [2, 1, 4], [1, 3, 4], [3, 0, 4],
-                      [2, 0, 5], [1, 2, 5], [3, 1, 5], [0, 3, 5]])
-    pm = build(Mesh(positions, faces))
-    pm.at(6)
-    encode_packet(pm, pm.base_vertices, pm.vertex_count)
-    encode_packet(pm, pm.vertex_count, pm.base_vertices)
-    packet_between(pm, pm.base_vertices, pm.vertex_count)
-    packet_between(pm, pm.vertex_count, pm.base_vertices)
 
 
 def _prepare_packets(store: Store, mesh_id: str) -> None:

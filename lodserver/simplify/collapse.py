@@ -50,7 +50,7 @@ import numba
 import numpy as np
 from numba import njit
 
-from ..mesh import Mesh, MeshError, take_rows, to_unit_box, unit_box
+from ..mesh import Mesh, MeshError, read_only, take_rows, to_unit_box, unit_box
 from ..overlap import both
 from .legality import check_legality
 from .log import COLLAPSES, MOVED, CollapseLog, filled, new_log, with_room_for_moves
@@ -428,7 +428,7 @@ def _prepare(mesh: Mesh, options: DecimateOptions, locked=None, poses=None):
     (Vertices, faces, Wedges, the kernel's ``state.Options``, attribute
     scales, unit-box scale)."""
     positions = np.asarray(mesh.positions, dtype=np.float64)
-    faces = np.ascontiguousarray(mesh.faces, dtype=np.int64)
+    faces = read_only(mesh.faces, np.int64)
     n = len(positions)
     if 3 * len(faces) >= 2**31:
         # the kernel stores vertex and corner ids as int32

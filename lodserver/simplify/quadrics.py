@@ -46,6 +46,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
+from ..mesh import read_only
 from .state import NO_REFCOUNT
 
 QUADRIC_SIZE = 11
@@ -124,8 +125,8 @@ def vertex_quadrics(positions, faces, *, boundary_weight=1.0, boundary=None, sea
     -------
     (n, 11) float64
     """
-    positions = np.ascontiguousarray(positions, dtype=np.float64)
-    faces = np.ascontiguousarray(faces, dtype=np.int64)
+    positions = read_only(positions, np.float64)
+    faces = read_only(faces, np.int64)
     q = np.zeros((len(positions), QUADRIC_SIZE), dtype=np.float64)
     # Each face's quadric goes to its three corners (G&H sum over incident planes).
     _accumulate_face_quadrics(positions, faces, q)
@@ -222,11 +223,10 @@ def wedge_quadrics(positions, faces, corners, values):
     (w, 11 + 4 d) float64
         Attribute terms only: the geometric plane quadric stays on the vertex.
     """
-    values = np.ascontiguousarray(values, dtype=np.float64)
+    values = read_only(values, np.float64)
     out = np.zeros((len(values), wedge_quadric_size(values.shape[1])), dtype=np.float64)
-    _accumulate_wedge_quadrics(np.ascontiguousarray(positions, dtype=np.float64),
-                               np.ascontiguousarray(faces, dtype=np.int64),
-                               np.ascontiguousarray(corners, dtype=np.int64), values, out)
+    _accumulate_wedge_quadrics(read_only(positions, np.float64), read_only(faces, np.int64),
+                               read_only(corners, np.int64), values, out)
     return out
 
 

@@ -29,6 +29,7 @@ from collections import namedtuple
 import numpy as np
 from numba import njit
 
+from ..mesh import read_only
 from .log import LogColumns
 from .state import Vertices, new_topology
 from .wedges import fill_fixed
@@ -178,7 +179,8 @@ def extract(verts, faces, face_alive, face_count, wedges, label, part, face_ids,
         corner=_copy_corners(wedges.corner, face_ids) if has_wedges else wedges.corner,
         fixed=np.zeros((k if has_wedges else 0, 11)), mark=np.zeros_like(wedges.mark),
         stamp=np.zeros(1, np.int64), merged=np.empty_like(wedges.merged))
-    topo = new_topology(local, k)
+    # read-only, as the whole-mesh kernel's input faces are: one compiled signature
+    topo = new_topology(read_only(local), k)
     fill_fixed(topo, sub_wedges)
     if label is not None:
         _own_counts(topo, local_label, vertex_ids, face_count)

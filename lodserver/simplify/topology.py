@@ -17,6 +17,8 @@ from dataclasses import dataclass
 import numpy as np
 from numba import njit
 
+from ..mesh import read_only
+
 
 @njit(cache=True, nogil=True)
 def link_corners(faces, head, nxt, face_count):
@@ -159,11 +161,11 @@ def vertex_faces(faces, n):
 
     Returns (offsets (n+1,) int64, faces_csr (3m,) int64).
     """
-    return _vertex_faces(np.ascontiguousarray(faces, dtype=np.int64), int(n))
+    return _vertex_faces(read_only(faces, np.int64), int(n))
 
 
 def census(faces, n) -> Census:
     """Boundary, non-manifold edges and fans of the mesh with ``faces`` (m, 3) over ``n`` vertices."""
-    faces = np.ascontiguousarray(faces, dtype=np.int64)
+    faces = read_only(faces, np.int64)
     offsets, vfaces = _vertex_faces(faces, int(n))
     return Census(*_census(faces, offsets, vfaces, int(n)))
