@@ -33,7 +33,6 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-import trimesh
 
 from ..mesh import Mesh, MeshError
 from .files import write_atomic
@@ -145,6 +144,9 @@ def _format_rows(line: str, table: np.ndarray) -> str:
 def _trimesh_writer(file_type: str) -> Callable[[Mesh], bytes]:
     """A writer of positions and triangles through trimesh's exporter of ``file_type``."""
     def write(mesh: Mesh) -> bytes:
+        # here, not on import: the package's heaviest import, which most saves skip
+        import trimesh
+
         data = trimesh.Trimesh(mesh.positions, mesh.faces, process=False).export(
             file_type=file_type, **_EXPORT_OPTIONS[file_type])
         return data.encode("utf-8") if isinstance(data, str) else data
