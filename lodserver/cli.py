@@ -316,8 +316,10 @@ def _export_progressive(args, options) -> int:
     chain_flags = [flag for flag, given in (
         ("--lods", args.lods is not None), ("--error", args.errors is not None),
         ("--separate", args.separate), ("--per-mesh", args.per_mesh),
-        ("--reach", args.reach != "none"), ("--jobs", args.jobs != 1),
-        ("--scheduler", args.scheduler is not None), ("--force", args.force)) if given]
+        ("--reach", args.reach not in (None, "none")), ("--atlas-size", args.atlas_size),
+        ("--texture-scale", args.texture_scale), ("--report", args.report),
+        ("--jobs", args.jobs != 1), ("--scheduler", args.scheduler is not None),
+        ("--force", args.force)) if given]
     if chain_flags:
         print(f"lodserver export: --progressive writes every level in one file; "
               f"{', '.join(chain_flags)} apply to LOD chains", file=sys.stderr)

@@ -161,6 +161,8 @@ def test_a_scene_file_holds_every_part_and_its_document(tmp_path):
 @pytest.mark.parametrize("flags, code, phrase", [
     (["-o", "OUT/spot.txt"], 1, "-o a .glb file"),
     (["-o", "OUT/spot.glb", "--lods", "1,0.5"], 2, "--lods apply to LOD chains"),
+    (["-o", "OUT/spot.glb", "--texture-scale", "auto", "--reach", "merge"], 2,
+     "--reach, --texture-scale apply to LOD chains"),
 ])
 def test_the_cli_refuses_what_it_cannot_write_with_a_sentence(tmp_path, flags, code, phrase):
     flags = [flag.replace("OUT", str(tmp_path)) for flag in flags]
