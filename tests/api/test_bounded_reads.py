@@ -72,14 +72,16 @@ def serve(built, tmp_path):
 
 
 def _counting(monkeypatch, module, name):
-    """Replace ``module.name`` by a wrapper counting its calls; the count list."""
-    calls, real = [], getattr(module, name)
+    """Replace ``module.name`` (or ``module[name]``, a table's entry) by a wrapper
+    counting its calls; the count list."""
+    table = isinstance(module, dict)
+    calls, real = [], module[name] if table else getattr(module, name)
 
     def counted(*args, **kwargs):
         calls.append(args[1:])
         return real(*args, **kwargs)
 
-    monkeypatch.setattr(module, name, counted)
+    (monkeypatch.setitem if table else monkeypatch.setattr)(module, name, counted)
     return calls
 
 
@@ -296,7 +298,7 @@ def test_bodies_take_slots_by_their_estimated_bytes(serve):
 
 # ---- packets at other bits -------------------------------------------------------------
 def test_packets_at_other_bits_are_encoded_once(serve, monkeypatch):
-    encodes = _counting(monkeypatch, lods, "packet_between")
+    encodes = _counting(monkeypatch, lods.PACKET_WRITERS, 3)    # version 3, the default
     client, mesh_id, _ = serve()
     params = {"from": 50, "to": 2500, "bits": 11}
     first = client.get(f"/meshes/{mesh_id}/splits", params=params)
