@@ -52,6 +52,33 @@ export async function fetchOk(url, options) {
   return response;
 }
 
+// Retries: `attempt()` again after a transient FetchError (a network error,
+// 408, 429, 5xx; a body cut short), with exponential backoff (RETRY_BASE_MS
+// doubling, up to RETRY_MAX_MS), `retries` times; any other failure, an abort
+// or giveUp() ends it at once. onRetry({ attempt, delayMs, error }) before each wait.
+const RETRY_BASE_MS = 250;
+const RETRY_MAX_MS = 8000;
+
+export async function withRetries(attempt, { retries, signal, giveUp = () => false, onRetry }) {
+  for (let n = 0; ; n++) {
+    try {
+      return await attempt();
+    } catch (error) {
+      if (signal?.aborted || giveUp()) throw error;
+      if (!(error instanceof FetchError && error.transient) || n >= retries) throw error;
+      const delayMs = Math.min(RETRY_MAX_MS, RETRY_BASE_MS * 2 ** n);
+      onRetry({ attempt: n + 1, delayMs, error });
+      await sleep(delayMs, signal);
+    }
+  }
+}
+
+// A source whose levels are fixed (a progressive file's chunk ends: its snap())
+// holds only those: a level asked for moves to the nearest one past it.
+export function snapLevel(source, level, direction = 'up') {
+  return source?.snap ? source.snap(level, direction) : level;
+}
+
 // The API root the viewer's page is served under (it serves the viewer at
 // viewer/): the page's parent, so a path prefix added by a proxy is kept.
 export function pageRoot() {

@@ -18,9 +18,8 @@
 //   cost, and no packet applied between a report and the frame drawing it
 //   (reportpacer.js).
 // * Retries: a failed request (network error, 408, 429, 5xx, a body cut
-//   short) is retried with exponential backoff (RETRY_BASE_MS doubling, up to
-//   RETRY_MAX_MS, settings.retries times), the status saying so. When the
-//   retries run out the stream stalls with the error shown, and the next
+//   short) is retried with exponential backoff (source.js' withRetries,
+//   settings.retries times), the status saying so. When the retries run out the stream stalls with the error shown, and the next
 //   'goto' (any move of the level) tries again. A packet the server refuses
 //   (another 4xx) or that does not decode stops the mesh: reopen it.
 // * Geomorphs: with a geomorph attached (attachGeomorph, see geomorph.js),
@@ -41,12 +40,10 @@ import { ErrorCurve } from './curve.js';
 import { PacketQueue } from './packetqueue.js';
 import { PacketSizer } from './packetsizer.js';
 import { ReportPacer } from './reportpacer.js';
-import { FetchError, sleep } from './source.js';
+import { FetchError, snapLevel, withRetries } from './source.js';
 import { LodState, PacketError } from './vsplit.js';
 
 const MAX_AHEAD = 32;              // the most packets requested ahead (see packetsAhead)
-const RETRY_BASE_MS = 250;
-const RETRY_MAX_MS = 8000;
 // Defaults of the settings this module reads (main.js may set them).
 const DEFAULTS = { chunkSplits: 4096, packetsAhead: 2, frameBudgetMs: 12, packetPaceMs: 250,
                    retries: 6, reportGap: 3, initialRatio: 1 };
@@ -64,12 +61,6 @@ function yieldTask() {
 // Applies packets in order; the records applied.
 function applyAll(state, packets) {
   return packets.reduce((records, packet) => records + state.apply(packet), 0);
-}
-
-// A source whose levels are fixed (a progressive file's chunk ends: its snap())
-// holds only those: a level asked for is moved to the nearest one past it.
-function snapped(source, level, direction = 'up') {
-  return source?.snap ? source.snap(level, direction) : level;
 }
 
 // One mesh's stream (a scene streams each part with its own). Its bus
@@ -147,7 +138,7 @@ export class PacketStream {
     try {
       let first = level;
       const base = summary.base_vertices;
-      first = snapped(this.source, Number.isFinite(first)
+      first = snapLevel(this.source, Number.isFinite(first)
         ? Math.min(summary.vertices, Math.max(base, Math.round(first))) : base);
       this.viewer.emit('status', `${summary.name}: loading level ${first}`);
       const baseLevel = this.fetchBase(base, ticket);
@@ -204,7 +195,7 @@ export class PacketStream {
   goto(level, { opening: first = false } = {}) {
     if (!this.state || this.failed || !Number.isFinite(level)) return;
     const { vertices, base_vertices: base } = this.info;
-    this.target = snapped(this.source, Math.min(vertices, Math.max(base, Math.round(level))));
+    this.target = snapLevel(this.source, Math.min(vertices, Math.max(base, Math.round(level))));
     this.viewer.emit('target', this.target);
     if (this.stalled) {
       this.stalled = null;           // a move of the level retries a stalled stream
@@ -224,28 +215,23 @@ export class PacketStream {
   // One packet of mesh `summary`, retried with backoff while the failure is transient.
   async fetchPacket(summary, from, to, signal, ticket) {
     const records = this.source;         // this mesh's, whatever is opened meanwhile
-    for (let attempt = 0; ; attempt++) {
-      try {
-        // (a progressive file's source answers several chunks: one packet each)
-        const { buffer, buffers = [buffer], url } = await records.packet(from, to, { signal });
-        const packets = [];
-        for (const one of buffers) packets.push(await LodState.readPacket(one));
-        return { packets, bytes: buffers.reduce((n, one) => n + one.byteLength, 0), url };
-      } catch (error) {
-        if (signal.aborted || ticket !== this.opened) throw error;
-        const transient = error instanceof FetchError && error.transient;
-        if (!transient || attempt >= this.option('retries')) {
-          throw error;
-        }
-        const delay = Math.min(RETRY_MAX_MS, RETRY_BASE_MS * 2 ** attempt);
+    const retries = this.option('retries');
+    return withRetries(async () => {
+      // (a progressive file's source answers several chunks: one packet each)
+      const { buffer, buffers = [buffer], url } = await records.packet(from, to, { signal });
+      const packets = [];
+      for (const one of buffers) packets.push(await LodState.readPacket(one));
+      return { packets, bytes: buffers.reduce((n, one) => n + one.byteLength, 0), url };
+    }, {
+      retries, signal, giveUp: () => ticket !== this.opened,
+      onRetry: ({ attempt, delayMs, error }) => {
         this.counts.retries++;
         this.viewer.emit('status', `${summary.name}: a packet failed (${error.message}); ` +
-                         `retrying in ${(delay / 1000).toFixed(1)} s (attempt ${attempt + 2} ` +
-                         `of ${this.option('retries') + 1})`);
-        this.emitStream('retrying', { attempt: attempt + 1, delayMs: delay, error: error.message });
-        await sleep(delay, signal);
-      }
-    }
+                         `retrying in ${(delayMs / 1000).toFixed(1)} s (attempt ${attempt + 1} ` +
+                         `of ${retries + 1})`);
+        this.emitStream('retrying', { attempt, delayMs, error: error.message });
+      },
+    });
   }
 
   // Packets in flight: settings.packetsAhead, or, where a drawn frame blocks
@@ -262,7 +248,7 @@ export class PacketStream {
 
   refill() {
     if (!this.state || this.failed || this.stalled) return;
-    const cut = (from, to) => snapped(this.source, this.sizer.nextStop(from, to),
+    const cut = (from, to) => snapLevel(this.source, this.sizer.nextStop(from, to),
                                       to > from ? 'up' : 'down');
     this.queue.refill(this.target, this.packetsAhead(), cut);
   }
