@@ -22,6 +22,7 @@ export class ProgressiveMesh extends THREE.Object3D {
   constructor(source, options = {}) {
     super();
     this.type = 'ProgressiveMesh';
+    this.source = source;
     this.summary = source.summary;
     this.name = this.summary.name ?? '';
     // read live by the stream and the geomorph (geomorphMs, errorPixels, ...)
@@ -100,9 +101,11 @@ export class ProgressiveMesh extends THREE.Object3D {
     return this.levels.settled();
   }
 
-  // Frees the GPU buffers and textures and stops every fetch.
+  // Frees the GPU buffers and textures and stops every fetch (and lets the
+  // source go of what it holds for them: a file's image URLs).
   dispose() {
     this.levels.close();
+    this.source.close?.();
     this.geomorph.dispose();
     this.drawn?.dispose();
     this.drawn = null;

@@ -88,6 +88,13 @@ export class StaticSource {
     this.summary = summary;
     this.chunks = part;
     this.levels = part ? [part.base[0], ...part.splits.map((chunk) => chunk[1])] : [];
+    this.imageUrls = [];        // the blob: URLs materials() made, revoked by close()
+  }
+
+  // Lets go of the images' blob: URLs (the object using this source is disposed).
+  close() {
+    for (const url of this.imageUrls) URL.revokeObjectURL(url);
+    this.imageUrls = [];
   }
 
   // The source of the progressive file at `url`; a clear error for anything else.
@@ -184,7 +191,9 @@ export class StaticSource {
       const at = (view.byteOffset ?? 0) - start;
       const blob = new Blob([bytes.slice(at, at + view.byteLength)], { type: image.mimeType });
       const { bufferView, ...rest } = image;
-      return { ...rest, uri: URL.createObjectURL(blob) };
+      const uri = URL.createObjectURL(blob);
+      this.imageUrls.push(uri);
+      return { ...rest, uri };
     });
     return { document: out, url: this.file.url };
   }

@@ -316,3 +316,30 @@ def test_a_damaged_file_or_a_plain_glb_is_refused_with_its_reason(chromium, app,
         assert "404" in refusals[1], refusals
     finally:
         page.close()
+
+
+def test_a_textured_files_images_are_let_go_on_dispose(chromium, app, host, tmp_path):
+    """spot's texture comes out of the file as a blob: URL the page's material
+    loads; dispose() revokes it (a page opening and closing meshes would hold
+    every image it ever showed otherwise)."""
+    folder, origin, _ = host
+    _cli("export", REPO / "tests" / "data" / "spot.obj", "--progressive",
+         "-o", folder / "spot.glb")
+    page = _open(chromium, app, f"{origin}/spot.glb")
+    try:
+        status = page.evaluate(SETTLED_JS)
+        assert status["error"] is None, status
+        assert not page.errors, page.errors
+        fetched = page.evaluate("""async () => {
+          const urls = window.object.source.imageUrls.slice();
+          const read = (url) => fetch(url).then((r) => r.blob()).then((b) => b.size, () => null);
+          const before = await Promise.all(urls.map(read));
+          window.object.dispose();
+          return { before, after: await Promise.all(urls.map(read)) };
+        }""")
+        assert fetched["before"] and all(size for size in fetched["before"]), fetched
+        assert fetched["after"] == [None] * len(fetched["before"]), fetched
+        # (the browser logs each read of a revoked URL as a resource it could not load)
+        assert all("ERR_FILE_NOT_FOUND" in str(error) for error in page.errors), page.errors
+    finally:
+        page.close()
