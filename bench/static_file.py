@@ -16,11 +16,21 @@ of chunks the stream asks for: at least one to full detail.
     PYTHONPATH=$PWD python bench/static_file.py [mesh ...]    # names of bench/codec_meshes.py
     PYTHONPATH=$PWD python bench/static_file.py --browser bunny_loop2
 
-``--browser``: a session in headless Chromium instead (software GL, the link
-throttled to 20 Mbit/s and 50 ms as in issue 25's table), docs/three.md's
-example page opening the file from a static host with ``Range``
-(``static_server.serve``): the requests, bytes and seconds to the 1 px level of
-its view (1200x800) and then to full detail (``setLevel``).
+``--browser``: sessions in headless Chromium instead (software GL, viewport
+1200x800), on each link of issue 25's table (``--links 20,5``: 20 Mbit/s with
+50 ms latency, 5 Mbit/s with 150 ms; throttled through the DevTools protocol),
+docs/three.md's example page opening (a) the progressive file from a static
+host with ``Range`` (``static_server.serve``) and (b) the same mesh from a
+running ``lodserver serve`` (uploaded, built, opened as
+``http://127.0.0.1:PORT/meshes/ID``; the page's origin allowed by
+``LODSERVER_CORS_ORIGINS``). ``--repeats`` pairs per link, each session in a
+fresh browser context, the pair's order swapped each repeat so that a drift in
+the machine's load falls on both sides: the requests, bytes (on the wire, as
+the DevTools protocol counts them) and seconds to the 1 px level of the view
+and then to full detail (``setLevel(fullLevel)``); the medians and the median
+of the paired ratios file / server per link.
+
+    PYTHONPATH=$PWD python bench/static_file.py --browser --links 20,5 --repeats 3 stanford-bunny
 
 gltfpack comes from bench/out/codec/npm (``npm i --no-save gltfpack`` there) or
 the tests' tools (tests/tools/node_modules).
@@ -30,6 +40,7 @@ from __future__ import annotations
 
 import argparse
 import shutil
+import statistics
 import sys
 import tempfile
 import time
@@ -49,8 +60,17 @@ from lodserver.service.progressive_file import progressive_glb, read_index  # no
 HEAD_BYTES = 65536          # staticsource.js's first read
 REPO = Path(__file__).resolve().parents[1]
 CHROMIUM_ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--no-first-run"]
-THROTTLE = {"offline": False, "latency": 50, "downloadThroughput": 20e6 / 8,
-            "uploadThroughput": 20e6 / 8}
+# Issue 25's two links: Mbit/s -> latency in ms.
+LINKS = {20: 50, 5: 150}
+
+
+def throttle(mbit: float) -> dict:
+    """``Network.emulateNetworkConditions``'s parameters for the link of ``mbit``."""
+    rate = mbit * 1e6 / 8
+    return {"offline": False, "latency": LINKS[mbit], "downloadThroughput": rate,
+            "uploadThroughput": rate}
+
+
 # docs/three.md's example, its URLs this bench's, the object left on window.
 EXAMPLE_URLS = {"https://cdn.jsdelivr.net/npm/three@0.187.0/": "/three/",
                 "http://127.0.0.1:8000/viewer/lodserver-three.js": "/lodserver/lodserver-three.js",
@@ -106,42 +126,146 @@ def server_bytes(pm) -> int:
     return total
 
 
-def session(name: str, timeout_s: float = 1800) -> dict:
-    """A browser session on ``name``'s progressive file (see ``--browser``)."""
+def upload_built(client, name: str, folder: Path, timeout_s: float) -> str:
+    """Upload ``name``'s source (bunny_loop2 written as PLY) to the server behind
+    ``client`` and wait until it is built; the mesh's id."""
+    from codec_meshes import source_mesh
+    from tests.server import upload, wait_ready
+    path = SOURCES[name]
+    if path is None:
+        import trimesh
+        mesh = source_mesh(name)
+        path = folder / f"{name}.ply"
+        path.write_bytes(trimesh.Trimesh(mesh.positions, mesh.faces, process=False)
+                         .export(file_type="ply"))
+    began = time.perf_counter()
+    with open(path, "rb") as file:
+        mesh_id = upload(client, path.name, file)
+    wait_ready(client, mesh_id, timeout=timeout_s)
+    print(f"server built {name} in {time.perf_counter() - began:.1f} s", file=sys.stderr)
+    return mesh_id
+
+
+def one_session(browser, page_url: str, prefix: str, mbit: float, timeout_s: float,
+                log: list | None = None, log_path: str | None = None) -> dict:
+    """The example page at ``page_url`` in a fresh context on the link of ``mbit``:
+    its level, seconds from the page's load, requests (and CORS preflights) and
+    bytes on the wire to the URLs under ``prefix``, at the 1 px level and then at
+    full detail. With ``log`` (the static host's), the file's ranges too."""
+    context = browser.new_context(viewport={"width": 1200, "height": 800})
+    page = context.new_page()
+    cdp = context.new_cdp_session(page)
+    fetched: dict = {}                      # requestId -> [url, method, bytes]
+
+    def sent(event):
+        request = event["request"]
+        fetched.setdefault(event["requestId"], [request["url"], request["method"], 0])
+
+    def finished(event):
+        if event["requestId"] in fetched:
+            fetched[event["requestId"]][2] = event["encodedDataLength"]
+
+    cdp.on("Network.requestWillBeSent", sent)
+    cdp.on("Network.loadingFinished", finished)
+    cdp.send("Network.enable")
+    cdp.send("Network.emulateNetworkConditions", throttle(mbit))
+    page.set_default_timeout(timeout_s * 1000)
+    first = len(log) if log is not None else 0
+    began = time.perf_counter()
+    page.goto(page_url)
+    page.wait_for_function("() => window.object?.target != null")
+    stops = {}
+    for stop, script in (("1 px", None), ("full", "window.object.setLevel(window.object.fullLevel)")):
+        if script:
+            page.evaluate(script)
+        level = page.evaluate(SETTLED_JS)["level"]
+        seconds = time.perf_counter() - began
+        mine = [f for f in list(fetched.values()) if f[0].startswith(prefix)]
+        gets = [f for f in mine if f[1] != "OPTIONS"]
+        stops[stop] = {"level": level, "seconds": seconds, "requests": len(gets),
+                       "preflights": len(mine) - len(gets), "bytes": sum(f[2] for f in mine)}
+        if log is not None:
+            ranges = [e for e in log[first:] if e[0] == log_path]
+            stops[stop]["ranges"] = [(e[1], e[2], e[3]) for e in ranges]
+    stops["full_level"] = page.evaluate("window.object.fullLevel")
+    context.close()
+    return stops
+
+
+def sessions(name: str, links: list, repeats: int, timeout_s: float = 1800) -> list:
+    """``repeats`` pairs (file, server) per link on ``name`` (see ``--browser``);
+    one dict per session."""
     from playwright.sync_api import sync_playwright
+
+    from tests.server import serve as lodserver
     pm = progressive(name)
-    log: list = []
+    runs = []
     with tempfile.TemporaryDirectory() as tmp, sync_playwright() as playwright:
-        folder = Path(tmp)
+        folder = Path(tmp) / "static"
+        folder.mkdir()
         (folder / "three").symlink_to(REPO / "static" / "vendor" / "three")
         (folder / "lodserver").symlink_to(REPO / "static")
         (folder / f"{name}.glb").write_bytes(progressive_glb(SceneAsset.of_mesh(pm)))
         browser = playwright.chromium.launch(executable_path=shutil.which("chromium"),
                                              args=CHROMIUM_ARGS)
-        with serve(folder, log) as url:
-            (folder / "index.html").write_text(example_page(f"{url}/{name}.glb"))
-            context = browser.new_context(viewport={"width": 1200, "height": 800})
-            page = context.new_page()
-            cdp = context.new_cdp_session(page)
-            cdp.send("Network.enable")
-            cdp.send("Network.emulateNetworkConditions", THROTTLE)
-            page.set_default_timeout(timeout_s * 1000)
-            began = time.perf_counter()
-            page.goto(f"{url}/index.html")
-            page.wait_for_function("() => window.object?.target != null")
-            stops = {}
-            full = f"window.object.setLevel({pm.vertex_count})"
-            for stop, script in (("1 px", None), ("full", full)):
-                if script:
-                    page.evaluate(script)
-                level = page.evaluate(SETTLED_JS)["level"]
-                files = [entry for entry in log if entry[0] == f"/{name}.glb"]
-                stops[stop] = {"level": level, "seconds": time.perf_counter() - began,
-                               "requests": len(files), "bytes": sum(e[3] for e in files),
-                               "log": [(e[1], e[2], e[3]) for e in files]}
-            context.close()
+        log: list = []
+        # The static host first: its origin is the one the server must allow.
+        with serve(folder, log) as url, \
+                lodserver(Path(tmp) / "data", warm_kernels=True, timeout=120,
+                          env={"LODSERVER_CORS_ORIGINS": url}) as client:
+            mesh_id = upload_built(client, name, Path(tmp), timeout_s)
+            mesh_url = f"{client.base_url}".rstrip("/") + f"/meshes/{mesh_id}"
+            pages = {"file": (f"{url}/{name}.glb", "file.html"),
+                     "server": (mesh_url, "server.html")}
+            for source, (target, html) in pages.items():
+                (folder / html).write_text(example_page(target))
+            for mbit in links:
+                for repeat in range(repeats):
+                    order = ["file", "server"] if repeat % 2 == 0 else ["server", "file"]
+                    for source in order:
+                        target, html = pages[source]
+                        stops = one_session(browser, f"{url}/{html}", target, mbit, timeout_s,
+                                            log if source == "file" else None, f"/{name}.glb")
+                        run = {"mesh": name, "link": mbit, "repeat": repeat,
+                               "source": source, **stops}
+                        print(run, file=sys.stderr)
+                        runs.append(run)
         browser.close()
-    return {"mesh": name, "vertices": pm.vertex_count, **stops}
+    return runs
+
+
+def session_table(runs: list, packed: dict) -> None:
+    """The medians per mesh, link and source, and the paired ratios file / server."""
+    print("| mesh | link | source | sessions | 1 px level | 1 px: s | requests | bytes | "
+          "full level | full: s | requests | bytes | `-cc` gz |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|")
+    med = statistics.median
+    kb = lambda x: f"{x / 1000:.1f} KB"       # noqa: E731
+    keys = sorted({(r["mesh"], r["link"]) for r in runs}, key=lambda k: (k[0], -k[1]))
+    for mesh, mbit in keys:
+        link = f"{mbit:g} Mbit/s, {LINKS[mbit]} ms"
+        mine = {s: [r for r in runs if (r["mesh"], r["link"], r["source"]) == (mesh, mbit, s)]
+                for s in ("file", "server")}
+        for source, rs in mine.items():
+            one, full = [r["1 px"] for r in rs], [r["full"] for r in rs]
+            cc = kb(packed[mesh]) if packed.get(mesh) else "-"
+            print(f"| {mesh} | {link} | {source} | {len(rs)} | "
+                  f"{'/'.join(sorted({str(x['level']) for x in one}))} | "
+                  f"{med(x['seconds'] for x in one):.2f} | {med(x['requests'] for x in one):g} | "
+                  f"{kb(med(x['bytes'] for x in one))} | "
+                  f"{'/'.join(sorted({str(x['level']) for x in full}))} | "
+                  f"{med(x['seconds'] for x in full):.2f} | "
+                  f"{med(x['requests'] for x in full):g} | {kb(med(x['bytes'] for x in full))} | "
+                  f"{cc} |")
+        pairs = list(zip(sorted(mine["file"], key=lambda r: r["repeat"]),
+                         sorted(mine["server"], key=lambda r: r["repeat"])))
+        ratio = {stop: med(f[stop]["seconds"] / s[stop]["seconds"] for f, s in pairs)
+                 for stop in ("1 px", "full")}
+        nbytes = {stop: med(f[stop]["bytes"] / s[stop]["bytes"] for f, s in pairs)
+                  for stop in ("1 px", "full")}
+        print(f"| {mesh} | {link} | **file / server** (paired median) | {len(pairs)} pairs | | "
+              f"**{ratio['1 px']:.2f}x** | | {nbytes['1 px']:.2f}x | | **{ratio['full']:.2f}x** "
+              f"| | {nbytes['full']:.2f}x | |")
 
 
 def main(argv=None):
@@ -149,14 +273,28 @@ def main(argv=None):
     parser.add_argument("meshes", nargs="*", default=["spot", "stanford-bunny", "Duck"],
                         choices=list(SOURCES))
     parser.add_argument("--browser", action="store_true",
-                        help="a Chromium session per mesh instead of the byte counts")
+                        help="Chromium sessions, the file against the server, instead of "
+                             "the byte counts")
+    parser.add_argument("--links", default="20,5",
+                        help="--browser's links, Mbit/s, comma-separated, of: "
+                             + ", ".join(f"{m} ({ms} ms)" for m, ms in LINKS.items()))
+    parser.add_argument("--repeats", type=int, default=3,
+                        help="--browser's pairs (file, server) per mesh and link")
     args = parser.parse_args(argv)
-    if args.browser:
-        for name in args.meshes:
-            print(session(name))
-        return
     if not codec.GLTFPACK.exists() and (TOOLS / "gltfpack").exists():
         codec.GLTFPACK = TOOLS / "gltfpack"
+    if args.browser:
+        links = [float(x) for x in args.links.split(",")]
+        links = [int(x) if x.is_integer() else x for x in links]
+        unknown = [x for x in links if x not in LINKS]
+        if unknown:
+            parser.error(f"--links: no link of {unknown} Mbit/s (known: {list(LINKS)})")
+        runs = []
+        for name in args.meshes:
+            runs += sessions(name, links, args.repeats)
+        packed = {name: codec.gltfpack_bytes(progressive(name), "-cc") for name in args.meshes}
+        session_table(runs, packed)
+        return
     rows = []
     for name in args.meshes:
         pm = progressive(name)
