@@ -47,7 +47,7 @@ from .store import (Claim, LeaseLostError, MeshRecord, Store, StorageFullError, 
                     UnknownMeshError, is_disk_full)
 from .warm import warm_up
 
-__all__ = ["JobRunner", "LEASE_SECONDS", "POLL_SECONDS", "warm_up"]
+__all__ = ["JobRunner", "LEASE_SECONDS", "POLL_SECONDS"]
 
 log = logging.getLogger(__name__)
 
