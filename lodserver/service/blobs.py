@@ -403,10 +403,20 @@ class FsspecBlobs(Blobs):
             raise
 
     def put_file(self, key: str, path, *, move: bool = False) -> None:
-        # s3fs sends a file of at least twice part_bytes as a multipart upload;
-        # S3 shows the object only once the upload completes, never in part.
-        self._call("storing", key, self.fs.put_file, os.fspath(path), self._path(key),
-                   **self._put_options, **self._deadline(os.stat(path).st_size))
+        size = os.stat(path).st_size
+        if self._s3 and size >= 2 * self._put_options["chunksize"]:
+            # in parts, each under its own deadline, aborted if it does not complete
+            # (s3fs's put_file leaves a cancelled upload's parts in the bucket)
+            from .s3_upload import put_multipart
+
+            bucket, _, name = self._path(key).partition("/")
+            self._call("storing", key, put_multipart, self.fs, bucket, name, path,
+                       part_bytes=self._put_options["chunksize"],
+                       bytes_per_second=MIN_BYTES_PER_SECOND, answer_seconds=CALL_SECONDS)
+            self.fs.invalidate_cache(self._path(key))
+        else:
+            self._call("storing", key, self.fs.put_file, os.fspath(path), self._path(key),
+                       **self._put_options, **self._deadline(size))
         if move:
             Path(path).unlink(missing_ok=True)
 

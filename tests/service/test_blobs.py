@@ -244,5 +244,39 @@ def test_s3_a_store_that_stops_reading_an_upload_is_unavailable_in_bounded_time(
         assert gate.seen.is_set()
         assert time.monotonic() - started < 60, "the deadline did not end the put"
         assert "'artefacts/big.pm'" in str(caught.value) and "127.0.0.1" not in str(caught.value)
+        # the parts already sent are not left in the bucket: the upload was aborted
+        # (the abort went up while the stalled connection still hung)
+        bucket = s3_url.removeprefix("s3://").split("/")[0]
+        unfinished = blobs.fs.call_s3("list_multipart_uploads", Bucket=bucket)
+        assert unfinished.get("Uploads", []) == []
+        assert not blobs.exists("artefacts/big.pm")
     finally:
         gate.close()
+
+
+def test_s3_a_refused_part_aborts_the_upload(s3_url, tmp_path, monkeypatch):
+    """Any end of a multipart upload short of completing it aborts it, so no
+    invisible parts stay billed in the bucket."""
+    blobs = FsspecBlobs(s3_url, part_bytes=5 * 2**20)
+    source = tmp_path / "big.bin"
+    source.write_bytes(os.urandom(11 * 2**20))
+    sent = []
+    real = blobs.fs._call_s3
+
+    async def refuse_the_second_part(method, *args, **kwargs):
+        if method == "upload_part":
+            sent.append(kwargs["PartNumber"])
+            if kwargs["PartNumber"] == 2:
+                raise PermissionError("refused")
+        return await real(method, *args, **kwargs)
+
+    monkeypatch.setattr(blobs.fs, "_call_s3", refuse_the_second_part)
+    with pytest.raises(StoreError, match="refused access while storing 'artefacts/big.pm'"):
+        blobs.put_file("artefacts/big.pm", source)
+    monkeypatch.setattr(blobs.fs, "_call_s3", real)
+    assert sent == [1, 2]
+    bucket = s3_url.removeprefix("s3://").split("/")[0]
+    assert blobs.fs.call_s3("list_multipart_uploads", Bucket=bucket).get("Uploads", []) == []
+    assert not blobs.exists("artefacts/big.pm")
+    blobs.put_file("artefacts/big.pm", source)
+    assert blobs.get_bytes("artefacts/big.pm") == source.read_bytes()
