@@ -191,8 +191,9 @@ def read_ply_binary_triangles(path: Path) -> dict | None:
     if corners is None or corners.ndim != 2 or corners.shape[1] != 3 or not all(
             axis in vertex and vertex[axis].ndim == 1 for axis in "xyz"):
         return None
-    positions = np.column_stack([vertex[axis] for axis in "xyz"]).astype(np.float64)
-    faces = corners.astype(np.int64)
+    positions = np.column_stack([vertex[axis] for axis in "xyz"]).astype(np.float64, copy=False)
+    # the file's index type as it is: clean_mesh makes the one int64 copy
+    faces = np.ascontiguousarray(corners)
     return {"positions": positions, "faces": faces, **ply_attributes(vertex, faces, face)}
 
 
