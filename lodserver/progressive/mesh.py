@@ -467,16 +467,22 @@ def page_in_levels(pm: ProgressiveMesh) -> None:
     that size; from then on (up to its 32 MiB ceiling) such arrays come from,
     and go back to, the heap it keeps. So the full level's arrays are made
     twice: the first raises the threshold, the second leaves its touched
-    pages in the heap for every level after. Tens of milliseconds on a
-    million faces, once."""
+    pages in the heap for every level after. An array past the ceiling is
+    mapped afresh every time whatever was done before, so it is not made
+    here. Tens of milliseconds on a million faces, once."""
     pm.arrays_at(pm.base_vertices)
     pm.wedges_at(pm.base_vertices)
     shapes = [(pm.vertex_count, 3), (pm.face_count, 3)]
     if pm.has_attributes:
         shapes += [pm.wedge_values.shape, (pm.face_count, 3)]
+    shapes = [shape for shape in shapes if 8 * int(np.prod(shape)) <= _MALLOC_MMAP_CEILING]
     for _ in range(2):
         held = [np.ones(shape) for shape in shapes]
         del held
+
+
+# glibc's largest dynamic mmap threshold on 64-bit systems (DEFAULT_MMAP_THRESHOLD_MAX)
+_MALLOC_MMAP_CEILING = 32 * 2**20
 
 
 def save_progressive(pm: ProgressiveMesh, path) -> None:
