@@ -282,7 +282,7 @@ def test_a_non_finite_coarse_position_still_fails_its_levels():
 
     pm = progressive("torus")
     coarse = pm.coarse_position.copy()
-    coarse[-1] = np.nan        # the last split's: every level but full detail reads it
+    coarse[-1] = np.nan        # the last split's: the level just below full detail reads it
     broken = dataclasses.replace(pm, coarse_position=coarse)
     assert not broken.levels_finite
     with pytest.raises(MeshError, match="NaN or infinite"):
