@@ -291,9 +291,10 @@ def run_child(command: list[str], timeout: float, env: dict | None = None,
     import sys
     import time
 
-    env = {**os.environ, **(env or {})}
-    if SOURCE_CACHE:
-        env.pop("NUMBA_CACHE_DIR", None)
+    inherited = dict(os.environ)
+    if SOURCE_CACHE:        # a cache the caller names (the first run's empty one) still holds
+        inherited.pop("NUMBA_CACHE_DIR", None)
+    env = {**inherited, **(env or {})}
     if tree is not None:
         env["PYTHONPATH"] = str(tree)
     before = resource.getrusage(resource.RUSAGE_CHILDREN)
