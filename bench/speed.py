@@ -270,46 +270,138 @@ def write_ply(npz: Path) -> Path:
     return path
 
 
-def timed_command(command: list[str], timeout: float, env: dict | None = None) -> float:
+# --source-cache: the command's children use numba's cache beside each tree's
+# sources (filled by that tree's own runs) instead of the benchmarks' own
+SOURCE_CACHE = False
+
+
+def timed_command(command: list[str], timeout: float, env: dict | None = None,
+                  tree: Path | None = None) -> float:
     """Wall seconds of ``command`` in a child process, from its start to its exit
-    (interpreter start, imports, load and save included); WorkerFailed if it fails."""
+    (interpreter start, imports, load and save included); WorkerFailed if it fails.
+    ``tree``: the lodserver sources the child imports (default: this checkout's)."""
+    return run_child(command, timeout, env, tree)[0]
+
+
+def run_child(command: list[str], timeout: float, env: dict | None = None,
+              tree: Path | None = None) -> tuple[float, float, str]:
+    """``timed_command``'s (wall s, CPU s of the child and its threads, its stdout)."""
+    import resource
     import subprocess
     import sys
     import time
 
+    inherited = dict(os.environ)
+    if SOURCE_CACHE:        # a cache the caller names (the first run's empty one) still holds
+        inherited.pop("NUMBA_CACHE_DIR", None)
+    env = {**inherited, **(env or {})}
+    if tree is not None:
+        env["PYTHONPATH"] = str(tree)
+    before = resource.getrusage(resource.RUSAGE_CHILDREN)
     started = time.perf_counter()
     try:
         done = subprocess.run([sys.executable, *command], capture_output=True, text=True,
-                              timeout=timeout, env={**os.environ, **(env or {})})
+                              timeout=timeout, env=env, cwd=tree)
     except subprocess.TimeoutExpired:
         raise WorkerFailed(f"timeout after {timeout:g} s") from None
     seconds = time.perf_counter() - started
+    after = resource.getrusage(resource.RUSAGE_CHILDREN)
     if done.returncode:
         lines = done.stderr.strip().splitlines()
         raise WorkerFailed(lines[-1] if lines else f"exit code {done.returncode}")
-    return seconds
+    cpu = (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
+    return seconds, cpu, done.stdout
 
 
 def whole_command(input_path: Path, faces: int, repeats: int, timeout: float,
-                  work: Path) -> dict:
+                  work: Path, base: Path | None = None, levels: int = LEVELS) -> dict:
     """``lodserver build FILE.ply -o OUT.pm`` in a child process, each run paired
     with meshoptimizer's ``simplify`` to 10% in a child right after it (its
-    load excluded, in its favour): the walls, the peer's call times and each
-    pair's ratio."""
-    ply = write_ply(input_path)
-    command = ["-m", "lodserver.cli", "build", str(ply), "-o", str(work / "command.pm")]
-    timed_command(command, timeout)     # untimed: fills the numba cache, so no pair compiles
-    commands, peers = [], []
-    for _ in range(repeats):
-        commands.append(timed_command(command, timeout))
+    load excluded, in its favour): the walls and CPU times (the child's, all
+    its threads), the peer's call times and each pair's ratios. Then
+    ``levels`` random ``pm.at()`` of the file written, each in a fresh child
+    after ``load`` (``fresh_levels``).
+
+    With ``base`` (another checkout's root), the same command with its
+    sources runs beside each pair, first or second in turn, and each run's
+    CPU time is divided by its base's: what a change bought, paired.
+    """
+    ply, work = write_ply(input_path).resolve(), work.resolve()   # a base's child runs in its tree
+    trees = [None] if base is None else [None, base.resolve()]
+    base = trees[-1] if base is not None else None
+    outputs = {tree: work / f"command-{i}.pm" for i, tree in enumerate(trees)}
+
+    def command(tree):
+        return ["-m", "lodserver.cli", "build", str(ply), "-o", str(outputs[tree])]
+
+    for tree in trees:      # untimed: fills each tree's numba cache, so no pair compiles
+        run_child(command(tree), timeout, tree=tree)
+    runs = {tree: {"wall_s": [], "cpu_s": []} for tree in trees}
+    peers, peer_cpu = [], []
+    for i in range(repeats):
+        for tree in (trees if i % 2 == 0 else trees[::-1]):
+            wall, cpu, _ = run_child(command(tree), timeout, tree=tree)
+            runs[tree]["wall_s"].append(wall)
+            runs[tree]["cpu_s"].append(cpu)
         row = run_method(REFERENCE, input_path, faces, 1, 0, timeout, work)
         if row["status"] != "ok":
             raise WorkerFailed(row["reason"])
         peers.append(row["time_s"])
-    ratios = [c / p for c, p in zip(commands, peers)]
-    return {"input": ply.name, "faces": faces, "command_s": commands,
-            f"{REFERENCE}_s": peers, "ratios": ratios,
-            "median_ratio": statistics.median(ratios)}
+        peer_cpu.append(row["cpu_s"])
+    mine = runs[None]
+    result = {"input": ply.name, "faces": faces, "command_s": mine["wall_s"],
+              "command_cpu_s": mine["cpu_s"], f"{REFERENCE}_s": peers,
+              f"{REFERENCE}_cpu_s": peer_cpu,
+              "ratios": [c / p for c, p in zip(mine["wall_s"], peers)],
+              "cpu_ratios": [c / p for c, p in zip(mine["cpu_s"], peer_cpu)]}
+    result["median_ratio"] = statistics.median(result["ratios"])
+    result["median_cpu_ratio"] = statistics.median(result["cpu_ratios"])
+    if base is not None:
+        result.update(base=str(base), base_command_s=runs[base]["wall_s"],
+                      base_command_cpu_s=runs[base]["cpu_s"],
+                      over_base=[c / b for c, b in zip(mine["cpu_s"], runs[base]["cpu_s"])])
+        result["median_over_base"] = statistics.median(result["over_base"])
+    if levels:
+        result["fresh_levels"] = {("base" if tree else "this"): fresh_levels(
+            outputs[tree], levels, repeats, timeout, tree) for tree in trees}
+    return result
+
+
+def fresh_levels(pm_path: Path, levels: int, repeats: int, timeout: float,
+                 tree: Path | None = None) -> dict:
+    """``levels`` random ``pm.at()`` (seed 0, base to full detail) in each of
+    ``repeats`` fresh children, right after ``ProgressiveMesh.load`` (which
+    pages in what the first level needs): the worst and median of each
+    child's thread CPU and wall milliseconds."""
+    children = []
+    for _ in range(repeats):
+        _, _, out = run_child([str(Path(__file__).resolve()), "--levels-of", str(pm_path),
+                               "--levels", str(levels)], timeout, tree=tree)
+        children.append(json.loads(out.strip().splitlines()[-1]))
+    return {"children": children,
+            "worst_cpu_ms": max(c["worst_cpu_ms"] for c in children),
+            "worst_wall_ms": max(c["worst_wall_ms"] for c in children)}
+
+
+def levels_of(pm_path: Path, levels: int) -> dict:
+    """The child of ``fresh_levels``: load, then time each level once."""
+    import time
+
+    from lodserver import ProgressiveMesh
+
+    started = time.perf_counter()
+    pm = ProgressiveMesh.load(pm_path)
+    load_s = time.perf_counter() - started
+    drawn = np.random.default_rng(0).integers(pm.base_vertices, pm.vertex_count + 1, levels)
+    cpu, wall = [], []
+    for level in drawn:
+        w, c = time.perf_counter(), time.thread_time()
+        pm.at(int(level))
+        cpu.append((time.thread_time() - c) * 1e3)
+        wall.append((time.perf_counter() - w) * 1e3)
+    return {"load_s": load_s, "worst_cpu_ms": max(cpu), "median_cpu_ms": statistics.median(cpu),
+            "worst_wall_ms": max(wall), "median_wall_ms": statistics.median(wall),
+            "first_cpu_ms": cpu[0]}
 
 
 def first_run(repeats: int, timeout: float, work: Path) -> dict:
@@ -327,13 +419,31 @@ def first_run(repeats: int, timeout: float, work: Path) -> dict:
 
 
 def command_table(results) -> str:
-    header = ["size", "faces", "run", "lodserver build s", f"{REFERENCE} s", "ratio"]
+    header = ["size", "faces", "run", "lodserver build s", "cpu s", f"{REFERENCE} s", "cpu s",
+              "ratio", "cpu ratio", "cpu / base"]
     lines = []
     for size, entry in results.get("command", {}).items():
-        for i, (c, p, r) in enumerate(zip(entry["command_s"], entry[f"{REFERENCE}_s"],
-                                          entry["ratios"])):
-            lines.append([size, entry["faces"], i + 1, _g(c), _g(p), _g(r)])
-        lines.append([size, entry["faces"], "median", "", "", _g(entry["median_ratio"])])
+        over_base = entry.get("over_base", [None] * len(entry["ratios"]))
+        for i, row in enumerate(zip(entry["command_s"], entry["command_cpu_s"],
+                                    entry[f"{REFERENCE}_s"], entry[f"{REFERENCE}_cpu_s"],
+                                    entry["ratios"], entry["cpu_ratios"], over_base)):
+            lines.append([size, entry["faces"], i + 1, *map(_g, row)])
+        lines.append([size, entry["faces"], "median", "", "", "", "",
+                      _g(entry["median_ratio"]), _g(entry["median_cpu_ratio"]),
+                      _g(entry.get("median_over_base"))])
+    return markdown_table(header, lines)
+
+
+def fresh_levels_table(results) -> str:
+    header = ["size", "sources", "child", "load s", "first cpu ms", "worst cpu ms",
+              "median cpu ms", "worst wall ms", "median wall ms"]
+    lines = []
+    for size, entry in results.get("command", {}).items():
+        for tree, levels in entry.get("fresh_levels", {}).items():
+            for i, c in enumerate(levels["children"]):
+                lines.append([size, tree, i + 1, _g(c["load_s"]), _g(c["first_cpu_ms"]),
+                              _g(c["worst_cpu_ms"]), _g(c["median_cpu_ms"]),
+                              _g(c["worst_wall_ms"]), _g(c["median_wall_ms"])])
     return markdown_table(header, lines)
 
 
@@ -365,6 +475,13 @@ def parse_args(argv=None):
                         help="also `lodserver build` of the sample on an empty numba cache")
     parser.add_argument("--no-methods", action="store_true",
                         help="skip the per-method runs (with --command or --first-run)")
+    parser.add_argument("--base", type=Path,
+                        help="with --command: another checkout's root, whose same command "
+                             "runs beside each pair (its CPU time the divisor)")
+    parser.add_argument("--source-cache", action="store_true",
+                        help="with --command: each tree's numba cache beside its sources, not "
+                             "the benchmarks' own (no compiling a second tree from scratch)")
+    parser.add_argument("--levels-of", type=Path, help=argparse.SUPPRESS)   # fresh_levels' child
     add_io_arguments(parser, "speed")
     args = parser.parse_args(argv)
     args.sizes = (args.sizes or ("1m" if args.quick else ",".join(SIZES))).split(",")
@@ -383,6 +500,13 @@ def parse_args(argv=None):
 
 def main(argv=None):
     args = parse_args(argv)
+    global SOURCE_CACHE
+    SOURCE_CACHE = args.source_cache
+    if args.levels_of:
+        print(json.dumps(levels_of(args.levels_of, args.levels)))
+        return
+    if args.base is not None and not (args.base / "lodserver").is_dir():
+        raise SystemExit(f"--base {args.base}: no lodserver folder there")
     from machine import cpu_busy, machine_info
 
     result_path = results_file(args, "speed")
@@ -409,7 +533,8 @@ def main(argv=None):
             for size, (input_path, faces) in inputs.items():
                 _log(f"{size} ({faces:,} faces): the whole command ...")
                 results["command"][size] = whole_command(input_path, faces, args.repeats,
-                                                         args.timeout, work)
+                                                         args.timeout, work, args.base,
+                                                         args.levels)
                 result_path.write_text(json.dumps(results, indent=1))
         # method by method over the sizes, so a run cut short still has the first
         # methods (lodserver and meshoptimizer) at every size
@@ -432,6 +557,7 @@ def main(argv=None):
         print(first_run_table(results), "\n")
     if "command" in results:
         print(command_table(results), "\n")
+        print(fresh_levels_table(results), "\n")
     if not args.no_methods:
         print(speed_table(results), "\n")
         print(scaling_table(results), "\n")

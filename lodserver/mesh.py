@@ -201,6 +201,28 @@ class Mesh:
     materials: Materials | None = None
 
     def __post_init__(self):
+        self._adopt(checked=False)
+
+    @classmethod
+    def of_checked_arrays(cls, positions, faces, attributes: Attributes | None = None,
+                          face_material=None, materials: Materials | None = None) -> Mesh:
+        """A Mesh of ``positions`` (n, 3) float64 and ``faces`` (m, 3) int64 whose
+        values the caller has already checked: finite coordinates, indices in
+        [0, n). A level of a progressive mesh is such (its arrays were checked
+        once when it was made, and every level is made of them), and skipping
+        the scans of every coordinate and index is most of a level's cost after
+        its kernels. Shapes, the wedges and the face materials are checked as
+        by the constructor."""
+        mesh = cls.__new__(cls)
+        for name, value in (("positions", positions), ("faces", faces),
+                            ("attributes", attributes), ("face_material", face_material),
+                            ("materials", materials)):
+            object.__setattr__(mesh, name, value)
+        mesh._adopt(checked=True)
+        return mesh
+
+    def _adopt(self, checked: bool) -> None:
+        """Check the fields (their values too unless ``checked``) and hold them read-only."""
         positions = np.ascontiguousarray(self.positions, dtype=np.float64)
         faces = np.asarray(self.faces)
         if positions.ndim != 2 or positions.shape[1] != 3:
@@ -214,14 +236,8 @@ class Mesh:
         faces = np.ascontiguousarray(faces, dtype=np.int64)
         if len(faces) == 0:
             raise MeshError("the mesh has no faces")
-        if not np.isfinite(positions).all():
-            bad = int((~np.isfinite(positions).all(axis=1)).sum())
-            raise MeshError(f"{bad} vertex positions are NaN or infinite")
-        lo, hi = int(faces.min()), int(faces.max())
-        if lo < 0 or hi >= len(positions):
-            raise MeshError(
-                f"face indices must lie in [0, {len(positions) - 1}], found {lo}..{hi}"
-            )
+        if not checked:
+            _check_values(positions, faces)
         positions.setflags(write=False)
         faces.setflags(write=False)
         object.__setattr__(self, "positions", positions)
@@ -309,6 +325,18 @@ def read_only(array, dtype=None) -> np.ndarray:
     view = np.ascontiguousarray(array, dtype=dtype).view()
     view.flags.writeable = False
     return view
+
+
+def _check_values(positions: np.ndarray, faces: np.ndarray) -> None:
+    """MeshError unless every coordinate is finite and every index in [0, n)."""
+    if not np.isfinite(positions).all():
+        bad = int((~np.isfinite(positions).all(axis=1)).sum())
+        raise MeshError(f"{bad} vertex positions are NaN or infinite")
+    lo, hi = int(faces.min()), int(faces.max())
+    if lo < 0 or hi >= len(positions):
+        raise MeshError(
+            f"face indices must lie in [0, {len(positions) - 1}], found {lo}..{hi}"
+        )
 
 
 def _restore_read_only(state: dict, names) -> dict:

@@ -116,7 +116,7 @@ def clean_mesh(positions, faces, *, corner_values=None, layout=(), face_material
             f"{bad_rows} of its {len(positions)} vertices have NaN or infinite "
             "coordinates"
         )
-    faces = faces.astype(np.int64)
+    faces = faces.astype(np.int64, copy=False)     # nothing below writes into it
     out_of_range = int(((faces < 0) | (faces >= len(positions))).any(axis=1).sum())
     if out_of_range:
         raise MeshError(

@@ -29,6 +29,7 @@ from .ply import (
     ply_attributes,
     ply_columns,
     ply_triangle_rows,
+    read_ply_binary_triangles,
     read_ply_tristrips,
 )
 
@@ -104,7 +105,7 @@ def load_mesh(path, *, file_type: str | None = None, root=None,
             if "tristrips" in {name for name, _, _ in elements}:
                 arrays = read_ply_tristrips(path)
             else:
-                arrays = _read_with_trimesh(path, kind)
+                arrays = read_ply_binary_triangles(path) or _read_with_trimesh(path, kind)
         else:
             (_check_off if kind == "off" else _check_stl)(path, size, limits)
             arrays = _read_with_trimesh(path, kind)

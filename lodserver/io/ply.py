@@ -154,6 +154,79 @@ def read_ply_tristrips(path: Path) -> dict:
     return {"positions": positions, "faces": faces, **ply_attributes(ply_columns(vertex), faces)}
 
 
+def read_ply_binary_triangles(path: Path) -> dict | None:
+    """Positions (n, 3) and triangles (m, 3) of a binary PLY whose rows all have one
+    size, with vertex normals, colours and UVs as corner values; None for any other
+    PLY (ASCII, polygons, lists of varying length), which trimesh reads.
+
+    The common scan file (a vertex table, then faces of ``3 i j k``) is one
+    fixed record per row, so numpy reads each element as one structured array
+    instead of trimesh parsing it; the arrays are the ones trimesh's path
+    hands :func:`~.clean.clean_mesh` (the file's triangles, no seam splits).
+    The header's counts were checked against the body by
+    :func:`checked_ply_header` before this is called.
+    """
+    with open(path, "rb") as file:
+        encoding, elements = _read_ply_header(file)
+        if encoding not in _PLY_ENDIAN:
+            return None
+        body = file.read()
+    endian = _PLY_ENDIAN[encoding]
+    data, offset = {}, 0
+    for name, count, properties in elements:
+        if count == 0:
+            data[name] = {}
+            continue
+        dtype = _fixed_row_dtype(body, offset, properties, endian)
+        if dtype is None or offset + count * dtype.itemsize > len(body):
+            return None
+        table = np.frombuffer(body, dtype=dtype, count=count, offset=offset)
+        for prop, _, list_type in properties:
+            if list_type is not None and (table[_LENGTH + prop] != table[prop].shape[1]).any():
+                return None     # a row whose list is longer or shorter than the first's
+        offset += count * dtype.itemsize
+        data[name] = {prop: table[prop] for prop, _, _ in properties}
+    vertex, face = data.get("vertex", {}), data.get("face", {})
+    corners = next((face[n] for n in ("vertex_indices", "vertex_index") if n in face), None)
+    if corners is None or corners.ndim != 2 or corners.shape[1] != 3 or not all(
+            axis in vertex and vertex[axis].ndim == 1 for axis in "xyz"):
+        return None
+    positions = np.column_stack([vertex[axis] for axis in "xyz"]).astype(np.float64, copy=False)
+    # the file's index type as it is: clean_mesh makes the one int64 copy
+    faces = np.ascontiguousarray(corners)
+    return {"positions": positions, "faces": faces, **ply_attributes(vertex, faces, face)}
+
+
+# the field name under which a list property's per-row length sits in a fixed row
+# (a header's property names are single words, so none has a space)
+_LENGTH = "length of "
+
+
+def _fixed_row_dtype(body: bytes, offset: int, properties, endian: str) -> np.dtype | None:
+    """The structured dtype of a binary row whose lists are as long as in the row at
+    ``offset`` (each list's length a field of its own), or None when a list's
+    length or item is not an integer or a number, or the row runs past ``body``."""
+    fields, at = [], offset
+    for prop, kind, list_type in properties:
+        item = np.dtype(endian + kind)
+        if list_type is None:
+            fields.append((prop, item))
+            at += item.itemsize
+            continue
+        length = np.dtype(endian + list_type)
+        if length.kind not in "iu" or at + length.itemsize > len(body):
+            return None
+        n = int(np.frombuffer(body, dtype=length, count=1, offset=at)[0])
+        if n < 1:
+            return None
+        fields += [(_LENGTH + prop, length), (prop, item, (n,))]
+        at += length.itemsize + n * item.itemsize
+    try:
+        return np.dtype(fields)
+    except ValueError:      # a property named twice: trimesh's reader decides
+        return None
+
+
 @dataclass(frozen=True)
 class _PlyLists:
     """A PLY list property of every row of an element: ``values`` (k,) int64, the

@@ -269,6 +269,9 @@ class ProgressiveMesh:
         for key, value in derived.items():
             value.setflags(write=False)
             object.__setattr__(self, key, value)
+        # every level's coordinates are rows of these two: finite here, finite at every level
+        object.__setattr__(self, "levels_finite", bool(
+            np.isfinite(self.positions).all() and np.isfinite(self.coarse_position).all()))
 
     # ---- sizes ----------------------------------------------------------
     # full detail's, read as a Mesh's are: the lengths of positions and faces
@@ -342,17 +345,26 @@ class ProgressiveMesh:
         elif criterion:
             raise ValueError("give a level or one criterion, not both")
         positions, faces = self.arrays_at(level)
-        return self.mesh_of(positions, faces, *self.wedges_at(level))
+        return self._level_mesh(positions, faces, *self.wedges_at(level),
+                                checked=self.levels_finite)
 
     def mesh_of(self, positions, faces, values=None, corners=None) -> Mesh:
         """A :class:`Mesh` of one level's arrays (as ``arrays_at`` and ``wedges_at``
         give them), with this mesh's attribute layout, face materials and materials."""
+        return self._level_mesh(positions, faces, values, corners, checked=False)
+
+    def _level_mesh(self, positions, faces, values, corners, checked: bool) -> Mesh:
+        """``mesh_of``; with ``checked``, the arrays are this mesh's kernels' own (indices
+        below the level by construction, coordinates finite by ``levels_finite``), so
+        the Mesh does not scan them again."""
         attributes = None
         if self.has_attributes:
             attributes = Attributes(self.attribute_layout, values, corners)
         material = None
         if self.face_material is not None:
             material = self.face_material[:len(faces)]
+        if checked:
+            return Mesh.of_checked_arrays(positions, faces, attributes, material, self.materials)
         return Mesh(positions, faces, attributes, material, self.materials)
 
     def wedges_at(self, level: int):
@@ -438,9 +450,39 @@ def decode_progressive(data: bytes, *, source: str = "the artefact") -> Progress
     """
     fields = decode_artefact(data, source=source)
     try:
-        return ProgressiveMesh(**fields)
+        pm = ProgressiveMesh(**fields)
     except (ValueError, KeyError, IndexError, TypeError) as exc:
         raise ArtefactError(f"{source} holds inconsistent arrays ({exc})") from exc
+    page_in_levels(pm)
+    return pm
+
+
+def page_in_levels(pm: ProgressiveMesh) -> None:
+    """What the first level asked of a freshly loaded ``pm`` would pay for
+    once, paid at load: the level kernels' first call (numba's cache read and
+    linked, on the base level's few rows) and the memory of a full-detail
+    level's arrays, taken from the system and touched (the system zeroes each
+    page on its first touch). glibc's malloc maps an array that large afresh
+    and unmaps it when freed, until freeing one has raised its threshold past
+    that size; from then on (up to its 32 MiB ceiling) such arrays come from,
+    and go back to, the heap it keeps. So the full level's arrays are made
+    twice: the first raises the threshold, the second leaves its touched
+    pages in the heap for every level after. An array past the ceiling is
+    mapped afresh every time whatever was done before, so it is not made
+    here. Tens of milliseconds on a million faces, once."""
+    pm.arrays_at(pm.base_vertices)
+    pm.wedges_at(pm.base_vertices)
+    shapes = [(pm.vertex_count, 3), (pm.face_count, 3)]
+    if pm.has_attributes:
+        shapes += [pm.wedge_values.shape, (pm.face_count, 3)]
+    shapes = [shape for shape in shapes if 8 * int(np.prod(shape)) <= _MALLOC_MMAP_CEILING]
+    for _ in range(2):
+        held = [np.ones(shape) for shape in shapes]
+        del held
+
+
+# glibc's largest dynamic mmap threshold on 64-bit systems (DEFAULT_MMAP_THRESHOLD_MAX)
+_MALLOC_MMAP_CEILING = 32 * 2**20
 
 
 def save_progressive(pm: ProgressiveMesh, path) -> None:

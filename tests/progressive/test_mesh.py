@@ -253,3 +253,47 @@ def test_two_parts_are_decimated_separately():
     side = base.positions[base.faces][:, :, 0] > 1.5
     assert np.all(side.all(axis=1) | ~side.any(axis=1))
     assert side.any() and not side.all()
+
+
+@pytest.mark.parametrize("name", ["spot", "torus"])
+def test_a_level_needs_no_second_scan_and_equals_the_checked_mesh(name, tmp_path):
+    pm = progressive(name)
+    pm.save(tmp_path / "a.pm")
+    loaded = type(pm).load(tmp_path / "a.pm")
+    assert pm.levels_finite and loaded.levels_finite
+    rng = np.random.default_rng(3)
+    for level in [pm.base_vertices, pm.vertex_count, *rng.integers(pm.base_vertices,
+                                                                   pm.vertex_count, 8)]:
+        fast = loaded.at(int(level))
+        checked = pm.mesh_of(*pm.arrays_at(int(level)), *pm.wedges_at(int(level)))
+        assert not fast.positions.flags.writeable and not fast.faces.flags.writeable
+        np.testing.assert_array_equal(fast.positions, checked.positions)
+        np.testing.assert_array_equal(fast.faces, checked.faces)
+        assert (fast.attributes is None) == (checked.attributes is None)
+        if fast.attributes is not None:
+            np.testing.assert_array_equal(fast.attributes.values, checked.attributes.values)
+            np.testing.assert_array_equal(fast.attributes.corners, checked.attributes.corners)
+
+
+def test_a_non_finite_coarse_position_still_fails_its_levels():
+    import dataclasses
+
+    from lodserver.mesh import MeshError
+
+    pm = progressive("torus")
+    coarse = pm.coarse_position.copy()
+    coarse[-1] = np.nan        # the last split's: the level just below full detail reads it
+    broken = dataclasses.replace(pm, coarse_position=coarse)
+    assert not broken.levels_finite
+    with pytest.raises(MeshError, match="NaN or infinite"):
+        broken.at(broken.vertex_count - 1)
+    broken.at(broken.vertex_count)
+
+
+def test_a_mesh_of_checked_arrays_still_checks_shapes():
+    from lodserver.mesh import Mesh, MeshError
+
+    with pytest.raises(MeshError, match="no faces"):
+        Mesh.of_checked_arrays(np.zeros((3, 3)), np.zeros((0, 3), dtype=np.int64))
+    with pytest.raises(MeshError, match="shape"):
+        Mesh.of_checked_arrays(np.zeros((3, 2)), np.zeros((1, 3), dtype=np.int64))
