@@ -469,7 +469,7 @@ def page_in_levels(pm: ProgressiveMesh) -> None:
     twice: the first raises the threshold, the second leaves its touched
     pages in the heap for every level after. An array past the ceiling is
     mapped afresh every time whatever was done before, so it is not made
-    here. Tens of milliseconds on a million faces, once."""
+    here."""
     pm.arrays_at(pm.base_vertices)
     pm.wedges_at(pm.base_vertices)
     shapes = [(pm.vertex_count, 3), (pm.face_count, 3)]
