@@ -1,0 +1,143 @@
+"""The octahedral impostor drawn by static/impostor.js in headless Chromium (issue 28).
+
+``lodserver export Duck.glb --lods 1,0.01 --separate --impostor`` writes the
+farthest level as an impostor; a page of its own (three.js, GLTFLoader, the
+module) draws the full-detail Duck and then the impostor from 8 directions
+(the cube's corners, none of them a baked view) and compares where each
+covers the screen: the intersection over union of the two alpha masks is at
+least :data:`MIN_IOU` from every direction. The page also checks that the
+module's nearest view of each direction is the bake's (``nearest_view``).
+"""
+
+from __future__ import annotations
+
+import functools
+import http.server
+import threading
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from lodserver.bake.impostor import nearest_view
+from lodserver.pipeline import export_lods
+
+from ..meshes import SHARED
+
+STATIC = Path(__file__).resolve().parents[2] / "static"
+DUCK = SHARED / "Duck.glb"
+# Each direction's silhouette overlap, at least: the views are 12 x 12 of 64
+# pixels (the export's default) drawn 256 pixels high, so their edges are
+# blurred by the magnification and the blend of three neighbouring views.
+MIN_IOU = 0.9
+DIRECTIONS = [[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)]
+
+PAGE = """<!doctype html>
+<html><head><link rel="icon" href="data:,"></head><body style="margin: 0">
+<script type="importmap">
+  { "imports": { "three": "/three/build/three.module.js",
+                 "three/addons/": "/three/examples/jsm/" } }
+</script>
+<script type="module">
+import * as THREE from 'three';
+import { GLTFLoader } from 'three/addons/loaders/GLTFLoader.js';
+import { Impostor, nearestView } from '/static/impostor.js';
+
+const SIZE = 256;
+const renderer = new THREE.WebGLRenderer({ alpha: true });
+renderer.setSize(SIZE, SIZE);
+renderer.setClearColor(0x000000, 0);
+document.body.append(renderer.domElement);
+const target = new THREE.WebGLRenderTarget(SIZE, SIZE);
+const loader = new GLTFLoader();
+const mesh = (await loader.loadAsync('/files/Duck.glb')).scene;
+const impostor = await Impostor.fromGLTF(await loader.loadAsync('/files/duck_lod1.glb'));
+const scene = new THREE.Scene();
+scene.add(new THREE.HemisphereLight(0xffffff, 0x444444, 3), mesh, impostor);
+const camera = new THREE.PerspectiveCamera(40, 1, 0.01, 1000);
+const center = new THREE.Vector3().fromArray(impostor.layout.center);
+const radius = impostor.layout.radius;
+
+function mask() {
+  renderer.setRenderTarget(target);
+  renderer.clear();
+  renderer.render(scene, camera);
+  const pixels = new Uint8Array(4 * SIZE * SIZE);
+  renderer.readRenderTargetPixels(target, 0, 0, SIZE, SIZE, pixels);
+  renderer.setRenderTarget(null);
+  const covered = new Uint8Array(SIZE * SIZE);
+  for (let i = 0; i < covered.length; i++) covered[i] = pixels[4 * i + 3] > 0 ? 1 : 0;
+  return covered;
+}
+
+window.silhouettes = (directions) => directions.map((d) => {
+  const direction = new THREE.Vector3(...d).normalize();
+  camera.position.copy(center).addScaledVector(direction, 3 * radius);
+  camera.lookAt(center);
+  camera.updateMatrixWorld();
+  mesh.visible = true; impostor.visible = false;
+  const full = mask();
+  mesh.visible = false; impostor.visible = true;
+  const baked = mask();
+  let both = 0, either = 0, fullCount = 0;
+  for (let i = 0; i < full.length; i++) {
+    both += full[i] & baked[i];
+    either += full[i] | baked[i];
+    fullCount += full[i];
+  }
+  return { iou: both / either, covered: fullCount / full.length,
+           view: nearestView(direction, impostor.layout) };
+});
+window.ready = true;
+</script>
+</body></html>
+"""
+
+
+class _Quiet(http.server.SimpleHTTPRequestHandler):
+    def log_message(self, *args):
+        pass
+
+
+@pytest.fixture(scope="module")
+def origin(tmp_path_factory):
+    """A plain HTTP server of the page, three.js, static/ and the Duck's files."""
+    if not DUCK.is_file():
+        pytest.skip(f"the shared meshes are not at {DUCK.parent}")
+    folder = tmp_path_factory.mktemp("impostor")
+    (folder / "three").symlink_to(STATIC / "vendor" / "three", target_is_directory=True)
+    (folder / "static").symlink_to(STATIC, target_is_directory=True)
+    files = folder / "files"
+    files.mkdir()
+    (files / "Duck.glb").write_bytes(DUCK.read_bytes())
+    export_lods(DUCK, files / "duck.glb", lods=(1.0, 0.01), separate=True, impostor=True)
+    (folder / "index.html").write_text(PAGE)
+    handler = functools.partial(_Quiet, directory=str(folder))
+    httpd = http.server.ThreadingHTTPServer(("127.0.0.1", 0), handler)
+    thread = threading.Thread(target=httpd.serve_forever, daemon=True)
+    thread.start()
+    try:
+        yield f"http://127.0.0.1:{httpd.server_address[1]}"
+    finally:
+        httpd.shutdown()
+        httpd.server_close()
+
+
+def test_the_impostor_matches_the_mesh_silhouette_from_8_directions(chromium, origin):
+    page = chromium.new_page(viewport={"width": 256, "height": 256})
+    failures = []
+    page.on("pageerror", lambda error: failures.append(error))
+    page.on("console", lambda message: message.type == "error" and failures.append(message.text))
+    try:
+        page.goto(f"{origin}/index.html")
+        page.wait_for_function("() => window.ready === true", timeout=120_000)
+        results = page.evaluate("(directions) => window.silhouettes(directions)", DIRECTIONS)
+    finally:
+        page.close()
+    assert not failures, failures
+    for direction, result in zip(DIRECTIONS, results):
+        # the Duck fills a good part of the view: a blank render cannot pass
+        assert result["covered"] > 0.1, (direction, result)
+        assert result["iou"] >= MIN_IOU, (direction, result)
+    unit = np.array(DIRECTIONS, dtype=np.float64) / np.sqrt(3.0)
+    assert [result["view"] for result in results] == nearest_view(unit, 12).tolist()
