@@ -258,7 +258,7 @@ def impostor_glb(impostor: Impostor, *, name: str = "impostor") -> bytes:
     normals = np.tile([0.0, 0.0, 1.0], (4, 1))
     indices = np.array([0, 1, 2, 0, 2, 3], dtype=np.uint16)
     chunks = [positions.astype(np.float32).tobytes(), normals.astype(np.float32).tobytes(),
-              uv.astype(np.float32).tobytes(), indices.tobytes() + b"\0\0"]
+              uv.astype(np.float32).tobytes(), indices.tobytes()]
     images = [_png(impostor.color), _png(impostor.normal)]
     for image in images:
         chunks.append(image + b"\0" * (-len(image) % 4))
