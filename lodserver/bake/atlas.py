@@ -199,6 +199,8 @@ def dilate(image: np.ndarray, filled: np.ndarray, steps: int = 2 * PADDING) -> n
 @njit(cache=True, nogil=True)
 def _dilate(image, filled, steps):
     h, w, c = image.shape
+    # one sum for every texel, element by element: no array made per texel
+    total = np.zeros(c)
     for _ in range(steps):
         grown = filled.copy()
         out = image.copy()
@@ -207,15 +209,18 @@ def _dilate(image, filled, steps):
                 if filled[y, x]:
                     continue
                 count = 0
-                total = np.zeros(c)
+                for k in range(c):
+                    total[k] = 0.0
                 for dy in range(-1, 2):
                     for dx in range(-1, 2):
                         yy, xx = y + dy, x + dx
                         if 0 <= yy < h and 0 <= xx < w and filled[yy, xx]:
-                            total += image[yy, xx]
+                            for k in range(c):
+                                total[k] += image[yy, xx, k]
                             count += 1
                 if count:
-                    out[y, x] = total / count
+                    for k in range(c):
+                        out[y, x, k] = total[k] / count
                     grown[y, x] = True
         image[:] = out
         filled[:] = grown
