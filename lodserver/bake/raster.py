@@ -47,6 +47,26 @@ def rasterize_view(pixels: np.ndarray, depth: np.ndarray, faces: np.ndarray,
 
 
 @njit(cache=True, nogil=True)
+def pixel_box(ax, ay, bx, by, cx, cy, size):
+    """The pixels (x0, x1, y0, y1, inclusive) of a ``size`` square a triangle's
+    bounding box touches."""
+    x0 = max(0, int(np.floor(min(ax, bx, cx))))
+    x1 = min(size - 1, int(np.ceil(max(ax, bx, cx))))
+    y0 = max(0, int(np.floor(min(ay, by, cy))))
+    y1 = min(size - 1, int(np.ceil(max(ay, by, cy))))
+    return x0, x1, y0, y1
+
+
+@njit(cache=True, nogil=True)
+def barycentric(ax, ay, bx, by, cx, cy, area, px, py):
+    """Barycentrics (w0, w1, w2) of point (px, py) on the triangle whose doubled
+    signed area is ``area``."""
+    w0 = ((bx - px) * (cy - py) - (by - py) * (cx - px)) / area
+    w1 = ((cx - px) * (ay - py) - (cy - py) * (ax - px)) / area
+    return w0, w1, 1.0 - w0 - w1
+
+
+@njit(cache=True, nogil=True)
 def _rasterize(pixels, depth, faces, face, bary, zbuffer):
     size = face.shape[0]
     for f in range(faces.shape[0]):
@@ -57,23 +77,17 @@ def _rasterize(pixels, depth, faces, face, bary, zbuffer):
         area = (bx - ax) * (cy - ay) - (by - ay) * (cx - ax)
         if area == 0.0:
             continue
-        x0 = max(0, int(np.floor(min(ax, bx, cx))))
-        x1 = min(size - 1, int(np.ceil(max(ax, bx, cx))))
-        y0 = max(0, int(np.floor(min(ay, by, cy))))
-        y1 = min(size - 1, int(np.ceil(max(ay, by, cy))))
-        for y in range(y0, y1 + 1):
-            py = y + 0.5
-            for x in range(x0, x1 + 1):
-                px = x + 0.5
-                w0 = ((bx - px) * (cy - py) - (by - py) * (cx - px)) / area
-                w1 = ((cx - px) * (ay - py) - (cy - py) * (ax - px)) / area
-                w2 = 1.0 - w0 - w1
-                if w0 < 0.0 or w1 < 0.0 or w2 < 0.0:
-                    continue
-                z = w0 * depth[i] + w1 * depth[j] + w2 * depth[k]
-                if z > zbuffer[y, x]:
-                    zbuffer[y, x] = z
-                    face[y, x] = f
-                    bary[y, x, 0] = w0
-                    bary[y, x, 1] = w1
-                    bary[y, x, 2] = w2
+        x0, x1, y0, y1 = pixel_box(ax, ay, bx, by, cx, cy, size)
+        width = x1 - x0 + 1
+        for at in range(width * max(0, y1 - y0 + 1)):     # the box's pixels, row by row
+            y, x = y0 + at // width, x0 + at % width
+            w0, w1, w2 = barycentric(ax, ay, bx, by, cx, cy, area, x + 0.5, y + 0.5)
+            if w0 < 0.0 or w1 < 0.0 or w2 < 0.0:
+                continue
+            z = w0 * depth[i] + w1 * depth[j] + w2 * depth[k]
+            if z > zbuffer[y, x]:
+                zbuffer[y, x] = z
+                face[y, x] = f
+                bary[y, x, 0] = w0
+                bary[y, x, 1] = w1
+                bary[y, x, 2] = w2

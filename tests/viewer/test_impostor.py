@@ -11,9 +11,6 @@ module's nearest view of each direction is the bake's (``nearest_view``).
 
 from __future__ import annotations
 
-import functools
-import http.server
-import threading
 from pathlib import Path
 
 import numpy as np
@@ -94,14 +91,16 @@ window.ready = true;
 """
 
 
-class _Quiet(http.server.SimpleHTTPRequestHandler):
-    def log_message(self, *args):
-        pass
+# The page's origin: every request answered from the folder by the page's route
+# (no server of its own).
+ORIGIN = "http://impostor.test"
+TYPES = {".html": "text/html", ".js": "text/javascript", ".glb": "model/gltf-binary"}
 
 
 @pytest.fixture(scope="module")
-def origin(tmp_path_factory):
-    """A plain HTTP server of the page, three.js, static/ and the Duck's files."""
+def folder(tmp_path_factory):
+    """The page, three.js, static/ and the Duck's files: its full detail and the
+    export's levels, the farthest an impostor."""
     if not DUCK.is_file():
         pytest.skip(f"the shared meshes are not at {DUCK.parent}")
     folder = tmp_path_factory.mktemp("impostor")
@@ -112,24 +111,27 @@ def origin(tmp_path_factory):
     (files / "Duck.glb").write_bytes(DUCK.read_bytes())
     export_lods(DUCK, files / "duck.glb", lods=(1.0, 0.01), separate=True, impostor=True)
     (folder / "index.html").write_text(PAGE)
-    handler = functools.partial(_Quiet, directory=str(folder))
-    httpd = http.server.ThreadingHTTPServer(("127.0.0.1", 0), handler)
-    thread = threading.Thread(target=httpd.serve_forever, daemon=True)
-    thread.start()
-    try:
-        yield f"http://127.0.0.1:{httpd.server_address[1]}"
-    finally:
-        httpd.shutdown()
-        httpd.server_close()
+    return folder
 
 
-def test_the_impostor_matches_the_mesh_silhouette_from_8_directions(chromium, origin):
+def _answer(folder: Path):
+    def answer(route):
+        path = folder / route.request.url[len(ORIGIN) + 1:].split("?")[0]
+        if not path.is_file():
+            return route.fulfill(status=404)
+        route.fulfill(status=200, body=path.read_bytes(),
+                      content_type=TYPES.get(path.suffix, "application/octet-stream"))
+    return answer
+
+
+def test_the_impostor_matches_the_mesh_silhouette_from_8_directions(chromium, folder):
     page = chromium.new_page(viewport={"width": 256, "height": 256})
+    page.route(f"{ORIGIN}/**", _answer(folder))
     failures = []
     page.on("pageerror", lambda error: failures.append(error))
     page.on("console", lambda message: message.type == "error" and failures.append(message.text))
     try:
-        page.goto(f"{origin}/index.html")
+        page.goto(f"{ORIGIN}/index.html")
         page.wait_for_function("() => window.ready === true", timeout=120_000)
         results = page.evaluate("(directions) => window.silhouettes(directions)", DIRECTIONS)
     finally:
