@@ -113,8 +113,9 @@ vec4 view(vec2 cell, vec3 ray, out vec4 normalDepth) {
     vec3 q = eye + ray * ((depth + dot(center - eye, d)) / facing) - center;
     vec2 uv = vec2(dot(q, right), -dot(q, up)) / radius * 0.5 + 0.5;
     if (any(lessThan(uv, vec2(0.0))) || any(greaterThan(uv, vec2(1.0)))) return vec4(0.0);
-    // half a pixel in from the view's edge: bilinear filtering stays in the view
-    at = (cell + clamp(uv, 0.5 / frame, 1.0 - 0.5 / frame)) / grid;
+    // half a pixel of the normal atlas (half the colour atlas's side) in from
+    // the view's edge: bilinear filtering stays in the view
+    at = (cell + clamp(uv, 1.0 / frame, 1.0 - 1.0 / frame)) / grid;
     normalDepth = texture2D(normalMap, at);
     depth = (normalDepth.a * 2.0 - 1.0) * radius;
   }

@@ -47,8 +47,9 @@ _SAMPLER = {"magFilter": 9729, "minFilter": 9987, "wrapS": 33071, "wrapT": 33071
 
 @dataclass(frozen=True)
 class Impostor:
-    """A baked impostor: ``color`` and ``normal`` (h, w, 4) uint8 atlases of
-    ``grid`` x ``grid`` views of ``frame`` pixels each, framed by the sphere
+    """A baked impostor: ``color`` (h, w, 4) and ``normal`` (h / 2, w / 2, 4) uint8
+    atlases of ``grid`` x ``grid`` views of ``frame`` (``frame / 2``) pixels each,
+    framed by the sphere
     (``center`` (3,), ``radius``, mesh units)."""
 
     color: np.ndarray
@@ -127,9 +128,9 @@ def check_layout(grid: int, frame: int, kind: str) -> None:
                         f"{str(kind)[:20]!r}")
     if not (isinstance(grid, int) and MIN_GRID <= grid <= MAX_GRID):
         raise MeshError(f"an impostor has {MIN_GRID} to {MAX_GRID} views a side, got {grid}")
-    if not (isinstance(frame, int) and MIN_FRAME <= frame <= MAX_FRAME):
-        raise MeshError(f"an impostor's views are {MIN_FRAME} to {MAX_FRAME} pixels a side, "
-                        f"got {frame}")
+    if not (isinstance(frame, int) and MIN_FRAME <= frame <= MAX_FRAME and frame % 2 == 0):
+        raise MeshError(f"an impostor's views are an even {MIN_FRAME} to {MAX_FRAME} pixels "
+                        f"a side, got {frame}")
 
 
 def bake_impostor(mesh: Mesh, grid: int = DEFAULT_GRID, frame: int = DEFAULT_FRAME,
@@ -166,8 +167,21 @@ def bake_impostor(mesh: Mesh, grid: int = DEFAULT_GRID, frame: int = DEFAULT_FRA
     # the background takes its neighbours' colour, so that filtering and mips
     # blend an edge with itself rather than with black
     color[..., :3] = dilate(color[..., :3], filled)
-    normal = dilate(normal, filled)
+    normal = _halved(dilate(normal, filled))
     return Impostor(_bytes(color), _bytes(normal), grid, frame, kind, center, radius)
+
+
+def _halved(normal: np.ndarray) -> np.ndarray:
+    """The normal+depth atlas (h, w, 4) at half its side (h / 2, w / 2, 4): each
+    pixel the mean of 2 x 2, its normal made unit again. Shading varies slowly
+    across a view and the drawing blends three views anyway; the colour atlas
+    keeps the detail, and the file is a quarter of the normals' bytes."""
+    h, w, _ = normal.shape
+    block = normal.reshape(h // 2, 2, w // 2, 2, 4).mean(axis=(1, 3))
+    unit = block[..., :3] * 2.0 - 1.0
+    unit /= np.maximum(np.linalg.norm(unit, axis=2, keepdims=True), 1e-12)
+    block[..., :3] = unit * 0.5 + 0.5
+    return block
 
 
 def _alpha_rule(look: SurfaceLook, mesh: Mesh) -> tuple[np.ndarray, np.ndarray]:
@@ -238,6 +252,7 @@ def layout(impostor: Impostor) -> dict:
     """The ``extras.impostor`` record naming the atlases' layout (docs/pipeline.md)."""
     return {"kind": impostor.kind, "grid": impostor.grid, "frame": impostor.frame,
             "center": [float(c) for c in impostor.center], "radius": impostor.radius,
+            "normalFrame": impostor.frame // 2,
             "colorTexture": 0, "normalTexture": 1, "normalImage": 1,
             "normalSpace": "object", "depth": "normal alpha: 0.5 + 0.5 * depth / radius"}
 
