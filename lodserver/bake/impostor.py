@@ -39,6 +39,9 @@ KINDS = ("full", "hemi")
 # (the edge's coverage antialiased into alpha)
 DEFAULT_GRID, DEFAULT_FRAME, SUPERSAMPLE = 12, 64, 2
 MIN_GRID, MAX_GRID, MIN_FRAME, MAX_FRAME = 2, 32, 8, 512
+# The colour atlas's side at most: the bake holds a few float arrays of it
+# (a few hundred megabytes at this side)
+MAX_SIDE = 2048
 # Near a pole the view's "up" leans on the z axis: y is too close to the direction.
 _POLE = 0.999
 # glTF sampler: linear, trilinear mips, clamped
@@ -49,8 +52,7 @@ _SAMPLER = {"magFilter": 9729, "minFilter": 9987, "wrapS": 33071, "wrapT": 33071
 class Impostor:
     """A baked impostor: ``color`` (h, w, 4) and ``normal`` (h / 2, w / 2, 4) uint8
     atlases of ``grid`` x ``grid`` views of ``frame`` (``frame / 2``) pixels each,
-    framed by the sphere
-    (``center`` (3,), ``radius``, mesh units)."""
+    framed by the sphere (``center`` (3,), ``radius``, mesh units)."""
 
     color: np.ndarray
     normal: np.ndarray
@@ -131,6 +133,9 @@ def check_layout(grid: int, frame: int, kind: str) -> None:
     if not (isinstance(frame, int) and MIN_FRAME <= frame <= MAX_FRAME and frame % 2 == 0):
         raise MeshError(f"an impostor's views are an even {MIN_FRAME} to {MAX_FRAME} pixels "
                         f"a side, got {frame}")
+    if grid * frame > MAX_SIDE:
+        raise MeshError(f"an impostor's atlas is at most {MAX_SIDE} pixels a side, and "
+                        f"{grid} views of {frame} pixels make {grid * frame}")
 
 
 def bake_impostor(mesh: Mesh, grid: int = DEFAULT_GRID, frame: int = DEFAULT_FRAME,
@@ -157,8 +162,7 @@ def bake_impostor(mesh: Mesh, grid: int = DEFAULT_GRID, frame: int = DEFAULT_FRA
     side = grid * frame
     color = np.zeros((side, side, 4))
     normal = np.zeros((side, side, 4))
-    for view, (point, direction) in enumerate(zip(view_points(grid), decode(view_points(grid),
-                                                                            kind))):
+    for view, direction in enumerate(decode(view_points(grid), kind)):
         row, column = divmod(view, grid)
         cell = np.s_[row * frame:(row + 1) * frame, column * frame:(column + 1) * frame]
         color[cell], normal[cell] = _view(positions - center, faces, geometric, look,

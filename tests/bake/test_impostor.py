@@ -178,7 +178,7 @@ def test_bad_impostor_options_are_refused_with_a_sentence(tmp_path):
                      {"errors": (0.0, 0.01), "separate": True}):
         with pytest.raises(MeshError, match="impostor"):
             ChainOptions(impostor=True, **keywords)
-    for grid, frame, kind in ((1, 64, "full"), (12, 4, "full"), (12, 63, "full"), (12, 64, "sphere"),
+    for grid, frame, kind in ((1, 64, "full"), (12, 4, "full"), (12, 63, "full"), (32, 512, "full"), (12, 64, "sphere"),
                               (12.5, 64, "full")):
         with pytest.raises(MeshError, match="impostor"):
             check_layout(grid, frame, kind)
