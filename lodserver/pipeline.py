@@ -283,6 +283,8 @@ def export_folder(source, output, chain: ChainOptions | None = None, *, jobs: in
         recorded["atlas"] = chain.atlas
     if chain.naming != "msft":
         recorded["naming"] = chain.naming
+    if chain.impostor:
+        recorded["impostor"] = True
     if chain.texture_scale is not None:
         recorded["texture_scale"] = (chain.texture_scale if chain.texture_scale == "auto"
                                      else list(chain.texture_scale))

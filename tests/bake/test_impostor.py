@@ -192,3 +192,22 @@ def test_bad_impostor_options_are_refused_with_a_sentence(tmp_path):
     assert result.returncode == 2
     assert "--separate" in result.stderr and "Traceback" not in result.stderr
     assert not list(tmp_path.iterdir())
+
+
+def test_a_folder_export_records_the_impostor_and_redoes_an_asset_for_it(tmp_path):
+    from lodserver.pipeline import export_folder
+
+    source = tmp_path / "assets"
+    source.mkdir()
+    (source / "spot.obj").write_bytes(SPOT.read_bytes())
+    for name in ("spot.mtl", "spot_texture.png"):
+        if (SPOT.parent / name).is_file():
+            (source / name).write_bytes((SPOT.parent / name).read_bytes())
+    plain = export_folder(source, tmp_path / "out", lods=(1.0, 0.1), separate=True)
+    assert len(plain.written) == 1 and plain.written[0].faces[-1] > 2
+    again = export_folder(source, tmp_path / "out", lods=(1.0, 0.1), separate=True,
+                          impostor=True)
+    assert len(again.written) == 1 and not again.up_to_date
+    assert again.written[0].faces[-1] == 2
+    level = tmp_path / "out" / "spot_lod1.glb"
+    assert "impostor" in _document(level.read_bytes())["meshes"][0]["extras"]
