@@ -5,8 +5,10 @@ farthest level as an impostor; a page of its own (three.js, GLTFLoader, the
 module) draws the full-detail Duck and then the impostor from 8 directions
 (the cube's corners, none of them a baked view) and compares where each
 covers the screen: the intersection over union of the two alpha masks is at
-least :data:`MIN_IOU` from every direction. The page also checks that the
-module's nearest view of each direction is the bake's (``nearest_view``).
+least :data:`MIN_IOU` from every direction. A hemi impostor (the upper half
+of the directions) is held to the same from four directions above. The page
+also gives the module's nearest view of each direction, which must be the
+bake's (``nearest_view``).
 """
 
 from __future__ import annotations
@@ -16,8 +18,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from lodserver.bake.impostor import nearest_view
+from lodserver.bake.impostor import bake_impostor, impostor_glb, nearest_view
+from lodserver.io.scene import load_scene
 from lodserver.pipeline import export_lods
+from lodserver.scene.merge import world_mesh
 
 from ..meshes import SHARED
 
@@ -48,7 +52,8 @@ document.body.append(renderer.domElement);
 const target = new THREE.WebGLRenderTarget(SIZE, SIZE);
 const loader = new GLTFLoader();
 const mesh = (await loader.loadAsync('/files/Duck.glb')).scene;
-const impostor = await Impostor.fromGLTF(await loader.loadAsync('/files/duck_lod1.glb'));
+const file = new URLSearchParams(location.search).get('impostor');
+const impostor = await Impostor.fromGLTF(await loader.loadAsync(`/files/${file}`));
 const scene = new THREE.Scene();
 scene.add(new THREE.HemisphereLight(0xffffff, 0x444444, 3), mesh, impostor);
 const camera = new THREE.PerspectiveCamera(40, 1, 0.01, 1000);
@@ -110,6 +115,9 @@ def folder(tmp_path_factory):
     files.mkdir()
     (files / "Duck.glb").write_bytes(DUCK.read_bytes())
     export_lods(DUCK, files / "duck.glb", lods=(1.0, 0.01), separate=True, impostor=True)
+    # the upper half only, baked by the library (the export's kind is full)
+    full = world_mesh(load_scene(DUCK))
+    (files / "duck_hemi.glb").write_bytes(impostor_glb(bake_impostor(full, kind="hemi")))
     (folder / "index.html").write_text(PAGE)
     return folder
 
@@ -124,22 +132,38 @@ def _answer(folder: Path):
     return answer
 
 
-def test_the_impostor_matches_the_mesh_silhouette_from_8_directions(chromium, folder):
+def _silhouettes(chromium, folder: Path, impostor: str, directions) -> list:
+    """What the page measures from each direction, drawing ``files/<impostor>``."""
     page = chromium.new_page(viewport={"width": 256, "height": 256})
     page.route(f"{ORIGIN}/**", _answer(folder))
     failures = []
     page.on("pageerror", lambda error: failures.append(error))
     page.on("console", lambda message: message.type == "error" and failures.append(message.text))
     try:
-        page.goto(f"{ORIGIN}/index.html")
+        page.goto(f"{ORIGIN}/index.html?impostor={impostor}")
         page.wait_for_function("() => window.ready === true", timeout=120_000)
-        results = page.evaluate("(directions) => window.silhouettes(directions)", DIRECTIONS)
+        results = page.evaluate("(directions) => window.silhouettes(directions)", directions)
     finally:
         page.close()
     assert not failures, failures
+    return results
+
+
+def test_the_impostor_matches_the_mesh_silhouette_from_8_directions(chromium, folder):
+    results = _silhouettes(chromium, folder, "duck_lod1.glb", DIRECTIONS)
     for direction, result in zip(DIRECTIONS, results):
         # the Duck fills a good part of the view: a blank render cannot pass
         assert result["covered"] > 0.1, (direction, result)
         assert result["iou"] >= MIN_IOU, (direction, result)
     unit = np.array(DIRECTIONS, dtype=np.float64) / np.sqrt(3.0)
     assert [result["view"] for result in results] == nearest_view(unit, 12).tolist()
+
+
+def test_a_hemi_impostor_matches_the_mesh_silhouette_from_above(chromium, folder):
+    above = [[x, 1, z] for x in (-1, 1) for z in (-1, 1)]
+    results = _silhouettes(chromium, folder, "duck_hemi.glb", above)
+    for direction, result in zip(above, results):
+        assert result["covered"] > 0.1, (direction, result)
+        assert result["iou"] >= MIN_IOU, (direction, result)
+    unit = np.array(above, dtype=np.float64) / np.sqrt(3.0)
+    assert [result["view"] for result in results] == nearest_view(unit, 12, "hemi").tolist()
