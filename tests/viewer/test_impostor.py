@@ -6,7 +6,8 @@ module) draws the full-detail Duck and then the impostor from 8 directions
 (the cube's corners, none of them a baked view) and compares where each
 covers the screen: the intersection over union of the two alpha masks is at
 least :data:`MIN_IOU` from every direction. A hemi impostor (the upper half
-of the directions) is held to the same from four directions above. The page
+of the directions) is held to the same from four directions above, and the
+full one through an orthographic camera (parallel rays) from four. The page
 also gives the module's nearest view of each direction, which must be the
 bake's (``nearest_view``).
 """
@@ -56,9 +57,12 @@ const file = new URLSearchParams(location.search).get('impostor');
 const impostor = await Impostor.fromGLTF(await loader.loadAsync(`/files/${file}`));
 const scene = new THREE.Scene();
 scene.add(new THREE.HemisphereLight(0xffffff, 0x444444, 3), mesh, impostor);
-const camera = new THREE.PerspectiveCamera(40, 1, 0.01, 1000);
 const center = new THREE.Vector3().fromArray(impostor.layout.center);
 const radius = impostor.layout.radius;
+const perspective = new THREE.PerspectiveCamera(40, 1, 0.01 * radius, 100 * radius);
+const orthographic = new THREE.OrthographicCamera(-1.1 * radius, 1.1 * radius, 1.1 * radius,
+                                                  -1.1 * radius, 0.01 * radius, 100 * radius);
+let camera = perspective;
 
 function mask() {
   renderer.setRenderTarget(target);
@@ -72,7 +76,8 @@ function mask() {
   return covered;
 }
 
-window.silhouettes = (directions) => directions.map((d) => {
+window.silhouettes = (directions, ortho) => directions.map((d) => {
+  camera = ortho ? orthographic : perspective;
   const direction = new THREE.Vector3(...d).normalize();
   camera.position.copy(center).addScaledVector(direction, 3 * radius);
   camera.lookAt(center);
@@ -132,7 +137,7 @@ def _answer(folder: Path):
     return answer
 
 
-def _silhouettes(chromium, folder: Path, impostor: str, directions) -> list:
+def _silhouettes(chromium, folder: Path, impostor: str, directions, ortho=False) -> list:
     """What the page measures from each direction, drawing ``files/<impostor>``."""
     page = chromium.new_page(viewport={"width": 256, "height": 256})
     page.route(f"{ORIGIN}/**", _answer(folder))
@@ -142,7 +147,8 @@ def _silhouettes(chromium, folder: Path, impostor: str, directions) -> list:
     try:
         page.goto(f"{ORIGIN}/index.html?impostor={impostor}")
         page.wait_for_function("() => window.ready === true", timeout=120_000)
-        results = page.evaluate("(directions) => window.silhouettes(directions)", directions)
+        results = page.evaluate("([directions, ortho]) => window.silhouettes(directions, ortho)",
+                                [directions, ortho])
     finally:
         page.close()
     assert not failures, failures
@@ -167,3 +173,11 @@ def test_a_hemi_impostor_matches_the_mesh_silhouette_from_above(chromium, folder
         assert result["iou"] >= MIN_IOU, (direction, result)
     unit = np.array(above, dtype=np.float64) / np.sqrt(3.0)
     assert [result["view"] for result in results] == nearest_view(unit, 12, "hemi").tolist()
+
+
+def test_the_impostor_matches_the_mesh_silhouette_through_an_orthographic_camera(chromium,
+                                                                                folder):
+    results = _silhouettes(chromium, folder, "duck_lod1.glb", DIRECTIONS[:4], ortho=True)
+    for direction, result in zip(DIRECTIONS, results):
+        assert result["covered"] > 0.1, (direction, result)
+        assert result["iou"] >= MIN_IOU, (direction, result)
