@@ -21,6 +21,11 @@ Fox, and the textured bunny10k when present):
    RMS colour difference over the pixels both cover (0..1 units; x255 for
    8-bit levels) and the silhouette mismatch.
 
+With ``--impostor``, the farthest ratio also gets an impostor row: that level
+written by ``export --impostor`` (two triangles, one draw call), drawn by
+static/impostor.js, its bake timed in-process (``scene.impostor_level``), its
+colour ratio against gltfpack at the farthest ratio's count.
+
 Per candidate: triangles and draw calls drawn (each mesh's triangles and
 primitives once per node that places it; budgets are ratios of the input's), file bytes, colour error, silhouette mismatch; for lodserver
 also the time one merge-and-bake of each merged level takes in-process
@@ -133,6 +138,33 @@ def bake_seconds(source: Path, ratios, merged: set[int]) -> dict:
     return times
 
 
+def impostor_candidate(source: Path, folder: Path, ratios, record: dict,
+                       timeout: float) -> list:
+    """The farthest ratio's level as an impostor (``export --impostor``), as a judge
+    candidate: [(name, path)], or [] when the asset keeps its level (it moves).
+    Fills ``record["levels"][ratio]["impostor"]`` and the bake's in-process seconds."""
+    from lodserver.io import load_mesh
+    from lodserver.io.scene import load_scene
+    from lodserver.scene.impostor_level import baked_impostor, scene_full_mesh
+
+    ratio = ratios[-1]
+    _, message = run([sys.executable, "-m", "lodserver.cli", "export", str(source), "-o",
+                      str(folder / "impostor.glb"), "--separate", "--lods", f"1,{ratio:g}",
+                      "--impostor"], timeout)
+    if "no impostor" in message:
+        return []
+    if source.suffix.lower() in (".glb", ".gltf"):
+        full, _ = scene_full_mesh(load_scene(source))
+    else:
+        full, _ = load_mesh(source)
+    _, seconds = baked_impostor(full, folder / "impostor.glb", 1)
+    path = folder / "impostor_lod1.glb"
+    count, calls = drawn(path)
+    record["levels"][ratio]["impostor"] = {"triangles": count, "draw_calls": calls,
+                                           "bytes": path.stat().st_size, "bake_seconds": seconds}
+    return [(f"impostor {ratio:g}", path)]
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--assets", default=",".join(ASSETS))
@@ -141,6 +173,8 @@ def main(argv=None) -> int:
     parser.add_argument("--out", type=Path, default=ROOT / "bench" / "out" / "hlod")
     parser.add_argument("--gltfpack", type=Path, default=GLTFPACK)
     parser.add_argument("--timeout", type=float, default=1800)
+    parser.add_argument("--impostor", action="store_true",
+                        help="also an impostor of the farthest level (static assets)")
     args = parser.parse_args(argv)
     if not args.gltfpack.exists():
         print(f"gltfpack not found at {args.gltfpack}: `npm i` in tests/tools", file=sys.stderr)
@@ -179,6 +213,8 @@ def main(argv=None) -> int:
                              "bytes": theirs["path"].stat().st_size, "ratio": theirs["ratio"]}}
             candidates += [(f"lodserver {ratio:g}", ours), (f"gltfpack {ratio:g}", theirs["path"])]
         record["bake_seconds"] = bake_seconds(source, ratios, merged_levels(record["message"]))
+        if args.impostor:
+            candidates += impostor_candidate(source, folder, ratios, record, args.timeout)
         with serve(ROOT) as served, sync_playwright() as playwright:
             browser = playwright.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS)
             try:
@@ -231,6 +267,16 @@ def table(records) -> str:
                 f"{theirs['draw_calls']} | {theirs['bytes']} | {colour(theirs)} | "
                 f"{theirs.get('silhouette', 0):.3f} | {share} | "
                 f"{'-' if bake is None else f'{bake:.1f}'} |")
+            if "impostor" in level:
+                ours = level["impostor"]
+                share = (f"{ours['colour_rms'] / theirs['colour_rms']:.2f}x"
+                         if ours.get("colour_rms") and theirs.get("colour_rms") else "-")
+                lines.append(
+                    f"| {record['asset']} | {float(ratio):g} impostor | {level['budget']} | "
+                    f"{ours['triangles']} | {ours['draw_calls']} | {ours['bytes']} | "
+                    f"{colour(ours)} | {ours.get('silhouette', 0):.3f} | {theirs['triangles']} | "
+                    f"{theirs['draw_calls']} | {theirs['bytes']} | {colour(theirs)} | "
+                    f"{theirs.get('silhouette', 0):.3f} | {share} | {ours['bake_seconds']:.1f} |")
     return "\n".join(lines)
 
 

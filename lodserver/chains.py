@@ -275,6 +275,10 @@ class ChainOptions:
         parts and meets the budget but keeps positions only (no UVs, normals or
         materials: a textured asset's far level is drawn untextured). Not with
         ``errors``.
+    impostor : bool
+        The farthest level of a static asset is an octahedral impostor instead
+        (``bake.impostor``; written by ``scene.impostor_level``): its own file,
+        so only with ``separate``, of two levels or more by ``lods``.
     """
 
     lods: tuple[float, ...] | None = None
@@ -286,6 +290,7 @@ class ChainOptions:
     compress: str = "none"
     naming: str = "msft"
     texture_scale: str | tuple[float, ...] | None = None
+    impostor: bool = False
 
     def __post_init__(self):
         if self.reach is None:
@@ -309,6 +314,10 @@ class ChainOptions:
         else:
             lods = DEFAULT_LODS if self.lods is None else self.lods
             object.__setattr__(self, "lods", check_lods(lods))
+        if self.impostor and (self.errors is not None or len(self.lods) < 2
+                              or not self.separate):
+            raise MeshError("an impostor is the farthest of two or more levels by ratio, "
+                            "written as a file of its own (separate)")
         from .scene.textures import check_texture_scale
         levels = len(self.errors if self.errors is not None else self.lods)
         object.__setattr__(self, "texture_scale",

@@ -243,6 +243,9 @@ def _export_usage(args) -> str | None:
         return "--per-mesh applies to --lods; levels by --error are per mesh already"
     if args.errors is not None and args.reach not in (None, "none"):
         return "--reach meets face budgets, and levels by --error have none"
+    if args.impostor and (args.errors is not None or not args.separate):
+        return ("--impostor writes the farthest of the --lods levels as a file of its own: "
+                "give it with --lods and --separate")
     if args.errors is not None:
         try:
             values = [float(part) for part in args.errors.split(",")]
@@ -270,7 +273,7 @@ def _cmd_export(args) -> int:
     chain = ChainOptions(lods=ratios, errors=errors, per_mesh=args.per_mesh,
                          separate=args.separate, reach=args.reach, atlas=args.atlas_size,
                          compress=args.compress, naming=args.lod_naming,
-                         texture_scale=args.texture_scale)
+                         texture_scale=args.texture_scale, impostor=args.impostor)
     options = options_from(args)
     if args.progressive:
         return _export_progressive(args, options)
@@ -319,7 +322,7 @@ def _export_progressive(args, options) -> int:
         ("--reach", args.reach not in (None, "none")), ("--atlas-size", args.atlas_size),
         ("--texture-scale", args.texture_scale), ("--report", args.report),
         ("--jobs", args.jobs != 1), ("--scheduler", args.scheduler is not None),
-        ("--force", args.force)) if given]
+        ("--force", args.force), ("--impostor", args.impostor)) if given]
     if chain_flags:
         print(f"lodserver export: --progressive writes every level in one file; "
               f"{', '.join(chain_flags)} apply to LOD chains", file=sys.stderr)
@@ -361,7 +364,7 @@ def _levels(done) -> str:
             f"in {done.seconds:.2f} s")
     if done.drawn:      # a scene: what is drawn, each mesh once per instance
         drawn = ", ".join(str(count) for count in done.drawn)
-        errors = ", ".join(f"{e:.3g}" for e in done.errors)
+        errors = ", ".join("-" if e is None else f"{e:.3g}" for e in done.errors)
         text += f"; {drawn} triangles drawn, worst world error {errors}"
     if done.clustered:
         levels = ", ".join(str(i) for i in done.clustered)
@@ -578,6 +581,11 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--atlas-size", type=int, default=None, metavar="TEXELS",
                    help="the side of a merged level's baked atlas (--reach merge; default: "
                         "from the level's screen coverage, 64 to 2048)")
+    p.add_argument("--impostor", action="store_true",
+                   help="the farthest level of a static asset as an octahedral impostor: "
+                        "views of the full-detail asset baked to one colour and one normal "
+                        "atlas on a quad, drawn by static/impostor.js (with --separate and two "
+                        "or more --lods; an animated or skinned scene keeps its level)")
     p.add_argument("--jobs", type=int, default=1,
                    help="folder source: meshes built at once (default 1; each holds its mesh "
                         "in memory); with --scheduler local, the worker processes")

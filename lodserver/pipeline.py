@@ -99,6 +99,8 @@ def export_lods(source, output, chain: ChainOptions | None = None, *,
     if source.suffix.lower() in (".gltf", ".glb"):
         from .io.scene import load_scene
         scene = load_scene(source, root=source.parent if untrusted else None)
+        if chain.impostor:
+            return _scene_with_impostor(scene, source, output, chain, options, progress, start)
         return export_scene(scene, source, output, chain, options, progress, start)
     if source.suffix.lower() == ".pm":
         pm = ProgressiveMesh.load(source)
@@ -108,16 +110,42 @@ def export_lods(source, output, chain: ChainOptions | None = None, *,
             pm = build(source, options, progress=progress, untrusted=untrusted)
         except ValueError as exc:       # argument checks deep in the build
             raise MeshError(str(exc)) from exc
+    full_chain, impostor = chain, None
+    if chain.impostor:     # baked before any level is written (scene.impostor_level)
+        from .scene.impostor_level import baked_impostor, without_farthest
+        impostor = baked_impostor(pm.at(pm.vertex_count), output, len(chain.lods) - 1)
+        chain = without_farthest(chain)
     if chain.errors is not None:
         (meshes, coverage), clustered = error_chain(pm, chain.errors), []
     else:
         meshes, coverage, clustered = lod_chain(pm, chain.lods, reach=chain.reach,
                                                 atlas=chain.atlas)
     outputs, notes, seconds = _write_chain(output, chain, meshes, coverage)
-    return Exported(source, outputs, [mesh.face_count for mesh in meshes], coverage,
+    done = Exported(source, outputs, [mesh.face_count for mesh in meshes], coverage,
                     time.perf_counter() - start, pm.faces_at_level(pm.base_vertices),
                     clustered, notes, errors=level_errors(pm, chain, clustered),
                     diagonal=part_diagonal(pm), level_seconds=seconds)
+    if impostor is None:
+        return done
+    from .scene.impostor_level import with_impostor
+    blob, seconds = impostor
+    return with_impostor(done, output, blob, full_chain.lods, seconds, start)
+
+
+def _scene_with_impostor(scene, source, output, chain, options, progress, start) -> Exported:
+    """``export_scene`` with the farthest level an impostor (``scene.impostor_level``),
+    or, for a scene that is not static, without one and a note saying why."""
+    from .scene.impostor_level import (baked_impostor, scene_full_mesh, with_impostor,
+                                       without_farthest)
+
+    full, reason = scene_full_mesh(scene)
+    if full is None:
+        done = export_scene(scene, source, output, replace(chain, impostor=False), options,
+                            progress, start)
+        return replace(done, notes=[*done.notes, reason])
+    blob, seconds = baked_impostor(full, output, len(chain.lods) - 1)
+    done = export_scene(scene, source, output, without_farthest(chain), options, progress, start)
+    return with_impostor(done, output, blob, chain.lods, seconds, start)
 
 
 def _write_chain(output: Path, chain: ChainOptions, meshes, coverage):
@@ -255,6 +283,8 @@ def export_folder(source, output, chain: ChainOptions | None = None, *, jobs: in
         recorded["atlas"] = chain.atlas
     if chain.naming != "msft":
         recorded["naming"] = chain.naming
+    if chain.impostor:
+        recorded["impostor"] = True
     if chain.texture_scale is not None:
         recorded["texture_scale"] = (chain.texture_scale if chain.texture_scale == "auto"
                                      else list(chain.texture_scale))

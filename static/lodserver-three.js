@@ -20,6 +20,7 @@ import { NOT_A_SOURCE, StaticSource } from './staticsource.js';
 import { DEFAULTS } from './streamedlevel.js';
 
 export { DEFAULTS, ProgressiveMesh, ProgressiveScene, ServerSource, StaticSource };
+export { Impostor, ImpostorMaterial } from './impostor.js';
 
 // The StaticSource of a progressive file's URL; an error naming both kinds of
 // URL when it is neither.

@@ -14,6 +14,7 @@ import numpy as np
 from numba import njit
 
 from ..mesh import MeshError
+from .raster import barycentric, pixel_box
 
 # Texels left empty between charts (and grown into by dilate), at most; a
 # small atlas has less room to spare.
@@ -125,17 +126,10 @@ def _rasterize(pixel, corners, face, bary):
         area = (bx - ax) * (cy - ay) - (by - ay) * (cx - ax)
         if area == 0.0:
             continue
-        x0 = max(0, int(np.floor(min(ax, bx, cx))))
-        x1 = min(size - 1, int(np.ceil(max(ax, bx, cx))))
-        y0 = max(0, int(np.floor(min(ay, by, cy))))
-        y1 = min(size - 1, int(np.ceil(max(ay, by, cy))))
+        x0, x1, y0, y1 = pixel_box(ax, ay, bx, by, cx, cy, size)
         for y in range(y0, y1 + 1):
-            py = y + 0.5
             for x in range(x0, x1 + 1):
-                px = x + 0.5
-                w0 = ((bx - px) * (cy - py) - (by - py) * (cx - px)) / area
-                w1 = ((cx - px) * (ay - py) - (cy - py) * (ax - px)) / area
-                w2 = 1.0 - w0 - w1
+                w0, w1, w2 = barycentric(ax, ay, bx, by, cx, cy, area, x + 0.5, y + 0.5)
                 # a small tolerance closes the cracks between a chart's faces
                 if w0 >= -1e-6 and w1 >= -1e-6 and w2 >= -1e-6:
                     face[y, x] = f
@@ -171,10 +165,7 @@ def _conservative(face, bary, pixel, corners):
                     bx, by = pixel[corners[f, 1], 0], pixel[corners[f, 1], 1]
                     cx, cy = pixel[corners[f, 2], 0], pixel[corners[f, 2], 1]
                     area = (bx - ax) * (cy - ay) - (by - ay) * (cx - ax)
-                    px, py = x + 0.5, y + 0.5
-                    w0 = ((bx - px) * (cy - py) - (by - py) * (cx - px)) / area
-                    w1 = ((cx - px) * (ay - py) - (cy - py) * (ax - px)) / area
-                    w2 = 1.0 - w0 - w1
+                    w0, w1, w2 = barycentric(ax, ay, bx, by, cx, cy, area, x + 0.5, y + 0.5)
                     w0, w1, w2 = max(w0, 0.0), max(w1, 0.0), max(w2, 0.0)
                     total = w0 + w1 + w2
                     if total > 0.0 and face[y, x] < 0:
@@ -199,6 +190,8 @@ def dilate(image: np.ndarray, filled: np.ndarray, steps: int = 2 * PADDING) -> n
 @njit(cache=True, nogil=True)
 def _dilate(image, filled, steps):
     h, w, c = image.shape
+    # one sum for every texel, element by element: no array made per texel
+    total = np.zeros(c)
     for _ in range(steps):
         grown = filled.copy()
         out = image.copy()
@@ -207,15 +200,18 @@ def _dilate(image, filled, steps):
                 if filled[y, x]:
                     continue
                 count = 0
-                total = np.zeros(c)
+                for k in range(c):
+                    total[k] = 0.0
                 for dy in range(-1, 2):
                     for dx in range(-1, 2):
                         yy, xx = y + dy, x + dx
                         if 0 <= yy < h and 0 <= xx < w and filled[yy, xx]:
-                            total += image[yy, xx]
+                            for k in range(c):
+                                total[k] += image[yy, xx, k]
                             count += 1
                 if count:
-                    out[y, x] = total / count
+                    for k in range(c):
+                        out[y, x, k] = total[k] / count
                     grown[y, x] = True
         image[:] = out
         filled[:] = grown
