@@ -175,7 +175,7 @@ def _open(chromium, app_origin, server, mesh):
     page.on("request", lambda request: page.requests.append(request.url))
     page.goto(f"{origin}/index.html?mesh={server.base_url}/meshes/{mesh['id']}")
     page.wait_for_function("() => window.object?.target != null || window.object?.error",
-                           timeout=60_000)
+                           timeout=120_000)
     return page
 
 
