@@ -45,7 +45,7 @@ import { LodState, PacketError } from './vsplit.js';
 
 const MAX_AHEAD = 32;              // the most packets requested ahead (see packetsAhead)
 // Defaults of the settings this module reads (main.js may set them).
-const DEFAULTS = { chunkSplits: 4096, packetsAhead: 2, frameBudgetMs: 12, packetPaceMs: 250,
+export const DEFAULTS = { chunkSplits: 4096, packetsAhead: 2, frameBudgetMs: 12, packetPaceMs: 250,
                    retries: 6, reportGap: 3, initialRatio: 1 };
 
 // Yields to the event loop (so a due frame is drawn), without the >= 4 ms
@@ -248,8 +248,10 @@ export class PacketStream {
 
   refill() {
     if (!this.state || this.failed || this.stalled) return;
-    const cut = (from, to) => snapLevel(this.source, this.sizer.nextStop(from, to),
-                                      to > from ? 'up' : 'down');
+    const { source, sizer } = this;
+    // a progressive file cuts its own runs of chunks (staticsource.js)
+    const cut = source.nextStop ? (from, to) => source.nextStop(from, to, sizer.size)
+      : (from, to) => sizer.nextStop(from, to);
     this.queue.refill(this.target, this.packetsAhead(), cut);
   }
 

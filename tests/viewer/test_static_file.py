@@ -343,3 +343,66 @@ def test_a_textured_files_images_are_let_go_on_dispose(chromium, app, host, tmp_
         assert all("ERR_FILE_NOT_FOUND" in str(error) for error in page.errors), page.errors
     finally:
         page.close()
+
+
+# The request plan of a file session on a simulated link: the stream's packet
+# sizer (packetsizer.js, the stream's default settings but for its first size,
+# the file's chunk) and the file's cut of runs of chunks (staticsource.js), fed
+# one run after another with what the link and the page would have measured:
+# each chunk's bytes from the file's index, the link's round trip and rate, a
+# drawn frame's cost, records applied at a fixed rate.
+PLAN_JS = """async ({ record, link, frameCostMs, recordsPerMs }) => {
+  const { PacketSizer } = await import('/lodserver/packetsizer.js');
+  const { StaticSource } = await import('/lodserver/staticsource.js');
+  const { DEFAULTS } = await import('/lodserver/stream.js');
+  const part = record.parts[0];
+  const source = new StaticSource(null, record.summary, part);
+  const settings = { ...DEFAULTS, chunkSplits: part.chunkSplits };
+  const sizer = new PacketSizer((key) => settings[key]);
+  sizer.linkOf = () => link;
+  const full = source.levels[source.levels.length - 1];
+  const runs = [];
+  for (let level = source.levels[0]; level < full;) {
+    const to = source.nextStop(level, full, sizer.size);
+    const chunks = part.splits.filter(([from, end]) => from >= level && end <= to);
+    runs.push(chunks.length);
+    const bytes = chunks.reduce((sum, chunk) => sum + chunk[3], 0);
+    sizer.measure('', bytes, to - level, (to - level) / recordsPerMs, frameCostMs);
+    level = to;
+  }
+  return runs;
+}"""
+
+
+@pytest.mark.parametrize("frame_ms, latency_ms", [(1000, 150), (16, 400)])
+def test_a_file_session_asks_for_growing_runs_of_chunks(chromium, app, host, sphere, frame_ms,
+                                                        latency_ms):
+    """Over a link that carries one chunk in 200 ms (bunny_loop2's chunks of 70 KB
+    on 5 Mbit/s), with frames as slow as software GL draws a million triangles
+    (a level shows only at a report, so a packet sooner than the reports shows
+    nothing sooner) or a round trip longer than the stream's packet pace (the
+    bodies in flight must cover it), the runs grow past one chunk and full
+    detail takes a few requests, not one per chunk; with fast frames and a
+    short round trip a request still holds the link for about its pace."""
+    pm, name = sphere
+    record, _ = read_index((host[0] / name).read_bytes())
+    chunks = record["parts"][0]["splits"]
+    per_chunk = sum(chunk[3] for chunk in chunks) / len(chunks)
+    page = chromium.new_page()
+    try:
+        page.goto(f"{app}/index.html")
+        plan = page.evaluate(PLAN_JS, {"record": record, "frameCostMs": frame_ms,
+                                       "recordsPerMs": 500,
+                                       "link": {"latencyMs": latency_ms,
+                                                "bytesPerMs": per_chunk / 200}})
+        fast = page.evaluate(PLAN_JS, {"record": record, "frameCostMs": 16, "recordsPerMs": 500,
+                                       "link": {"latencyMs": 50, "bytesPerMs": per_chunk / 200}})
+    finally:
+        page.close()
+    print("runs of chunks:", plan, "with fast frames and a short round trip:", fast)
+    assert sum(plan) == len(chunks), plan
+    assert max(plan[1:]) >= 2 and len(plan) < len(chunks) / 1.5, plan
+    if frame_ms >= 1000:
+        # the runs grow as the sizer does (at most 4x a packet) up to the file's end
+        assert max(plan) >= 8 and len(plan) <= 6, plan
+    assert sum(fast) == len(chunks) and max(fast) <= 2, fast
