@@ -24,6 +24,7 @@ import pytest
 import trimesh
 
 from lodserver.packets import apply_packet, decode_any, state_from_json
+from lodserver.packets.grids import default_bits
 from lodserver.progressive.mesh import ProgressiveMesh
 from lodserver.service.progressive_file import read_index
 from lodserver.service.levels import encode_level
@@ -142,13 +143,15 @@ def sphere(host, tmp_path_factory):
 
 
 class _Levels:
-    """The json level of a progressive mesh as a client fetches it (for _expected)."""
+    """The json level of a progressive mesh as a client fetches it (for _expected),
+    at the grid of ``bits`` (the default's when None)."""
 
-    def __init__(self, pm):
-        self.pm = pm
+    def __init__(self, pm, bits=None):
+        self.pm, self.bits = pm, bits
 
     def get(self, route, params):
-        data = bytes(encode_level(self.pm, params["vertices"], file_type="json"))
+        data = bytes(encode_level(self.pm, params["vertices"], file_type="json",
+                                  bits=self.bits))
         return type("Reply", (), {"json": lambda _: json.loads(data)})()
 
 
@@ -250,6 +253,36 @@ def test_a_host_that_ignores_range_is_read_with_one_get(chromium, app, host, sph
         page.close()
     finally:
         handler.ranges = True
+
+
+def test_a_file_on_another_grid_reaches_the_json_levels_at_its_bits(chromium, app, host,
+                                                                     sphere, tmp_path):
+    """``export --progressive --bits K``: the page reaches the 1 px level and full
+    detail with the state of ``/lod?format=json&bits=K`` there."""
+    folder, origin, _ = host
+    pm, _ = sphere
+    bits = default_bits(pm) - 3
+    pm.save(tmp_path / "sphere.pm")
+    _cli("export", tmp_path / "sphere.pm", "--progressive", "--bits", bits,
+         "-o", folder / "sphere-bits.glb")
+    assert read_index((folder / "sphere-bits.glb").read_bytes())[0]["parts"][0]["bits"] == bits
+    page = _open(chromium, app, f"{origin}/sphere-bits.glb")
+    try:
+        status = page.evaluate(SETTLED_JS)
+        level = status["level"]
+        assert status["error"] is None and pm.base_vertices < level < pm.vertex_count, status
+        assert _state(page) == dict(zip(("faces", "hash"), _expected(_Levels(pm, bits), "",
+                                                                     level)))
+        # not the default grid's state: the file's grid is what the page holds
+        assert _state(page) != dict(zip(("faces", "hash"), _expected(_Levels(pm), "", level)))
+        page.evaluate(f"window.object.setLevel({pm.vertex_count})")
+        full = page.evaluate(SETTLED_JS)
+        assert full["level"] == pm.vertex_count and full["error"] is None, full
+        assert _state(page) == dict(zip(("faces", "hash"), _expected(_Levels(pm, bits), "",
+                                                                     pm.vertex_count)))
+        assert not page.errors, page.errors
+    finally:
+        page.close()
 
 
 @pytest.fixture(scope="module")
