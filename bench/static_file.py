@@ -84,46 +84,35 @@ EXAMPLE_URLS = {"https://cdn.jsdelivr.net/npm/three@0.187.0/": "/three/",
                 "renderer.render(scene, camera);": "renderer.render(scene, camera);\n"
                                                    "  window.drawn ||= object.level > 0;"}
 
-# The -cc GLB as a three.js app draws one (GLTFLoader with meshoptimizer's
-# decoder), lit and framed as docs/three.md's example frames its object;
-# window.drawn set once a frame has drawn it.
-GLB_PAGE = """<!doctype html><html><body style="margin: 0">
-<script type="importmap">
-  { "imports": { "three": "/three/build/three.module.js",
-                 "three/addons/": "/three/examples/jsm/" } }
-</script>
-<script type="module">
-import * as THREE from 'three';
-import { GLTFLoader } from 'three/addons/loaders/GLTFLoader.js';
-import { MeshoptDecoder } from '/meshopt/meshopt_decoder.module.js';
-
-const renderer = new THREE.WebGLRenderer();
-renderer.setSize(innerWidth, innerHeight);
-document.body.append(renderer.domElement);
-const scene = new THREE.Scene();
-scene.add(new THREE.HemisphereLight(0xffffff, 0x444444, 3));
-const camera = new THREE.PerspectiveCamera(40, innerWidth / innerHeight, 0.01, 1000);
-const gltf = await new GLTFLoader().setMeshoptDecoder(MeshoptDecoder).loadAsync('GLB_URL');
-const { center, radius } = new THREE.Box3().setFromObject(gltf.scene)
-  .getBoundingSphere(new THREE.Sphere());
-camera.position.set(center.x, center.y, center.z + 3 * radius);
-scene.add(gltf.scene);
-renderer.setAnimationLoop(() => {
-  renderer.render(scene, camera);
-  window.drawn = true;
-});
-</script></body></html>"""
+# The -cc GLB as a three.js app draws one: docs/three.md's example (so lit and
+# framed as it frames its object) with GLTFLoader and meshoptimizer's decoder
+# in place of the module; window.drawn set once a frame has drawn it.
+GLB_CHANGES = {
+    "import { ProgressiveMeshLoader } from 'lodserver-three';":
+        "import { GLTFLoader } from 'three/addons/loaders/GLTFLoader.js';\n"
+        "import { MeshoptDecoder } from '/meshopt/meshopt_decoder.module.js';",
+    "const object = await new ProgressiveMeshLoader().load(":
+        "const gltf = await new GLTFLoader().setMeshoptDecoder(MeshoptDecoder).loadAsync(",
+    "const { center, radius } = object.boundingSphere;":
+        "const object = gltf.scene;\nconst { center, radius } = new THREE.Box3()"
+        ".setFromObject(object).getBoundingSphere(new THREE.Sphere());",
+    "  object.update(camera, renderer);\n": "",
+    "renderer.render(scene, camera);": "renderer.render(scene, camera);\n  window.drawn = true;"}
 # meshoptimizer's decoder for three.js: three's own (examples/jsm/libs), which the
 # vendored copy in static/ leaves out; ``npm i --no-save three@0.187.0`` here.
 NPM = REPO / "bench" / "out" / "static_file" / "npm"
 MESHOPT = NPM / "node_modules" / "three" / "examples" / "jsm" / "libs"
 
 
-def example_page(file_url: str) -> str:
-    """docs/three.md's example page, opening ``file_url``."""
+def example_page(file_url: str, glb: bool = False) -> str:
+    """docs/three.md's example page, opening ``file_url`` (with ``glb``, a GLB
+    drawn by GLTFLoader instead: GLB_CHANGES)."""
     text = (REPO / "docs" / "three.md").read_text()
     page = text.split("```html\n", 1)[1].split("```", 1)[0]
-    for old, new in {**EXAMPLE_URLS, "http://127.0.0.1:8000/meshes/ID": file_url}.items():
+    changes = {**EXAMPLE_URLS, "http://127.0.0.1:8000/meshes/ID": file_url}
+    if glb:
+        changes.update(GLB_CHANGES)
+    for old, new in changes.items():
         assert old in page, f"docs/three.md's example no longer has {old}"
         page = page.replace(old, new)
     return f"<!doctype html><html><body style=\"margin: 0\">{page}</body></html>"
@@ -281,8 +270,7 @@ def sessions(name: str, links: list, repeats: int, timeout_s: float = 1800) -> l
                      "server": (mesh_url, "server.html"),
                      "glb": (f"{url}/{name}-cc.glb", "glb.html")}
             for source, (target, html) in pages.items():
-                (folder / html).write_text(GLB_PAGE.replace("GLB_URL", target)
-                                           if source == "glb" else example_page(target))
+                (folder / html).write_text(example_page(target, glb=source == "glb"))
             for mbit in links:
                 for repeat in range(repeats):
                     shift = repeat % len(SOURCES_OF_SESSIONS)
