@@ -60,8 +60,9 @@ def stream_bytes(pm, bits, encode) -> int:
     return total
 
 
-def gltfpack_bytes(pm, mode: str) -> int | None:
-    """gltfpack ``mode`` (-cc or -c) of the full-detail mesh without images, gzipped."""
+def gltfpack_glb(pm, mode: str) -> bytes | None:
+    """gltfpack ``mode`` (-cc or -c) of the full-detail mesh without images, 14-bit
+    positions: the GLB's bytes (None without gltfpack)."""
     if not GLTFPACK.exists():
         return None
     mesh = dataclasses.replace(pm.at(pm.vertex_count), materials=None, face_material=None)
@@ -70,7 +71,13 @@ def gltfpack_bytes(pm, mode: str) -> int | None:
         src.write_bytes(encode_glb(mesh))
         subprocess.run([str(GLTFPACK), "-i", str(src), "-o", str(dst), mode, "-vp", "14", "-kv"],
                        check=True, capture_output=True, timeout=600)
-        return gz(dst.read_bytes())
+        return dst.read_bytes()
+
+
+def gltfpack_bytes(pm, mode: str) -> int | None:
+    """gltfpack ``mode`` (-cc or -c) of the full-detail mesh without images, gzipped."""
+    glb = gltfpack_glb(pm, mode)
+    return None if glb is None else gz(glb)
 
 
 def timed(encode, pm, bits) -> float:

@@ -19,21 +19,26 @@ of chunks the stream asks for: at least one to full detail.
 ``--browser``: sessions in headless Chromium instead (software GL, viewport
 1200x800), on each link of issue 25's table (``--links 20,5``: 20 Mbit/s with
 50 ms latency, 5 Mbit/s with 150 ms; throttled through the DevTools protocol),
-docs/three.md's example page opening (a) the progressive file from a static
-host with ``Range`` (``static_server.serve``) and (b) the same mesh from a
-running ``lodserver serve`` (uploaded, built, opened as
+of (a) docs/three.md's example page opening the progressive file from a static
+host with ``Range`` (``static_server.serve``), (b) the same page opening the same
+mesh from a running ``lodserver serve`` (uploaded, built, opened as
 ``http://127.0.0.1:PORT/meshes/ID``; the page's origin allowed by
-``LODSERVER_CORS_ORIGINS``). ``--repeats`` pairs per link, each session in a
-fresh browser context, the pair's order swapped each repeat so that a drift in
-the machine's load falls on both sides: the requests, bytes (on the wire, as
-the DevTools protocol counts them) and seconds to the 1 px level of the view
-and then to full detail (``setLevel(fullLevel)``); the medians and the median
-of the paired ratios file / server per link.
+``LODSERVER_CORS_ORIGINS``) and (c) a page drawing the full-detail ``gltfpack
+-cc`` GLB (14-bit positions, no images, as ``bench/codec.py`` packs it) with
+three.js's GLTFLoader and MeshoptDecoder, served whole with ``Content-Encoding:
+gzip`` as a CDN serves it. ``--repeats`` rounds per link of one session each,
+each in a fresh browser context, the order rotated each round so that a drift
+in the machine's load falls on every side: the requests, bytes (on the wire, as
+the DevTools protocol counts them) and seconds to the first drawn frame, to the
+1 px level of the view and then to full detail (``setLevel(fullLevel)``; the
+GLB's first frame is all three); the medians and the medians of the paired
+ratios (the sessions of one round) file / server, file / GLB, server / GLB.
 
     PYTHONPATH=$PWD python bench/static_file.py --browser --links 20,5 --repeats 3 stanford-bunny
 
 gltfpack comes from bench/out/codec/npm (``npm i --no-save gltfpack`` there) or
-the tests' tools (tests/tools/node_modules).
+the tests' tools (tests/tools/node_modules); three.js's meshopt decoder from
+bench/out/static_file/npm (``npm i --no-save three@0.187.0`` there).
 """
 
 from __future__ import annotations
@@ -71,17 +76,43 @@ def throttle(mbit: float) -> dict:
             "uploadThroughput": rate}
 
 
-# docs/three.md's example, its URLs this bench's, the object left on window.
+# docs/three.md's example, its URLs this bench's, the object left on window and
+# window.drawn set once a frame has drawn a level of it.
 EXAMPLE_URLS = {"https://cdn.jsdelivr.net/npm/three@0.187.0/": "/three/",
                 "http://127.0.0.1:8000/viewer/lodserver-three.js": "/lodserver/lodserver-three.js",
-                "scene.add(object);": "scene.add(object);\nwindow.object = object;"}
+                "scene.add(object);": "scene.add(object);\nwindow.object = object;",
+                "renderer.render(scene, camera);": "renderer.render(scene, camera);\n"
+                                                   "  window.drawn ||= object.level > 0;"}
+
+# The -cc GLB as a three.js app draws one: docs/three.md's example (so lit and
+# framed as it frames its object) with GLTFLoader and meshoptimizer's decoder
+# in place of the module; window.drawn set once a frame has drawn it.
+GLB_CHANGES = {
+    "import { ProgressiveMeshLoader } from 'lodserver-three';":
+        "import { GLTFLoader } from 'three/addons/loaders/GLTFLoader.js';\n"
+        "import { MeshoptDecoder } from '/meshopt/meshopt_decoder.module.js';",
+    "const object = await new ProgressiveMeshLoader().load(":
+        "const gltf = await new GLTFLoader().setMeshoptDecoder(MeshoptDecoder).loadAsync(",
+    "const { center, radius } = object.boundingSphere;":
+        "const object = gltf.scene;\nconst { center, radius } = new THREE.Box3()"
+        ".setFromObject(object).getBoundingSphere(new THREE.Sphere());",
+    "  object.update(camera, renderer);\n": "",
+    "renderer.render(scene, camera);": "renderer.render(scene, camera);\n  window.drawn = true;"}
+# meshoptimizer's decoder for three.js: three's own (examples/jsm/libs), which the
+# vendored copy in static/ leaves out; ``npm i --no-save three@0.187.0`` here.
+NPM = REPO / "bench" / "out" / "static_file" / "npm"
+MESHOPT = NPM / "node_modules" / "three" / "examples" / "jsm" / "libs"
 
 
-def example_page(file_url: str) -> str:
-    """docs/three.md's example page, opening ``file_url``."""
+def example_page(file_url: str, glb: bool = False) -> str:
+    """docs/three.md's example page, opening ``file_url`` (with ``glb``, a GLB
+    drawn by GLTFLoader instead: GLB_CHANGES)."""
     text = (REPO / "docs" / "three.md").read_text()
     page = text.split("```html\n", 1)[1].split("```", 1)[0]
-    for old, new in {**EXAMPLE_URLS, "http://127.0.0.1:8000/meshes/ID": file_url}.items():
+    changes = {**EXAMPLE_URLS, "http://127.0.0.1:8000/meshes/ID": file_url}
+    if glb:
+        changes.update(GLB_CHANGES)
+    for old, new in changes.items():
         assert old in page, f"docs/three.md's example no longer has {old}"
         page = page.replace(old, new)
     return f"<!doctype html><html><body style=\"margin: 0\">{page}</body></html>"
@@ -147,11 +178,13 @@ def upload_built(client, name: str, folder: Path, timeout_s: float) -> str:
 
 
 def one_session(browser, page_url: str, prefix: str, mbit: float, timeout_s: float,
-                log: list | None = None, log_path: str | None = None) -> dict:
-    """The example page at ``page_url`` in a fresh context on the link of ``mbit``:
-    its level, seconds from the page's load, requests (and CORS preflights) and
-    bytes on the wire to the URLs under ``prefix``, at the 1 px level and then at
-    full detail. With ``log`` (the static host's), the file's ranges too."""
+                log: list | None = None, log_path: str | None = None,
+                progressive: bool = True) -> dict:
+    """The page at ``page_url`` in a fresh context on the link of ``mbit``: its
+    level, seconds from the page's load, requests (and CORS preflights) and bytes
+    on the wire to the URLs under ``prefix``, at its first drawn frame, then (the
+    example page, ``progressive``) at the 1 px level and at full detail. With
+    ``log`` (the static host's), the file's ranges too."""
     context = browser.new_context(viewport={"width": 1200, "height": 800})
     page = context.new_page()
     cdp = context.new_cdp_session(page)
@@ -173,13 +206,17 @@ def one_session(browser, page_url: str, prefix: str, mbit: float, timeout_s: flo
     first = len(log) if log is not None else 0
     began = time.perf_counter()
     page.goto(page_url)
-    page.wait_for_function("() => window.object?.target != null")
     stops = {}
-    for stop, script in (("1 px", None), ("full", "window.object.setLevel(window.object.fullLevel)")):
-        if script:
-            page.evaluate(script)
-        level = page.evaluate(SETTLED_JS)["level"]
-        seconds = time.perf_counter() - began
+    for stop in ("first", "1 px", "full") if progressive else ("first",):
+        if stop == "first":
+            page.wait_for_function("() => window.drawn", polling="raf")
+            seconds = time.perf_counter() - began
+            level = page.evaluate("window.object?.level ?? null")
+        else:
+            if stop == "full":
+                page.evaluate("window.object.setLevel(window.object.fullLevel)")
+            level = page.evaluate(SETTLED_JS)["level"]
+            seconds = time.perf_counter() - began
         mine = [f for f in list(fetched.values()) if f[0].startswith(prefix)]
         gets = [f for f in mine if f[1] != "OPTIONS"]
         stops[stop] = {"level": level, "seconds": seconds, "requests": len(gets),
@@ -187,45 +224,62 @@ def one_session(browser, page_url: str, prefix: str, mbit: float, timeout_s: flo
         if log is not None:
             ranges = [e for e in log[first:] if e[0] == log_path]
             stops[stop]["ranges"] = [(e[1], e[2], e[3]) for e in ranges]
-    stops["full_level"] = page.evaluate("window.object.fullLevel")
+    if progressive:
+        stops["full_level"] = page.evaluate("window.object.fullLevel")
+    else:
+        # the GLB is drawn at full detail at once
+        stops["1 px"] = stops["full"] = stops["first"]
     context.close()
     return stops
 
 
+SOURCES_OF_SESSIONS = ("file", "server", "glb")
+
+
 def sessions(name: str, links: list, repeats: int, timeout_s: float = 1800) -> list:
-    """``repeats`` pairs (file, server) per link on ``name`` (see ``--browser``);
-    one dict per session."""
+    """``repeats`` rounds per link on ``name`` of a session of each source (see
+    ``--browser``: the file, the server, the ``-cc`` GLB), the order rotated each
+    round; one dict per session."""
     from playwright.sync_api import sync_playwright
 
     from tests.server import serve as lodserver
     pm = progressive(name)
+    glb = codec.gltfpack_glb(pm, "-cc")
+    if glb is None or not MESHOPT.is_dir():
+        sys.exit("--browser needs gltfpack (bench/out/codec/npm) and three.js's meshopt decoder: "
+                 f"cd {NPM} && npm i --no-save three@0.187.0")
     runs = []
     with tempfile.TemporaryDirectory() as tmp, sync_playwright() as playwright:
         folder = Path(tmp) / "static"
         folder.mkdir()
         (folder / "three").symlink_to(REPO / "static" / "vendor" / "three")
         (folder / "lodserver").symlink_to(REPO / "static")
+        (folder / "meshopt").symlink_to(MESHOPT)
         (folder / f"{name}.glb").write_bytes(progressive_glb(SceneAsset.of_mesh(pm)))
+        (folder / f"{name}-cc.glb").write_bytes(glb)
         browser = playwright.chromium.launch(executable_path=shutil.which("chromium"),
                                              args=CHROMIUM_ARGS)
         log: list = []
         # The static host first: its origin is the one the server must allow.
-        with serve(folder, log) as url, \
+        with serve(folder, log, gzipped=(f"/{name}-cc.glb",)) as url, \
                 lodserver(Path(tmp) / "data", warm_kernels=True, timeout=120,
                           env={"LODSERVER_CORS_ORIGINS": url}) as client:
             mesh_id = upload_built(client, name, Path(tmp), timeout_s)
             mesh_url = f"{client.base_url}".rstrip("/") + f"/meshes/{mesh_id}"
             pages = {"file": (f"{url}/{name}.glb", "file.html"),
-                     "server": (mesh_url, "server.html")}
+                     "server": (mesh_url, "server.html"),
+                     "glb": (f"{url}/{name}-cc.glb", "glb.html")}
             for source, (target, html) in pages.items():
-                (folder / html).write_text(example_page(target))
+                (folder / html).write_text(example_page(target, glb=source == "glb"))
             for mbit in links:
                 for repeat in range(repeats):
-                    order = ["file", "server"] if repeat % 2 == 0 else ["server", "file"]
+                    shift = repeat % len(SOURCES_OF_SESSIONS)
+                    order = SOURCES_OF_SESSIONS[shift:] + SOURCES_OF_SESSIONS[:shift]
                     for source in order:
                         target, html = pages[source]
                         stops = one_session(browser, f"{url}/{html}", target, mbit, timeout_s,
-                                            log if source == "file" else None, f"/{name}.glb")
+                                            log if source == "file" else None, f"/{name}.glb",
+                                            progressive=source != "glb")
                         run = {"mesh": name, "link": mbit, "repeat": repeat,
                                "source": source, **stops}
                         print(run, file=sys.stderr)
@@ -234,38 +288,39 @@ def sessions(name: str, links: list, repeats: int, timeout_s: float = 1800) -> l
     return runs
 
 
-def session_table(runs: list, packed: dict) -> None:
-    """The medians per mesh, link and source, and the paired ratios file / server."""
-    print("| mesh | link | source | sessions | 1 px level | 1 px: s | requests | bytes | "
-          "full level | full: s | requests | bytes | `-cc` gz |")
+def session_table(runs: list) -> None:
+    """The medians per mesh, link and source, and the paired ratios (the sessions
+    of one round) file / server, file / GLB and server / GLB."""
+    print("| mesh | link | source | sessions | first frame: s | 1 px level | 1 px: s | requests "
+          "| bytes | full level | full: s | requests | bytes |")
     print("|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     med = statistics.median
     kb = lambda x: f"{x / 1000:.1f} KB"       # noqa: E731
     keys = sorted({(r["mesh"], r["link"]) for r in runs}, key=lambda k: (k[0], -k[1]))
     for mesh, mbit in keys:
         link = f"{mbit:g} Mbit/s, {LINKS[mbit]} ms"
-        mine = {s: [r for r in runs if (r["mesh"], r["link"], r["source"]) == (mesh, mbit, s)]
-                for s in ("file", "server")}
+        mine = {s: sorted((r for r in runs if (r["mesh"], r["link"], r["source"])
+                           == (mesh, mbit, s)), key=lambda r: r["repeat"])
+                for s in SOURCES_OF_SESSIONS}
         for source, rs in mine.items():
-            one, full = [r["1 px"] for r in rs], [r["full"] for r in rs]
-            cc = kb(packed[mesh]) if packed.get(mesh) else "-"
+            first, one, full = ([r[stop] for r in rs] for stop in ("first", "1 px", "full"))
+            # (the GLB has no levels: it is the whole mesh)
+            levels = lambda xs: "/".join(sorted({str(x["level"] or "whole") for x in xs}))  # noqa: E731,E501
             print(f"| {mesh} | {link} | {source} | {len(rs)} | "
-                  f"{'/'.join(sorted({str(x['level']) for x in one}))} | "
+                  f"{med(x['seconds'] for x in first):.2f} | {levels(one)} | "
                   f"{med(x['seconds'] for x in one):.2f} | {med(x['requests'] for x in one):g} | "
-                  f"{kb(med(x['bytes'] for x in one))} | "
-                  f"{'/'.join(sorted({str(x['level']) for x in full}))} | "
+                  f"{kb(med(x['bytes'] for x in one))} | {levels(full)} | "
                   f"{med(x['seconds'] for x in full):.2f} | "
-                  f"{med(x['requests'] for x in full):g} | {kb(med(x['bytes'] for x in full))} | "
-                  f"{cc} |")
-        pairs = list(zip(sorted(mine["file"], key=lambda r: r["repeat"]),
-                         sorted(mine["server"], key=lambda r: r["repeat"])))
-        ratio = {stop: med(f[stop]["seconds"] / s[stop]["seconds"] for f, s in pairs)
-                 for stop in ("1 px", "full")}
-        nbytes = {stop: med(f[stop]["bytes"] / s[stop]["bytes"] for f, s in pairs)
-                  for stop in ("1 px", "full")}
-        print(f"| {mesh} | {link} | **file / server** (paired median) | {len(pairs)} pairs | | "
-              f"**{ratio['1 px']:.2f}x** | | {nbytes['1 px']:.2f}x | | **{ratio['full']:.2f}x** "
-              f"| | {nbytes['full']:.2f}x | |")
+                  f"{med(x['requests'] for x in full):g} | {kb(med(x['bytes'] for x in full))} |")
+        for a, b in (("file", "server"), ("file", "glb"), ("server", "glb")):
+            pairs = list(zip(mine[a], mine[b]))
+            ratio = {stop: med(x[stop]["seconds"] / y[stop]["seconds"] for x, y in pairs)
+                     for stop in ("first", "1 px", "full")}
+            nbytes = {stop: med(x[stop]["bytes"] / y[stop]["bytes"] for x, y in pairs)
+                      for stop in ("1 px", "full")}
+            print(f"| {mesh} | {link} | **{a} / {b}** (paired median) | {len(pairs)} pairs | "
+                  f"**{ratio['first']:.2f}x** | | **{ratio['1 px']:.2f}x** | | "
+                  f"{nbytes['1 px']:.2f}x | | **{ratio['full']:.2f}x** | | {nbytes['full']:.2f}x |")
 
 
 def main(argv=None):
@@ -292,8 +347,7 @@ def main(argv=None):
         runs = []
         for name in args.meshes:
             runs += sessions(name, links, args.repeats)
-        packed = {name: codec.gltfpack_bytes(progressive(name), "-cc") for name in args.meshes}
-        session_table(runs, packed)
+        session_table(runs)
         return
     rows = []
     for name in args.meshes:

@@ -254,6 +254,14 @@ def _export_usage(args) -> str | None:
         if not all(value >= 0 for value in values):     # NaN too
             return (f"--error values are fractions of the bounding-box diagonal, each 0 or "
                     f"more, got {args.errors}")
+    if args.bits is not None:
+        from .packets.grids import check_bits
+        if not args.progressive:
+            return "--bits sets the grid of --progressive's file; LOD chains have --compress"
+        try:
+            check_bits(args.bits)
+        except ValueError as exc:
+            return f"--{exc}"
     return None
 
 
@@ -348,7 +356,7 @@ def _export_progressive(args, options) -> int:
                                 progress=progress)
         finally:
             progress.close()
-    data = progressive_glb(asset, name=source.stem)
+    data = progressive_glb(asset, name=source.stem, bits=args.bits)
     output.parent.mkdir(parents=True, exist_ok=True)
     write_atomic(output, data)
     print(f"{output}: {len(data)} bytes, {len(asset.parts)} part(s), "
@@ -604,6 +612,9 @@ def _parser() -> argparse.ArgumentParser:
                         "behind the LODSERVER_progressive extension, for streaming from any "
                         "static host with range requests (docs/packets.md); the bytes "
                         "GET /meshes/{id}/progressive serves")
+    p.add_argument("--bits", type=int, metavar="K",
+                   help="--progressive: the grid of the file's base level and records, bits "
+                        "per axis (default: by mesh size, as the server's /lod?format=json)")
     _input_flags(p)
     p.set_defaults(run=_cmd_export)
 

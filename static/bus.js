@@ -1,14 +1,18 @@
 // A signal bus: the settings the parts read, and events they emit and listen to
 // (main.js's viewer, and each scene part's own stream in animated.js).
-export function createBus(settings) {
-  const signals = new EventTarget();
-  return {
-    settings,
-    emit(type, detail) {
-      signals.dispatchEvent(new CustomEvent(type, { detail }));
-    },
-    on(type, listener) {
-      signals.addEventListener(type, (event) => listener(event.detail));
-    },
-  };
+export class Bus {
+  // settings: the object the parts read their settings from (kept, not copied).
+  constructor(settings) {
+    this.settings = settings;
+    this.signals = new EventTarget();
+  }
+
+  emit(type, detail) {
+    this.signals.dispatchEvent(new CustomEvent(type, { detail }));
+  }
+
+  // listener(detail) for each signal of `type`.
+  on(type, listener) {
+    this.signals.addEventListener(type, (event) => listener(event.detail));
+  }
 }

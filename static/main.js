@@ -5,12 +5,12 @@
 // reaching into the others.
 
 import { SceneAnimation } from './animated.js';
-import { createBus } from './bus.js';
+import { Bus } from './bus.js';
 import { firstLevel } from './framing.js';
 import { hashLevel } from './levelhash.js';
 import { ErrorPlot } from './plot.js';
 import { ViewScene } from './scene.js';
-import { createTools, readUrl } from './tools.js';
+import { readUrl, Tools } from './tools.js';
 import { Panel } from './ui.js';
 import { Upload } from './upload.js';
 import { ViewedMesh } from './viewedmesh.js';
@@ -33,7 +33,7 @@ const settings = {
   background: 0x1d2026,
 };
 
-const viewer = createBus(settings);
+const viewer = new Bus(settings);
 const panel = document.getElementById('panel');
 const viewport = document.getElementById('viewport');
 let scene = null, animated = null;
@@ -53,7 +53,7 @@ else if (linked.level !== null) settings.autoByDistance = false;
 const viewed = new ViewedMesh(viewer, scene, animated, linked);
 
 new Panel(viewer, panel);
-createTools(viewer, panel);
+new Tools(viewer, panel);
 new Upload(viewer, { panel, viewport, note: document.getElementById('view-note') });
 
 // A small debug API for tests and benchmarks.

@@ -8,9 +8,22 @@
 // server marks them immutable). After each packet `size` is set to the
 // largest size that both decodes+applies within options.frameBudgetMs (or
 // half a drawn frame's cost, when that is longer) at the rate lately
-// measured, and crosses the link within options.packetPaceMs, growing at most
-// 4x a packet. Sizes are powers of two times options.chunkSplits (up to
-// MAX_SPLITS), so the cuts of every size line up.
+// measured, and whose body holds the link for at most its pace (see
+// adapt), growing at most 4x a packet. Sizes are powers of two times
+// options.chunkSplits (up to MAX_SPLITS), so the cuts of every size line up.
+//
+// The pace is options.packetPaceMs, so that a new target does not wait long
+// behind the packets asked for; but never less than the frames between two
+// reports take (options.reportGap + 1 drawn frames, reportpacer.js), nor than
+// twice the request's round trip (the size is rounded down to a power of two,
+// which may halve it). A level shows only at a report, so where a frame
+// blocks the main thread for long (software GL: seconds at a million
+// triangles) a smaller packet shows nothing sooner, and costs a round trip
+// and a plan that reaches the target later (the pacer holds its reports for
+// the target only once the whole way is asked for). The round trip is not
+// taken out of the pace: requests are pipelined (stream.js), so a request's
+// round trip passes while the bodies ahead of it arrive, and those bodies
+// cover it only when they are at least as long.
 
 const MAX_SPLITS = 1 << 18;        // the largest packet asked for (records)
 const LINK_BODIES = 8;             // packets the link's rate is measured over (see linkOf)
@@ -87,8 +100,9 @@ export class PacketSizer {
     const budget = Math.max(option('frameBudgetMs'), 0.5 * frameCostMs);
     let want = budget * this.rate;
     if (link) {
-      const pace = option('packetPaceMs') - link.latencyMs;
-      want = Math.min(want, Math.max(0, pace) * link.bytesPerMs * records / Math.max(bytes, 1));
+      const paceMs = Math.max(option('packetPaceMs'), (option('reportGap') + 1) * frameCostMs,
+                              2 * link.latencyMs);
+      want = Math.min(want, paceMs * link.bytesPerMs * records / Math.max(bytes, 1));
     }
     want = Math.min(want, 4 * this.size, MAX_SPLITS);
     let next = option('chunkSplits');

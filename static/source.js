@@ -8,6 +8,9 @@
 //                    or several in a row ({ buffers, url })
 //   materials()      the glTF material records ({ document, url }: image uris
 //                    are relative to url)
+// A source whose levels are fixed (a file's chunk ends) also has snap(level,
+// direction), the nearest level it holds, and nextStop(from, to, records),
+// where a request of about `records` records stops.
 // A failure is a FetchError, `transient` when asking again may help (the
 // stream retries those with backoff).
 

@@ -143,6 +143,21 @@ export class StaticSource {
     return levels.findLast((x) => x <= level) ?? levels[0];
   }
 
+  // The chunk end a request from `from` toward `to` (chunk ends) stops at,
+  // for requests of about `records` records (the packet sizer's size): runs
+  // of a power of two chunks, cut at multiples of the run in the file's
+  // chunks, so that a run's cuts line up with every shorter run's and moving
+  // back and forth asks for the same ranges.
+  nextStop(from, to, records) {
+    const { levels } = this;
+    const at = levels.indexOf(this.snap(from, to > from ? 'down' : 'up'));
+    const end = levels.indexOf(this.snap(to, to > from ? 'up' : 'down'));
+    let run = 1;
+    while (2 * run * this.chunks.chunkSplits <= records) run *= 2;
+    return levels[end > at ? Math.min(end, (Math.floor(at / run) + 1) * run)
+                           : Math.max(end, (Math.ceil(at / run) - 1) * run)];
+  }
+
   async base(level, { signal } = {}) {
     const [at, offset, length] = this.chunks.base;
     if (level !== at) throw new FetchError(`the file's base level is ${at}, not ${level}`, false);

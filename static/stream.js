@@ -45,8 +45,8 @@ import { LodState, PacketError } from './vsplit.js';
 
 const MAX_AHEAD = 32;              // the most packets requested ahead (see packetsAhead)
 // Defaults of the settings this module reads (main.js may set them).
-const DEFAULTS = { chunkSplits: 4096, packetsAhead: 2, frameBudgetMs: 12, packetPaceMs: 250,
-                   retries: 6, reportGap: 3, initialRatio: 1 };
+export const STREAM_DEFAULTS = { chunkSplits: 4096, packetsAhead: 2, frameBudgetMs: 12,
+                                 packetPaceMs: 250, retries: 6, reportGap: 3, initialRatio: 1 };
 
 // Yields to the event loop (so a due frame is drawn), without the >= 4 ms
 // clamp of nested setTimeout.
@@ -64,7 +64,7 @@ function applyAll(state, packets) {
 }
 
 // One mesh's stream (a scene streams each part with its own). Its bus
-// `viewer` (bus.js: a StreamedLevel's) carries its settings (DEFAULTS' keys)
+// `viewer` (bus.js: a StreamedLevel's) carries its settings (STREAM_DEFAULTS' keys)
 // and its signals (see the top).
 export class PacketStream {
   constructor(viewer) {
@@ -94,7 +94,7 @@ export class PacketStream {
   }
 
   option(key) {
-    return this.viewer.settings[key] ?? DEFAULTS[key];
+    return this.viewer.settings[key] ?? STREAM_DEFAULTS[key];
   }
 
   get busy() { return this.moving !== null; }
@@ -248,8 +248,10 @@ export class PacketStream {
 
   refill() {
     if (!this.state || this.failed || this.stalled) return;
-    const cut = (from, to) => snapLevel(this.source, this.sizer.nextStop(from, to),
-                                      to > from ? 'up' : 'down');
+    const { source, sizer } = this;
+    // a progressive file cuts its own runs of chunks (staticsource.js)
+    const cut = source.nextStop ? (from, to) => source.nextStop(from, to, sizer.size)
+      : (from, to) => sizer.nextStop(from, to);
     this.queue.refill(this.target, this.packetsAhead(), cut);
   }
 

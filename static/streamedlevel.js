@@ -7,7 +7,7 @@
 // the one the view asks for, so no level is fetched only to be dropped.
 
 import * as THREE from 'three';
-import { createBus } from './bus.js';
+import { Bus } from './bus.js';
 import { ErrorCurve } from './curve.js';
 import { sphereOf } from './framing.js';
 import { PacketStream } from './stream.js';
@@ -72,7 +72,7 @@ export class StreamedLevel {
     // level's own first target
     const settings = Object.create(options);
     settings.initialRatio = 1;
-    this.bus = createBus(settings);
+    this.bus = new Bus(settings);
     this.stream = new PacketStream(this.bus);
     this.bus.on('mesh', (detail) => {
       this.curve = detail.curve;

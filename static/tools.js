@@ -56,81 +56,105 @@ export function writeUrl(values) {
 // Numbers short enough for a URL, exact enough for a view (6 significant digits).
 const short = (x) => Number(x.toPrecision(6));
 
-// The tools of the panel: `root` is the panel.
-export function createTools(viewer, root) {
-  const { settings } = viewer;
-  const $ = (selector) => root.querySelector(selector);
-  const statsRow = $('#render-stats'), download = $('#download'), reset = $('#reset-view');
-  const toggle = $('#panel-toggle');
-  let info = null, level = null, target = null, cameraTimer = 0;
-  let sceneRatio = null;         // a scene (animated.js): the ratio of its GLB
-  const frames = [];             // draw times within the fps window, ms
-  let last = { calls: 0, triangles: 0, ms: 0 };
+// The tools of the panel: `root` is the panel; `viewer` the bus (bus.js) whose
+// signals they follow.
+export class Tools {
+  constructor(viewer, root) {
+    this.viewer = viewer;
+    this.root = root;
+    const $ = (selector) => root.querySelector(selector);
+    this.statsRow = $('#render-stats');
+    this.download = $('#download');
+    this.reset = $('#reset-view');
+    this.toggle = $('#panel-toggle');
+    this.info = null;           // the mesh's summary (a scene's too)
+    this.level = null;          // the level shown and the level moved to
+    this.target = null;
+    this.sceneRatio = null;     // a scene (animated.js): the ratio of its GLB
+    this.cameraTimer = 0;       // the pending write of a moved camera to the URL
+    this.frames = [];           // draw times within the fps window, ms
+    this.last = { calls: 0, triangles: 0, ms: 0 };   // the last frame's figures
+    this.listen();
+    this.reset.addEventListener('click', () => this.resetView());
+    this.download.addEventListener('click', () => this.downloadLevel());
+    this.toggle.addEventListener('click', () => this.togglePanel());
+    // the fps falls back to 0 once nothing is drawn
+    setInterval(() => { if (this.frames.length) this.showRenderStats(); }, FPS_WINDOW_MS / 2);
+    // narrow screens start with the panel folded away
+    if (window.matchMedia?.('(max-width: 600px)').matches) this.togglePanel();
+    this.setEnabled();
+  }
 
-  function showRenderStats() {
+  listen() {
+    const { viewer } = this;
+    const { settings } = viewer;
+    viewer.on('frame', (detail) => {
+      this.frames.push(performance.now());
+      this.last = detail;
+      this.showRenderStats();
+    });
+    viewer.on('mesh', (detail) => {
+      this.info = detail.info;
+      this.level = this.target = detail.state.level;
+      this.sceneRatio = null;
+      this.setEnabled();
+    });
+    viewer.on('scene-shown', (detail) => {
+      this.info = detail.info;
+      this.level = this.target = null;
+      this.sceneRatio = detail.ratio;
+      this.setEnabled();
+    });
+    viewer.on('level', ({ state }) => {
+      this.level = state.level;
+      // once the level settles where it was sent: keep it in the URL (not in auto mode,
+      // where the camera distance decides)
+      if (this.level === this.target) {
+        writeUrl({ level: settings.autoByDistance ? null : this.level });
+      }
+    });
+    viewer.on('target', (value) => { this.target = value; });
+    viewer.on('camera', ({ position, target: center }) => {
+      clearTimeout(this.cameraTimer);
+      this.cameraTimer = setTimeout(() => {
+        writeUrl({ camera: [...position, ...center].map(short).join(',') });
+      }, URL_DELAY_MS);
+    });
+    viewer.on('settings', (key) => {
+      if (key === 'autoByDistance') {
+        // auto is the default, and a level in the URL turns it off
+        writeUrl({ auto: null, level: settings.autoByDistance ? null : this.level });
+      } else if (key === 'up' && this.info) {
+        storeUp(this.info.id, settings.up);
+      }
+    });
+  }
+
+  showRenderStats() {
+    const { frames, last } = this;
     const now = performance.now();
     while (frames.length && now - frames[0] > FPS_WINDOW_MS) frames.shift();
-    statsRow.textContent = `${frames.length} fps · ${last.calls} draw call` +
+    this.statsRow.textContent = `${frames.length} fps · ${last.calls} draw call` +
       `${last.calls === 1 ? '' : 's'} · ${last.triangles.toLocaleString()} triangles · ` +
       `${last.ms.toFixed(1)} ms`;
   }
 
-  viewer.on('frame', (detail) => {
-    frames.push(performance.now());
-    last = detail;
-    showRenderStats();
-  });
-  // the fps falls back to 0 once nothing is drawn
-  setInterval(() => { if (frames.length) showRenderStats(); }, FPS_WINDOW_MS / 2);
-
-  function setEnabled() {
-    download.disabled = reset.disabled = !info;
+  setEnabled() {
+    this.download.disabled = this.reset.disabled = !this.info;
   }
 
-  viewer.on('mesh', (detail) => {
-    info = detail.info;
-    level = target = detail.state.level;
-    sceneRatio = null;
-    setEnabled();
-  });
-  viewer.on('scene-shown', (detail) => {
-    info = detail.info;
-    level = target = null;
-    sceneRatio = detail.ratio;
-    setEnabled();
-  });
-  viewer.on('level', ({ state }) => {
-    level = state.level;
-    // once the level settles where it was sent: keep it in the URL (not in auto mode,
-    // where the camera distance decides)
-    if (level === target) writeUrl({ level: settings.autoByDistance ? null : level });
-  });
-  viewer.on('target', (value) => { target = value; });
-  viewer.on('camera', ({ position, target: center }) => {
-    clearTimeout(cameraTimer);
-    cameraTimer = setTimeout(() => {
-      writeUrl({ camera: [...position, ...center].map(short).join(',') });
-    }, URL_DELAY_MS);
-  });
-  viewer.on('settings', (key) => {
-    if (key === 'autoByDistance') {
-      // auto is the default, and a level in the URL turns it off
-      writeUrl({ auto: null, level: settings.autoByDistance ? null : level });
-    } else if (key === 'up' && info) {
-      storeUp(info.id, settings.up);
-    }
-  });
-
-  reset.addEventListener('click', () => {
-    clearTimeout(cameraTimer);
+  resetView() {
+    clearTimeout(this.cameraTimer);
     writeUrl({ camera: null });
-    viewer.emit('reset-view');
-  });
+    this.viewer.emit('reset-view');
+  }
+
   // The current level, as the server writes it: the same level, byte for byte
   // the file `lodserver extract` writes; a scene at the ratio it was loaded at.
   // At the mesh's version (an immutable URL), so a download is never of
   // another version than the one shown.
-  download.addEventListener('click', () => {
+  downloadLevel() {
+    const { info, level, sceneRatio } = this;
     if (!info || (level === null && sceneRatio === null)) return;
     const link = document.createElement('a');
     const params = sceneRatio === null ? { vertices: level, format: 'glb' }
@@ -141,13 +165,11 @@ export function createTools(viewer, root) {
     document.body.append(link);
     link.click();
     link.remove();
-  });
-  toggle.addEventListener('click', () => {
-    const collapsed = root.classList.toggle('collapsed');
-    toggle.setAttribute('aria-expanded', String(!collapsed));
-    toggle.textContent = collapsed ? 'show panel' : 'hide panel';
-  });
-  // narrow screens start with the panel folded away
-  if (window.matchMedia?.('(max-width: 600px)').matches) toggle.click();
-  setEnabled();
+  }
+
+  togglePanel() {
+    const collapsed = this.root.classList.toggle('collapsed');
+    this.toggle.setAttribute('aria-expanded', String(!collapsed));
+    this.toggle.textContent = collapsed ? 'show panel' : 'hide panel';
+  }
 }

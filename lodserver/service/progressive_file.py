@@ -21,10 +21,11 @@ import struct
 from ..io.gltf_document import parse_container
 from ..io.glb import pack_glb
 from ..io.limits import LoadLimits
+from ..packets.grids import default_bits
 from ..packets.records_v4 import packet_between_v4
 from ..scene.asset import SceneAsset
 from ..scene.write import scene_glb
-from .levels import encode_level
+from .levels import checked_bits, encode_level
 
 EXTENSION = "LODSERVER_progressive"
 # The packet version the chunks are written in (docs/packets.md, "Version 4").
@@ -52,7 +53,7 @@ def chunk_levels(base: int, full: int, size: int) -> list[int]:
     return list(range(base, full, size)) + [full]
 
 
-def progressive_glb(asset: SceneAsset, *, name: str = "") -> bytes:
+def progressive_glb(asset: SceneAsset, *, name: str = "", bits: int | None = None) -> bytes:
     """The progressive file of ``asset`` (a single mesh or a scene), as bytes.
 
     Parameters
@@ -61,6 +62,12 @@ def progressive_glb(asset: SceneAsset, *, name: str = "") -> bytes:
         A built asset, as the store keeps it.
     name : str
         The mesh's name, kept in the summary (``GET /meshes/{id}``'s ``name``).
+    bits : int, optional
+        The grid of every part's base level and records, bits per axis (as
+        ``/lod?format=json&bits=``); by default each part's own
+        (``packets.grids.default_bits``). Another grid is encoded afresh, chunk
+        by chunk, rather than cut from the mesh's cached records. LevelError
+        outside the grids a packet can hold.
 
     Returns
     -------
@@ -68,6 +75,7 @@ def progressive_glb(asset: SceneAsset, *, name: str = "") -> bytes:
         A GLB: the base level drawn by any glTF viewer, and :data:`EXTENSION` in
         the root ``extensions`` (listed in ``extensionsUsed``, not required).
     """
+    bits = checked_bits(bits)
     bases = {part.index: part.pm.base_vertices for part in asset.parts}
     if asset.single is not None:
         glb = encode_level(asset.single, bases[0], file_type="glb")
@@ -91,14 +99,14 @@ def progressive_glb(asset: SceneAsset, *, name: str = "") -> bytes:
         size = chunk_splits(full - base)
         levels = chunk_levels(base, full, size)
         record = {"part": part.index, "mesh": part.mesh if asset.single is None else 0,
-                  "chunkSplits": size,
+                  "chunkSplits": size, "bits": bits or default_bits(pm),
                   "base": [base, *place(bytes(encode_level(
-                      pm, base, file_type="json", materials_href=MATERIALS_HERE)))]}
+                      pm, base, file_type="json", bits=bits, materials_href=MATERIALS_HERE)))]}
         # splits ascending, collapses descending: the chunks on the way to any
         # level, either way, are one range of bytes
-        record["splits"] = [[a, b, *place(packet_between_v4(pm, a, b))]
+        record["splits"] = [[a, b, *place(packet_between_v4(pm, a, b, bits=bits))]
                             for a, b in zip(levels, levels[1:])]
-        record["collapses"] = [[b, a, *place(packet_between_v4(pm, b, a))]
+        record["collapses"] = [[b, a, *place(packet_between_v4(pm, b, a, bits=bits))]
                                for a, b in reversed(list(zip(levels, levels[1:])))]
         parts.append(record)
     summary = {key: value for key, value in asset.summary().items() if key != "metadata"}

@@ -44,9 +44,10 @@ def served(tmp_path_factory):
         yield client, uploaded(client, "spot.glb", textured_spot_glb(), name="spot")
 
 
-def _levels(client, mesh_id, level, part=None):
+def _levels(client, mesh_id, level, part=None, bits=None):
     route = f"/meshes/{mesh_id}" + ("" if part is None else f"/parts/{part}") + "/lod"
-    return client.get(route, params={"vertices": level, "format": "json"}).json()
+    params = {"vertices": level, "format": "json", **({} if bits is None else {"bits": bits})}
+    return client.get(route, params=params).json()
 
 
 def _check_chunks(data, summary_of, json_level):
@@ -109,6 +110,34 @@ def test_the_route_serves_the_file_of_the_cli_and_every_chunk_decodes(served, tm
     assert out.read_bytes() == data
 
 
+def test_a_file_on_another_grid_decodes_to_the_json_levels_at_those_bits(served, tmp_path):
+    """``?bits=K`` (``export --progressive --bits K``): the base is ``/lod?format=
+    json&bits=K`` and every chunk's end the json level at K bits, both ways; the
+    CLI writes the same bytes; a grid outside [8, 24] is refused."""
+    client, mesh_id = served
+    summary = client.get(f"/meshes/{mesh_id}").json()
+    default = read_index(client.get(f"/meshes/{mesh_id}/progressive").content)[0]
+    bits = default["parts"][0]["bits"] - 2
+    response = client.get(f"/meshes/{mesh_id}/progressive", params={"bits": bits})
+    assert response.status_code == 200, response.text
+    data = response.content
+    record = _check_chunks(data, lambda p: summary,
+                           lambda p, level: _levels(client, mesh_id, level, bits=bits))
+    assert record["parts"][0]["bits"] == bits
+    assert len(data) < len(client.get(f"/meshes/{mesh_id}/progressive").content)
+    source = tmp_path / "spot.glb"
+    source.write_bytes(textured_spot_glb())
+    env = {**os.environ, "PYTHONPATH": str(REPO)}
+    out = tmp_path / "out" / "spot.glb"
+    result = subprocess.run([sys.executable, "-m", "lodserver.cli", "export", str(source),
+                             "--progressive", "--bits", str(bits), "-o", str(out)],
+                            capture_output=True, text=True, env=env, timeout=900)
+    assert result.returncode == 0, result.stderr
+    assert out.read_bytes() == data
+    refused = client.get(f"/meshes/{mesh_id}/progressive", params={"bits": 30})
+    assert refused.status_code == 422, refused.text
+
+
 def test_ranges_are_answered_and_a_range_past_the_end_is_refused(served):
     client, mesh_id = served
     whole = client.get(f"/meshes/{mesh_id}/progressive").content
@@ -163,12 +192,16 @@ def test_a_scene_file_holds_every_part_and_its_document(tmp_path):
     (["-o", "OUT/spot.glb", "--lods", "1,0.5"], 2, "--lods apply to LOD chains"),
     (["-o", "OUT/spot.glb", "--texture-scale", "auto", "--reach", "merge"], 2,
      "--reach, --texture-scale apply to LOD chains"),
+    (["-o", "OUT/spot.glb", "--bits", "30"], 2, "--bits must be in [8, 24], got 30"),
+    (["-o", "OUT", "--bits", "12", "NOT_PROGRESSIVE"], 2, "--bits sets the grid of --progressive"),
 ])
 def test_the_cli_refuses_what_it_cannot_write_with_a_sentence(tmp_path, flags, code, phrase):
     flags = [flag.replace("OUT", str(tmp_path)) for flag in flags]
+    progressive = [] if "NOT_PROGRESSIVE" in flags else ["--progressive"]
+    flags = [flag for flag in flags if flag != "NOT_PROGRESSIVE"]
     env = {**os.environ, "PYTHONPATH": str(REPO)}
     result = subprocess.run([sys.executable, "-m", "lodserver.cli", "export",
-                             str(DATA / "spot.obj"), "--progressive", *flags],
+                             str(DATA / "spot.obj"), *progressive, *flags],
                             capture_output=True, text=True, env=env, timeout=300)
     assert result.returncode == code, result.stderr
     assert phrase in result.stderr and "Traceback" not in result.stderr

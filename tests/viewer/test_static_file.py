@@ -24,6 +24,7 @@ import pytest
 import trimesh
 
 from lodserver.packets import apply_packet, decode_any, state_from_json
+from lodserver.packets.grids import default_bits
 from lodserver.progressive.mesh import ProgressiveMesh
 from lodserver.service.progressive_file import read_index
 from lodserver.service.levels import encode_level
@@ -142,13 +143,15 @@ def sphere(host, tmp_path_factory):
 
 
 class _Levels:
-    """The json level of a progressive mesh as a client fetches it (for _expected)."""
+    """The json level of a progressive mesh as a client fetches it (for _expected),
+    at the grid of ``bits`` (the default's when None)."""
 
-    def __init__(self, pm):
-        self.pm = pm
+    def __init__(self, pm, bits=None):
+        self.pm, self.bits = pm, bits
 
     def get(self, route, params):
-        data = bytes(encode_level(self.pm, params["vertices"], file_type="json"))
+        data = bytes(encode_level(self.pm, params["vertices"], file_type="json",
+                                  bits=self.bits))
         return type("Reply", (), {"json": lambda _: json.loads(data)})()
 
 
@@ -252,6 +255,36 @@ def test_a_host_that_ignores_range_is_read_with_one_get(chromium, app, host, sph
         handler.ranges = True
 
 
+def test_a_file_on_another_grid_reaches_the_json_levels_at_its_bits(chromium, app, host,
+                                                                     sphere, tmp_path):
+    """``export --progressive --bits K``: the page reaches the 1 px level and full
+    detail with the state of ``/lod?format=json&bits=K`` there."""
+    folder, origin, _ = host
+    pm, _ = sphere
+    bits = default_bits(pm) - 3
+    pm.save(tmp_path / "sphere.pm")
+    _cli("export", tmp_path / "sphere.pm", "--progressive", "--bits", bits,
+         "-o", folder / "sphere-bits.glb")
+    assert read_index((folder / "sphere-bits.glb").read_bytes())[0]["parts"][0]["bits"] == bits
+    page = _open(chromium, app, f"{origin}/sphere-bits.glb")
+    try:
+        status = page.evaluate(SETTLED_JS)
+        level = status["level"]
+        assert status["error"] is None and pm.base_vertices < level < pm.vertex_count, status
+        assert _state(page) == dict(zip(("faces", "hash"), _expected(_Levels(pm, bits), "",
+                                                                     level)))
+        # not the default grid's state: the file's grid is what the page holds
+        assert _state(page) != dict(zip(("faces", "hash"), _expected(_Levels(pm), "", level)))
+        page.evaluate(f"window.object.setLevel({pm.vertex_count})")
+        full = page.evaluate(SETTLED_JS)
+        assert full["level"] == pm.vertex_count and full["error"] is None, full
+        assert _state(page) == dict(zip(("faces", "hash"), _expected(_Levels(pm, bits), "",
+                                                                     pm.vertex_count)))
+        assert not page.errors, page.errors
+    finally:
+        page.close()
+
+
 @pytest.fixture(scope="module")
 def fox(host, tmp_path_factory):
     if not FOX.is_file():
@@ -343,3 +376,69 @@ def test_a_textured_files_images_are_let_go_on_dispose(chromium, app, host, tmp_
         assert all("ERR_FILE_NOT_FOUND" in str(error) for error in page.errors), page.errors
     finally:
         page.close()
+
+
+# The request plan of a file session on a simulated link: the stream's packet
+# sizer (packetsizer.js, the stream's default settings but for its first size,
+# the file's chunk) and the file's cut of runs of chunks (staticsource.js), fed
+# one run after another with what the link and the page would have measured:
+# each chunk's bytes from the file's index, the link's round trip and rate, a
+# drawn frame's cost, records applied at a fixed rate.
+PLAN_JS = """async ({ record, link, frameCostMs, recordsPerMs }) => {
+  const { PacketSizer } = await import('/lodserver/packetsizer.js');
+  const { StaticSource } = await import('/lodserver/staticsource.js');
+  const { STREAM_DEFAULTS } = await import('/lodserver/stream.js');
+  const part = record.parts[0];
+  const source = new StaticSource(null, record.summary, part);
+  const settings = { ...STREAM_DEFAULTS, chunkSplits: part.chunkSplits };
+  const sizer = new PacketSizer((key) => settings[key]);
+  sizer.linkOf = () => link;
+  const full = source.levels[source.levels.length - 1];
+  const runs = [];
+  for (let level = source.levels[0]; level < full;) {
+    const to = source.nextStop(level, full, sizer.size);
+    const chunks = part.splits.filter(([from, end]) => from >= level && end <= to);
+    runs.push(chunks.length);
+    const bytes = chunks.reduce((sum, chunk) => sum + chunk[3], 0);
+    sizer.measure('', bytes, to - level, (to - level) / recordsPerMs, frameCostMs);
+    level = to;
+  }
+  return runs;
+}"""
+
+
+@pytest.mark.parametrize("frame_ms, latency_ms", [(1000, 150), (16, 400)])
+def test_a_file_session_asks_for_growing_runs_of_chunks(chromium, app, host, sphere, frame_ms,
+                                                        latency_ms):
+    """Over a link that carries one chunk in 200 ms (about what bunny_loop2's
+    chunks of 70 KB took under bench/static_file.py's 5 Mbit/s), with frames as slow as software GL draws a million triangles
+    (a level shows only at a report, so a packet sooner than the reports shows
+    nothing sooner) or a round trip longer than the stream's packet pace (the
+    bodies in flight must cover it), the runs grow past one chunk and full
+    detail takes a few requests, not one per chunk; with fast frames and a
+    short round trip a request still holds the link for about its pace."""
+    _, name = sphere
+    record, _ = read_index((host[0] / name).read_bytes())
+    chunks = record["parts"][0]["splits"]
+    per_chunk = sum(chunk[3] for chunk in chunks) / len(chunks)
+    page = chromium.new_page()
+    try:
+        # an empty page of the app's origin, which serves the modules
+        page.route(f"{app}/blank.html", lambda route: route.fulfill(
+            body="<!doctype html>", content_type="text/html"))
+        page.goto(f"{app}/blank.html")
+        plan = page.evaluate(PLAN_JS, {"record": record, "frameCostMs": frame_ms,
+                                       "recordsPerMs": 500,
+                                       "link": {"latencyMs": latency_ms,
+                                                "bytesPerMs": per_chunk / 200}})
+        fast = page.evaluate(PLAN_JS, {"record": record, "frameCostMs": 16, "recordsPerMs": 500,
+                                       "link": {"latencyMs": 50, "bytesPerMs": per_chunk / 200}})
+    finally:
+        page.close()
+    print("runs of chunks:", plan, "with fast frames and a short round trip:", fast)
+    assert sum(plan) == len(chunks), plan
+    assert max(plan[1:]) >= 2 and len(plan) < len(chunks) / 1.5, plan
+    if frame_ms >= 1000:
+        # the runs grow as the sizer does (at most 4x a packet) up to the file's end
+        assert max(plan) >= 8 and len(plan) <= 6, plan
+    assert sum(fast) == len(chunks) and max(fast) <= 2, fast

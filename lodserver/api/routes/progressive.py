@@ -14,6 +14,7 @@ from ..bodies import BodiesDep
 from ..caching import BufferResponse, VersionQuery, etag_for, load_versioned
 from ..deps import MeshId, StoreDep
 from ..models import Message
+from .lods import Bits
 
 router = APIRouter(prefix="/meshes", tags=["progressive"])
 
@@ -27,22 +28,24 @@ _RANGE = re.compile(r"bytes=(\d*)-(\d*)")
             "description": "The progressive file (docs/packets.md, \"The progressive file\")."},
             206: {"description": "The bytes a Range asked for."}})
 def get_progressive(mesh_id: MeshId, store: StoreDep, bodies: BodiesDep, request: Request,
-                    v: VersionQuery = None) -> Response:
+                    v: VersionQuery = None, bits: Bits = None) -> Response:
     """One GLB holding the base level (drawn by any glTF viewer), the base's json
     form and every split and collapse record in chunks, indexed in the root
     extension ``LODSERVER_progressive``: a client reads its header and JSON with
     one ``Range`` request and any level with one more. A scene's file holds every
-    part and the whole document (skins, animations)."""
+    part and the whole document (skins, animations). ``bits`` sets the grid of
+    the base and the records, as ``/lod?format=json&bits=`` (``lodserver export
+    --progressive --bits``)."""
     asset, digest, policy = load_versioned(store, mesh_id, v)
     # the file's summary names the mesh: its name is part of the bytes' identity
     name = store.get(mesh_id=mesh_id).name
-    etag = etag_for(digest, "progressive", name)
+    etag = etag_for(digest, "progressive", name, *(() if bits is None else ("bits", bits)))
     pms = asset.pms.values()
     response = bodies.cached(
-        request, etag, policy, lambda: progressive_glb(asset, name=name),
+        request, etag, policy, lambda: progressive_glb(asset, name=name, bits=bits),
         media_type=_GLB, filename=f"{mesh_id}.glb",
         estimate=lambda: sum(level_bytes(pm, pm.base_vertices, "glb")
-                             + 2 * packet_bytes(pm, pm.base_vertices, pm.vertex_count)
+                             + 2 * packet_bytes(pm, pm.base_vertices, pm.vertex_count, bits)
                              for pm in pms))
     return ranged(request, response)
 
