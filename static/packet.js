@@ -21,6 +21,8 @@ const READABLE_VERSIONS = [1, 2, 3, 4];
 const VERSION_4 = 4;
 const HEADER_BYTES = 60;
 const STREAM_NAMES = ['vertex', 'count', 'pattern', 'other', 'fan', 'mask', 'position'];
+// The streams of bytes (by index in STREAM_NAMES); the others are varints.
+export const BYTE_STREAMS = [2, 4, 5];
 const HAS_MATERIALS = 1;           // header flag
 const V2_ATTRIBUTE_NAMES = ['NORMAL', 'TEXCOORD_0', 'TEXCOORD_1', 'COLOR_0'];   // by kind code
 const ENCODINGS = ['linear', 'octahedral', 'tangent'];
@@ -103,6 +105,55 @@ class StreamReader {
 
 export function makeReader(data, name) {
   return new StreamReader(data, name);
+}
+
+// A cursor over one field of the records: the values of one stream as readPacket()
+// decoded them, in a Float64Array (a value can pass 2^32). Whatever the version, the
+// record loops read the same arrays through this one class: no varints are parsed
+// while a packet is applied, and the loops' calls stay monomorphic.
+class FieldReader {
+  constructor(values, name) {
+    this.values = values;
+    this.at = 0;
+    this.name = name;
+  }
+
+  next() {
+    if (this.at >= this.values.length) throw endOfStream(this);
+    return this.values[this.at++];
+  }
+
+  // Zigzag: even u is u / 2, odd u is -(u + 1) / 2 (arithmetic, not >>: values pass 2^31).
+  signed() {
+    const u = this.next();
+    return u % 2 === 0 ? u / 2 : -(u + 1) / 2;
+  }
+
+  // The next `count` values, as a view (no copy).
+  take(count) {
+    const end = this.at + count;
+    if (end > this.values.length) throw endOfStream(this);
+    const values = this.values.subarray(this.at, end);
+    this.at = end;
+    return values;
+  }
+
+  done() {
+    return this.at === this.values.length;
+  }
+}
+
+export function fieldReader(values, name) {
+  return new FieldReader(values, name);
+}
+
+// The varints of a version 3 stream, as the values of its field.
+function varintValues(data, name) {
+  const values = new Float64Array(data.length);      // a varint takes a byte at least
+  const reader = new StreamReader(data, name);
+  let n = 0;
+  while (reader.at < data.length) values[n++] = reader.varint();
+  return values.slice(0, n);
 }
 
 export function offGrid() {
@@ -261,9 +312,10 @@ function readAttributeGrid(bytes, view, at, name, width, code, bits, step,
   return { grid: attributeGrid(name, { encoding, origin, step, bits }, width), at };
 }
 
-// Parse a packet's header and inflate its streams: { grid, start, stop,
-// startFaces, stopFaces, attributes, hasMaterials, streams (Uint8Array views
-// into the body, in streamNames() order) }.
+// Parse a packet's header and decode its body: { grid, start, stop, startFaces,
+// stopFaces, attributes, hasMaterials, fields (Float64Array, one per stream in
+// streamNames() order: the values the records read; a byte stream's bytes, a varint
+// stream's varints) }.
 export async function readPacket(buffer) {
   let bytes = new Uint8Array(buffer);
   // version 4 ends in a CRC-32, checked before anything else is read
@@ -311,11 +363,11 @@ export async function readPacket(buffer) {
     stopFaces: view.getUint32(20, true),
     attributes,
     hasMaterials: (flags & HAS_MATERIALS) !== 0,
-    streams: [],
+    fields: [],
   };
   const bodyLength = view.getUint32(56, true);
   if (version === VERSION_4) {
-    packet.streams = readBodyV4(bytes.subarray(at), bodyLength, packet, flags);
+    packet.fields = readBodyV4(bytes.subarray(at), bodyLength, packet, flags);
     return packet;
   }
   let body;
@@ -329,8 +381,10 @@ export async function readPacket(buffer) {
                           `${bodyLength}`);
   }
   const table = makeReader(body, 'stream table');
-  for (const name of streamNames(attributes, packet.hasMaterials)) {
-    packet.streams.push(table.bytes(table.varint()));
+  for (const [i, name] of streamNames(attributes, packet.hasMaterials).entries()) {
+    const data = table.bytes(table.varint());
+    packet.fields.push(BYTE_STREAMS.includes(i) ? Float64Array.from(data)
+      : varintValues(data, name));
   }
   if (table.at !== body.length) {
     throw new PacketError("the packet's body has bytes after its last stream");
