@@ -222,7 +222,7 @@ function predictFan(s, t, k) {
 // The memory the splits of groups ahead will read, touched (the values summed
 // into this.sink, so the reads are kept): sources[g .. g + AHEAD_GROUP) is the
 // group about to run. A split's reads form a chain (its row, then its block,
-// then its corners' faces, then its neighbours' rows), each step's address in
+// then its corners' faces), each step's address in
 // the last step's value: one split at a time, each miss waits for the one
 // before. Here every step is taken for a whole group at once, a group further
 // ahead for each earlier step, so a step's misses are independent loads the
@@ -248,14 +248,6 @@ function readAhead(sources, g, count) {
     const row = 4 * sources[i];
     for (let j = info[row], stop = j + info[row + 1]; j < stop; j++) {
       sink = (sink + faces[ring[j]]) | 0;
-    }
-  }
-  // the group about to run: its neighbours' rows (the faces it adds link their corners)
-  for (let i = Math.max(g, 0), end = Math.min(g + AHEAD_GROUP, count); i < end; i++) {
-    const row = 4 * sources[i];
-    for (let j = info[row], stop = j + info[row + 1]; j < stop; j++) {
-      const c = ring[j];
-      sink = (sink + info[4 * faces[c % 3 === 2 ? c - 2 : c + 1]]) | 0;
     }
   }
   this.sink = sink;

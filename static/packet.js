@@ -123,10 +123,12 @@ class FieldReader {
     return this.values[this.at++];
   }
 
-  // Zigzag: even u is u / 2, odd u is -(u + 1) / 2 (arithmetic, not >>: values pass 2^31).
+  // Zigzag: even u is u / 2, odd u is -(u + 1) / 2 (float operations, exact for
+  // integers: values pass 2^31, and % on a float is a slow library call).
   signed() {
     const u = this.next();
-    return u % 2 === 0 ? u / 2 : -(u + 1) / 2;
+    const half = u / 2, floor = Math.floor(half);
+    return floor === half ? half : -(floor + 1);
   }
 
   // The next `count` values, as a view (no copy).

@@ -9,7 +9,7 @@
 
 import { BYTE_STREAMS, makeReader, PacketError, streamNames } from './packet.js';
 import {
-  CLASSED, CLASSES, FACES, PATTERNS, PLAIN, RUNS, SymbolReader,
+  CLASSED, CLASSES, FACES, MAX_SYMBOLS_PER_BYTE, PATTERNS, PLAIN, RUNS, SymbolReader,
 } from './rans.js';
 
 const HAS_MATERIALS = 1, EDGE_POSITIONS = 2, MAGNITUDE_CONTEXTS = 4;
@@ -28,17 +28,31 @@ const NO_AUX = new Float64Array(0);    // decode()'s aux for the rules without o
 
 // ---- the checksum ----------------------------------------------------------------
 
-const CRC_TABLE = new Int32Array(256);
+// Four tables (slicing by 4): CRC_TABLE[256 k + n] is byte n's CRC followed by k
+// zero bytes, so four bytes are folded in with four independent lookups.
+const CRC_TABLE = new Int32Array(4 * 256);
 for (let n = 0; n < 256; n++) {
   let c = n;
   for (let k = 0; k < 8; k++) c = c & 1 ? 0xedb88320 ^ (c >>> 1) : c >>> 1;
   CRC_TABLE[n] = c;
 }
+for (let n = 0; n < 256; n++) {
+  for (let k = 1; k < 4; k++) {
+    const c = CRC_TABLE[256 * (k - 1) + n];
+    CRC_TABLE[256 * k + n] = CRC_TABLE[c & 255] ^ (c >>> 8);
+  }
+}
 
 // CRC-32 (IEEE 802.3, zlib's crc32) of `bytes`, unsigned.
 function crc32(bytes) {
-  let c = -1;
-  for (let i = 0; i < bytes.length; i++) c = CRC_TABLE[(c ^ bytes[i]) & 255] ^ (c >>> 8);
+  const t = CRC_TABLE;
+  let c = -1, i = 0;
+  for (const end = bytes.length - 3; i < end; i += 4) {
+    c ^= bytes[i] | (bytes[i + 1] << 8) | (bytes[i + 2] << 16) | (bytes[i + 3] << 24);
+    c = t[768 + (c & 255)] ^ t[512 + ((c >>> 8) & 255)] ^ t[256 + ((c >>> 16) & 255)] ^
+        t[c >>> 24];
+  }
+  for (; i < bytes.length; i++) c = t[(c ^ bytes[i]) & 255] ^ (c >>> 8);
   return (c ^ -1) >>> 0;
 }
 
@@ -60,29 +74,50 @@ export function withoutChecksum(bytes) {
 
 // ---- the fields ---------------------------------------------------------------------
 
-// A growing Float64Array: one field, filled segment by segment.
+// One field, filled segment by segment: allocated once at its size (symbolCounts).
 class Field {
-  constructor(size) {
-    this.values = new Float64Array(size);
+  constructor(size, name) {
+    this.values = allocate(size, name);
     this.length = 0;
   }
 
   // The next `count` values' room (a view), counted as filled.
-  append(count, name) {
+  append(count) {
     const end = this.length + count;
-    if (end > this.values.length) {
-      const bigger = allocate(Math.max(2 * this.values.length, end), name);
-      bigger.set(this.values.subarray(0, this.length));
-      this.values = bigger;
-    }
     const room = this.values.subarray(this.length, end);
     this.length = end;
     return room;
   }
+}
 
-  view() {
-    return this.values.subarray(0, this.length);
+// The symbols each stream holds over all segments, and the most in one segment: a
+// pass over the segment table that skips the coded bytes, so that every field and
+// scratch array is allocated once. It stops, without an error, at the first stream
+// whose table entry is malformed (cut short, or a count its bytes cannot code):
+// decoding reaches the same entry after the ones counted here and refuses it, with
+// its own message and nothing allocated for it.
+function symbolCounts(body, streams) {
+  const table = makeReader(body, 'segment table');
+  const totals = new Float64Array(streams), largest = new Float64Array(streams);
+  try {
+    const segments = table.varint();
+    for (let i = 0; i < segments; i++) {
+      table.varint();
+      for (let k = 0; k < streams; k++) {
+        const count = table.varint();
+        if (count > 0) {
+          const bytes = table.varint();
+          if (count > MAX_SYMBOLS_PER_BYTE * bytes) return { totals, largest };
+          table.bytes(bytes);
+        }
+        totals[k] += count;
+        if (count > largest[k]) largest[k] = count;
+      }
+    }
+  } catch (error) {
+    if (!(error instanceof PacketError)) throw error;
   }
+  return { totals, largest };
 }
 
 // Room for a stream's values: a damaged count can ask for more than a browser will
@@ -96,8 +131,11 @@ function allocate(count, name) {
   }
 }
 
+// Even u is u / 2, odd u is -(u + 1) / 2, in float operations that are exact for
+// integers (% on a float is a slow library call).
 function unzigzag(u) {
-  return u % 2 === 0 ? u / 2 : -(u + 1) / 2;
+  const half = u / 2, floor = Math.floor(half);
+  return floor === half ? half : -(floor + 1);
 }
 
 function zigzag(d) {
@@ -140,11 +178,14 @@ export function readBodyV4(body, bodyLength, packet, flags) {
   const records = Math.abs(packet.stop - packet.start);
   const names = ['batch', ...streamNames(packet.attributes, packet.hasMaterials)];
   const layout = shapes(packet, forward, flags);
-  // the first sizes: the streams of one value per record, and six positions (up to
-  // the packet's records: a damaged header can declare billions)
-  const first = Math.min(records, 1 << 16);
-  const out = names.slice(1).map((_, k) => new Field(
-    k === POSITION ? 6 * first : k === VERTEX || k === COUNT ? first : 1024));
+  const { totals, largest } = symbolCounts(body, names.length);
+  const edges = forward && flags & EDGE_POSITIONS;
+  const out = names.slice(1).map((name, k) => new Field(
+    k === POSITION && edges ? 6 * (totals[k + 1] / 7) : totals[k + 1], name));
+  // scratch for one segment: its runs, gaps, and positions before they are turned back
+  const scratch = { runs: allocate(largest[0], names[0]),
+                    gaps: allocate(forward ? largest[1 + VERTEX] : 0, names[1 + VERTEX]),
+                    edges: allocate(edges ? largest[1 + POSITION] : 0, names[1 + POSITION]) };
   const table = makeReader(body, 'segment table');
   const segments = table.varint();
   let done = 0;
@@ -153,20 +194,21 @@ export function readBodyV4(body, bodyLength, packet, flags) {
     if (!(size > 0 && size <= records - done)) {
       throw new PacketError("the packet's segments do not add up to its records");
     }
-    readSegment(table, names, layout, size, forward ? packet.start + done : -1, flags, out);
+    readSegment(table, names, layout, size, forward ? packet.start + done : -1, flags, out,
+                scratch);
     done += size;
   }
   if (done !== records || table.at !== body.length) {
     throw new PacketError("the packet's segments do not add up to its records");
   }
-  return out.map((field) => field.view());
+  return out.map((field) => field.values);
 }
 
 // Every stream of one segment of `size` records, appended to the fields `out`: the
 // symbols straight into their field, but for the batch runs, their gaps turned back
 // into vertex codes (`t0`, the segment's first new vertex; -1 for collapses), and the
 // split edge back to d1, d2.
-function readSegment(table, names, layout, size, t0, flags, out) {
+function readSegment(table, names, layout, size, t0, flags, out, scratch) {
   const forward = t0 >= 0;
   let runs = null, counts = null;
   for (let k = 0; k < names.length; k++) {
@@ -186,22 +228,22 @@ function readSegment(table, names, layout, size, t0, flags, out) {
       if (!forward && count) {
         throw new PacketError("the packet's batch stream holds runs, but it collapses");
       }
-      runs = allocate(count, name);
+      runs = scratch.runs.subarray(0, count);
       stream.decode(runs, PLAIN, 1, NO_AUX);
       if (forward) checkRuns(runs, size);
     } else if (shape.runs) {
       if (count !== size) {
         throw new PacketError("the packet's vertex stream does not hold one gap per split");
       }
-      const gaps = allocate(count, name);
+      const gaps = scratch.gaps.subarray(0, count);
       stream.decode(gaps, RUNS, 1, runs);
-      vertexCodes(runs, gaps, t0, out[VERTEX].append(count, name));
+      vertexCodes(runs, gaps, t0, out[VERTEX].append(count));
     } else if (k === 1 + POSITION && forward && flags & EDGE_POSITIONS) {
-      const symbols = allocate(count, name);
+      const symbols = scratch.edges.subarray(0, count);
       stream.decode(symbols, shape.classed ? CLASSED : PLAIN, shape.period, NO_AUX);
-      edgePositions(symbols, out[POSITION].append(6 * size, name));
+      edgePositions(symbols, out[POSITION].append(6 * size));
     } else {
-      const values = out[k - 1].append(count, name);
+      const values = out[k - 1].append(count);
       if (shape.faces) {
         let total = 0;
         for (let i = 0; i < counts.length; i++) total += counts[i];

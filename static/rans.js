@@ -24,7 +24,7 @@ const SHARED = PROB_SCALE - ALPHABET;   // every bucket keeps a frequency of 1
 // A symbol takes at least log2(4096 / 3987) bits of the state (3987: the largest
 // frequency, every other bucket keeping 1), so a stream of L bytes codes fewer than
 // 210 L symbols: a count past this bound is refused before anything is allocated.
-const MAX_SYMBOLS_PER_BYTE = 256;
+export const MAX_SYMBOLS_PER_BYTE = 256;
 const COARSE_BITS = 6;              // the coarse table has a bucket per 64 slots
 
 const EMPTY = new Uint8Array(0);
@@ -96,14 +96,16 @@ function build(m, c) {
   const total = ALPHABET + INCREMENT * m.coded[c];
   const one = 1 + floorDiv(SHARED, total);
   freq.fill(one, base, base + ALPHABET);
-  let used = one * ALPHABET;
+  let used = one * ALPHABET, top = base;
   for (let i = base, end = base + m.seenCount[c]; i < end; i++) {
     const b = base + seen[i];
     const f = 1 + floorDiv(counts[b] * SHARED, total);
     freq[b] = f;
     used += f - one;
+    // the first largest count: a coded bucket's is above the others' 1
+    if (counts[b] > counts[top] || (counts[b] === counts[top] && b < top)) top = b;
   }
-  freq[base + m.top[c]] += PROB_SCALE - used;
+  freq[top] += PROB_SCALE - used;
   tables(freq, base, m.start, c * (ALPHABET + 1), m.coarse, c * (PROB_SCALE >> COARSE_BITS));
 }
 
@@ -138,7 +140,6 @@ export class SymbolReader {
     this.coarse = new Uint8Array(models * (PROB_SCALE >> COARSE_BITS));
     this.coded = new Int32Array(models);
     this.rebuild = new Int32Array(models).fill(FIRST_REBUILD);
-    this.top = new Int32Array(models);              // the first bucket of the largest count
     // the buckets each context has coded, in the order first coded (the others keep
     // their count of 1, and so share one frequency)
     this.seen = new Uint8Array(models * ALPHABET);
@@ -171,7 +172,7 @@ export class SymbolReader {
   decode(values, rule, period, aux) {
     const n = values.length;
     if (n !== this.count) throw new Error('decode() reads every symbol of a stream');
-    const { data, counts, freq, start, coarse, coded, rebuild, top, seen, seenCount } = this;
+    const { data, counts, start, coarse, coded, rebuild, seen, seenCount } = this;
     const length = data.length;
     let x = this.x, at = this.at;
     // the context rules' state
@@ -207,10 +208,12 @@ export class SymbolReader {
       }
       const base = c * ALPHABET;
       const slot = x & SLOT_MASK;
-      const so = c * (ALPHABET + 1);
+      const so = c * (ALPHABET + 1) + 1;         // start[so + b]: the end of bucket b
       let b = coarse[(c << (PROB_BITS - COARSE_BITS)) + (slot >> COARSE_BITS)];
-      while (start[so + b + 1] <= slot) b++;
-      x = freq[base + b] * (x >>> PROB_BITS) + slot - start[so + b];
+      let end = start[so + b];
+      while (end <= slot) end = start[so + ++b];
+      const begin = start[so + b - 1];
+      x = (end - begin) * (x >>> PROB_BITS) + slot - begin;
       while (x < STATE_LOW) {
         if (at >= length) throw ended(this.name);
         x = (x << 8) | data[at++];
@@ -218,9 +221,7 @@ export class SymbolReader {
       // the model learns the bucket
       const k = base + b;
       if (counts[k] === 1) seen[base + seenCount[c]++] = b;
-      const count = counts[k] += INCREMENT;
-      const t = base + top[c];
-      if (count > counts[t] || (count === counts[t] && k < t)) top[c] = b;
+      counts[k] += INCREMENT;
       if (++coded[c] === rebuild[c]) {
         rebuild[c] = coded[c] + Math.min(coded[c], REBUILD_EVERY);
         build(this, c);
