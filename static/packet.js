@@ -1,5 +1,6 @@
 // Reading a vertex-split packet: the header, the inflated body cut into its
-// streams, and the varints records are made of. Mirrors docs/packets.md,
+// streams, their varints decoded into the fields the records read (FieldReader).
+// Mirrors docs/packets.md,
 // "Byte layout" and the stream order and varint rules of "How the server cuts
 // packets"; the reference is lodserver/packets/format.py (unpack_header,
 // stream_names) and reference.py (decode_packet).
@@ -149,13 +150,35 @@ export function fieldReader(values, name) {
   return new FieldReader(values, name);
 }
 
-// The varints of a version 3 stream, as the values of its field.
+// The varints of a version 3 stream, as the values of its field: a loop on locals
+// for the values of up to four bytes (below 2^28), the reader's varint() for the rest.
 function varintValues(data, name) {
-  const values = new Float64Array(data.length);      // a varint takes a byte at least
+  // one value per byte below 128 (a varint's last), and one for a varint cut short
+  let count = 0;
+  for (let i = 0; i < data.length; i++) count += data[i] < 0x80 ? 1 : 0;
+  if (data.length && data[data.length - 1] >= 0x80) count++;
+  const values = new Float64Array(count);
   const reader = new StreamReader(data, name);
-  let n = 0;
-  while (reader.at < data.length) values[n++] = reader.varint();
-  return values.slice(0, n);
+  const length = data.length;
+  let n = 0, at = 0;
+  while (at < length) {
+    let byte = data[at];
+    let value = byte & 0x7f;
+    let end = at + 1;
+    for (let shift = 7; byte >= 0x80 && shift < 28 && end < length; shift += 7) {
+      byte = data[end++];
+      value |= (byte & 0x7f) << shift;
+    }
+    if (byte >= 0x80) {
+      reader.at = at;
+      values[n++] = reader.varint();
+      at = reader.at;
+    } else {
+      values[n++] = value;
+      at = end;
+    }
+  }
+  return values;
 }
 
 export function offGrid() {
