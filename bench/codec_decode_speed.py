@@ -1,7 +1,20 @@
-"""How fast version 4's symbol layer decodes when compiled: a stand-in for the
-browser decoder's speed target (2M splits/s), measured on a real packet.
+"""How fast packets decode: the browser decoder in node against another build's,
+and version 4's symbol layer compiled, on real packets.
 
-A numba transcription of ``rans.SymbolReader`` (the same arithmetic and model
+``--node``: the base -> full packet of each mesh (one packet, all splits), version 3
+and version 4 at their default flags, read (``LodState.readPacket``) and applied
+(``LodState.apply``) by this checkout's ``static/`` and by the ``static/`` of git ref
+``--against`` (``git archive``, default ``main``), in node, CPU time, the builds
+alternating round by round (``codec_decode_node.mjs``); every build must reach the
+same state from both packets. Prints the medians of read, apply and read + apply
+(the first round, JIT warm-up, dropped) in ms and M splits/s, and each build's
+paired ratio to this one (median over rounds). Headless Chromium, the same packets
+(wall time): ``codec_browser.py --against DIR``.
+
+    PYTHONPATH=$PWD python bench/codec_decode_speed.py --node bunny_loop2 --bits 14
+    PYTHONPATH=$PWD python bench/codec_decode_speed.py --node stanford-bunny --rounds 21
+
+Without ``--node``: a numba transcription of ``rans.SymbolReader`` (the same arithmetic and model
 schedule, a lookup table per context, 32-bit-safe state) decodes every coded
 stream of the base -> full packet of a mesh, with each symbol's context taken
 from the encoder (the contexts' rules cost a few operations more per symbol in a
@@ -13,7 +26,15 @@ layer alone; applying the records (connectivity, positions, wedges) comes on top
 
 from __future__ import annotations
 
+import argparse
+import io
+import json
+import shutil
+import statistics
+import subprocess
 import sys
+import tarfile
+import tempfile
 import time
 from pathlib import Path
 
@@ -24,7 +45,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from codec_meshes import progressive  # noqa: E402
 
-from lodserver.packets import encode, grid_of  # noqa: E402
+from codec_browser import document_of  # noqa: E402
+
+from lodserver.packets import encode, encode_packet, grid_of, quantized_level  # noqa: E402
 from lodserver.packets import encode_v4 as v4  # noqa: E402
 from lodserver.packets.format import stream_names  # noqa: E402
 from lodserver.packets.rans import (  # noqa: E402
@@ -144,5 +167,90 @@ def main(names):
               f"{symbols / best / 1e6:.1f} M symbols/s, {records / best / 1e6:.2f} M splits/s")
 
 
+HERE = Path(__file__).resolve().parent
+REPO = HERE.parent
+
+
+def static_of(ref: str, into: Path) -> Path:
+    """The ``static/`` folder of git ref ``ref``, extracted under ``into``."""
+    archive = subprocess.run(["git", "-C", str(REPO), "archive", ref, "static"],
+                             check=True, capture_output=True).stdout
+    folder = into / ref.replace("/", "_")
+    folder.mkdir()
+    with tarfile.open(fileobj=io.BytesIO(archive)) as tar:
+        tar.extractall(folder, filter="data")
+    return folder / "static"
+
+
+def node_rounds(name: str, bits: int | None, rounds: int, against: list[str]) -> None:
+    """Times this checkout's browser decoder against the refs' in node (see the module
+    docstring); prints the table rows of one mesh."""
+    node = shutil.which("node")
+    if node is None:
+        raise SystemExit("no node on PATH")
+    pm = progressive(name)
+    n0, n = pm.base_vertices, pm.vertex_count
+    grid = grid_of(pm, bits=bits)
+    full = quantized_level(pm, n, grid)
+    packets = {"v3": encode_packet(pm, n0, n, bits=bits),
+               "v4": v4.encode_packet_v4(pm, n0, n, bits=bits)}
+    with tempfile.TemporaryDirectory() as scratch:
+        folder = Path(scratch)
+        (folder / "level.json").write_text(json.dumps({
+            "document": document_of(quantized_level(pm, n0, grid),
+                                    0 if full.wedges is None else len(full.wedges)),
+            "capacity": {"vertexCapacity": n, "faceCapacity": int(pm.face_counts[-1])}}))
+        for version, data in packets.items():
+            (folder / version).write_bytes(data)
+        (folder / "packets.json").write_text(json.dumps(list(packets)))
+        builds = {"this": REPO / "static"}
+        for ref in against:
+            builds[ref] = static_of(ref, folder)
+        labels = {str(path): label for label, path in builds.items()}
+        out = subprocess.run([node, str(HERE / "codec_decode_node.mjs"), str(folder),
+                              str(rounds), *map(str, builds.values())],
+                             check=True, capture_output=True, text=True).stdout
+    times = {label: {v: [] for v in packets} for label in builds}
+    for line in out.splitlines():
+        row = json.loads(line)
+        label = labels[row["build"]]
+        for version, (read, apply) in row["times"].items():
+            times[label][version].append((read, apply))
+        ends = row["ends"]
+        assert ends["v3"] == ends["v4"], f"{label}: v3 and v4 end on different states: {ends}"
+        assert ends["v3"][:2] == [n, int(pm.face_counts[-1])], ends
+    splits = n - n0
+    print(f"{name}: {splits} splits, bits {grid.bits}, {rounds} rounds (first dropped), "
+          "node, CPU ms, medians")
+    for label in builds:
+        for version in packets:
+            kept = times[label][version][1:]
+            read = statistics.median(r for r, _ in kept)
+            apply = statistics.median(a for _, a in kept)
+            both = statistics.median(r + a for r, a in kept)
+            rate = [splits / ms / 1e3 for ms in (read, apply, both)]
+            print(f"  {label:8s} {version}: read {read:7.1f}  apply {apply:7.1f}  read+apply "
+                  f"{both:7.1f} ms = M splits/s {rate[0]:.2f} / {rate[1]:.2f} / {rate[2]:.2f}")
+    for label in list(builds)[1:]:
+        for version in packets:
+            pairs = list(zip(times[label][version][1:], times["this"][version][1:]))
+            ratio = [statistics.median(o[k] / t[k] for o, t in pairs) for k in (0, 1)]
+            total = statistics.median(sum(o) / sum(t) for o, t in pairs)
+            print(f"  {label}/this {version}: read x{ratio[0]:.2f}  apply x{ratio[1]:.2f}  "
+                  f"read+apply x{total:.2f} (paired)")
+
+
 if __name__ == "__main__":
-    main(sys.argv[1:])
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("meshes", nargs="*", default=["bunny_loop2"])
+    parser.add_argument("--node", action="store_true", help="time the browser decoder in node")
+    parser.add_argument("--bits", type=int, default=None)
+    parser.add_argument("--rounds", type=int, default=7)
+    parser.add_argument("--against", action="append", default=None,
+                        help="git ref whose static/ is timed too (default: main)")
+    args = parser.parse_args()
+    if args.node:
+        for mesh in args.meshes:
+            node_rounds(mesh, args.bits, args.rounds, args.against or ["main"])
+    else:
+        main(args.meshes)

@@ -25,12 +25,12 @@ function applyCollapses(start, stop, readers) {
   for (let t = start - 1; t >= stop; t--) {
     this.gatherCorners(t);
     this.gatherNeighbours(t);
-    const s = this.decodeVertex(vertex.varint());
+    const s = this.decodeVertex(vertex.next());
     if (!(s >= 0 && s < t)) {
       throw new PacketError(`collapse of ${t} names vertex ${s}, which is not below it`);
     }
     this.parent[t] = s;
-    const removed = count.varint();
+    const removed = count.next();
     if (removed > this.faceCount) {
       throw new PacketError(`collapse of ${t} removes more faces than the state holds`);
     }
@@ -83,7 +83,7 @@ function collapseWedges(t, s, ratio, readers) {
   const from = this.ringInfo[4 * s], to = from + this.ringInfo[4 * s + 1];   // corners(s)
   const { attributeOffset, attributeComponents, attributeLimit } = this;
   const top = this.wedgeCount;
-  const m = wedgeCount.varint();
+  const m = wedgeCount.next();
   const bottom = top - m;
   if (bottom < 0) throw new PacketError(`collapse of ${t} removes more wedges than there are`);
   if (m > this.parents.length) this.parents = new Int32Array(2 * m);
@@ -91,7 +91,7 @@ function collapseWedges(t, s, ratio, readers) {
   // only if a code needs them (-2, -1: not yet)
   let smallest = -2, known = -1;
   for (let x = top - 1; x >= bottom; x--) {
-    const u = wedgeParent.varint();
+    const u = wedgeParent.next();
     let p;
     if (u === 0) {
       if (smallest === -2) {

@@ -32,6 +32,8 @@ const FIRST_ROOM = 8;               // corners a vertex's home block holds (vale
 // record loops (splits.js, collapses.js) read the memory of the next records
 // ahead; below it, those reads would only cost.
 export const READ_AHEAD_VERTICES = 1 << 16;
+// Splits read ahead in groups of this many records (readAhead).
+export const AHEAD_GROUP = 32;
 
 // The rows and pool of vertexCapacity vertices, each with its empty home block:
 // { ringInfo, ring, ringEnd } for LodState's fields.
@@ -162,7 +164,7 @@ function decodeVertex(code) {
 function listedCorners(mask) {
   const count = this.aroundCount;
   const held = Array.from(this.aroundCorners.subarray(0, count)).sort((a, b) => a - b);
-  const bits = mask.bytes((count + 7) >> 3);
+  const bits = mask.take((count + 7) >> 3);
   let moves = 0;
   for (let i = 0; i < count; i++) {
     if ((bits[i >> 3] >> (i & 7)) & 1) this.moved[moves++] = held[i];
@@ -217,8 +219,43 @@ function predictFan(s, t, k) {
   return moves;
 }
 
+// The memory the splits of groups ahead will read, touched (the values summed
+// into this.sink, so the reads are kept): sources[g .. g + AHEAD_GROUP) is the
+// group about to run. A split's reads form a chain (its row, then its block,
+// then its corners' faces), each step's address in the last step's value: one
+// split at a time, each miss waits for the one before. Here every step is
+// taken for a whole group at once, a group further ahead for each earlier step,
+// so a step's misses are independent loads the core has in flight together, and
+// its addresses were fetched by the step before, one group earlier. What a
+// split reads may change before it runs (an earlier split moves a block): such
+// a touch is only wasted.
+function readAhead(sources, g, count) {
+  const info = this.ringInfo, ring = this.ring, faces = this.faces;
+  const positions = this.positions;
+  const G = AHEAD_GROUP;
+  let sink = this.sink;
+  // three groups ahead: the rows and positions
+  for (let i = Math.max(g + 3 * G, 0), end = Math.min(g + 4 * G, count); i < end; i++) {
+    const s = sources[i];
+    sink = (sink + info[4 * s] + positions[3 * s]) | 0;
+  }
+  // two groups ahead: the blocks (their first and last corner)
+  for (let i = Math.max(g + 2 * G, 0), end = Math.min(g + 3 * G, count); i < end; i++) {
+    const row = 4 * sources[i], n = info[row + 1];
+    if (n > 0) sink = (sink + ring[info[row]] + ring[info[row] + n - 1]) | 0;
+  }
+  // one group ahead: the faces of the corners
+  for (let i = Math.max(g + G, 0), end = Math.min(g + 2 * G, count); i < end; i++) {
+    const row = 4 * sources[i];
+    for (let j = info[row], stop = j + info[row + 1]; j < stop; j++) {
+      sink = (sink + faces[ring[j]]) | 0;
+    }
+  }
+  this.sink = sink;
+}
+
 // The methods of LodState this module defines.
 export const fanMethods = {
-  link, growRing, unlink, moveCorner, moveAll, gatherCorners, growScratch, gatherNeighbours,
-  decodeVertex, listedCorners, predictFan,
+  readAhead, link, growRing, unlink, moveCorner, moveAll, gatherCorners, growScratch,
+  gatherNeighbours, decodeVertex, listedCorners, predictFan,
 };

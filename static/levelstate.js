@@ -28,7 +28,7 @@ import { grow } from './arrays.js';
 import { collapseMethods } from './collapses.js';
 import { fanMethods, homeRings, NONE } from './fans.js';
 import {
-  attributeGrid, makeReader, PacketError, readPacket, sameGrid, streamNames,
+  attributeGrid, fieldReader, PacketError, readPacket, sameGrid, streamNames,
 } from './packet.js';
 import { splitMethods } from './splits.js';
 import { wedgeMethods } from './wedges.js';
@@ -82,7 +82,7 @@ export class LodState {
     return state;
   }
 
-  // Parse a packet's header and inflate its streams (packet.js); apply() checks it fits.
+  // Parse a packet's header and decode its fields (packet.js); apply() checks it fits.
   static readPacket(buffer) {
     return readPacket(buffer);
   }
@@ -245,10 +245,10 @@ export class LodState {
       throw new PacketError('the packet and the state disagree on face materials');
     }
     const names = streamNames(packet.attributes, packet.hasMaterials);
-    const readers = packet.streams.map((data, i) => makeReader(data, names[i]));
+    const readers = packet.fields.map((values, i) => fieldReader(values, names[i]));
     if (packet.stop > packet.start) this.applySplits(packet.start, packet.stop, readers);
     else this.applyCollapses(packet.start, packet.stop, readers);
-    if (!readers.every((reader) => reader.at === reader.data.length)) {
+    if (!readers.every((reader) => reader.done())) {
       throw new PacketError("the packet's streams hold more than its records");
     }
     if (this.faceCount !== packet.stopFaces) {

@@ -1,5 +1,6 @@
 // Reading a vertex-split packet: the header, the inflated body cut into its
-// streams, and the varints records are made of. Mirrors docs/packets.md,
+// streams, their varints decoded into the fields the records read (FieldReader).
+// Mirrors docs/packets.md,
 // "Byte layout" and the stream order and varint rules of "How the server cuts
 // packets"; the reference is lodserver/packets/format.py (unpack_header,
 // stream_names) and reference.py (decode_packet).
@@ -21,6 +22,8 @@ const READABLE_VERSIONS = [1, 2, 3, 4];
 const VERSION_4 = 4;
 const HEADER_BYTES = 60;
 const STREAM_NAMES = ['vertex', 'count', 'pattern', 'other', 'fan', 'mask', 'position'];
+// The streams of bytes (by index in STREAM_NAMES); the others are varints.
+export const BYTE_STREAMS = [2, 4, 5];
 const HAS_MATERIALS = 1;           // header flag
 const V2_ATTRIBUTE_NAMES = ['NORMAL', 'TEXCOORD_0', 'TEXCOORD_1', 'COLOR_0'];   // by kind code
 const ENCODINGS = ['linear', 'octahedral', 'tangent'];
@@ -103,6 +106,79 @@ class StreamReader {
 
 export function makeReader(data, name) {
   return new StreamReader(data, name);
+}
+
+// A cursor over one field of the records: the values of one stream as readPacket()
+// decoded them, in a Float64Array (a value can pass 2^32). Whatever the version, the
+// record loops read the same arrays through this one class: no varints are parsed
+// while a packet is applied, and the loops' calls stay monomorphic.
+class FieldReader {
+  constructor(values, name) {
+    this.values = values;
+    this.at = 0;
+    this.name = name;
+  }
+
+  next() {
+    if (this.at >= this.values.length) throw endOfStream(this);
+    return this.values[this.at++];
+  }
+
+  // Zigzag: even u is u / 2, odd u is -(u + 1) / 2 (float operations, exact for
+  // integers: values pass 2^31, and % on a float is a slow library call).
+  signed() {
+    const u = this.next();
+    const half = u / 2, floor = Math.floor(half);
+    return floor === half ? half : -(floor + 1);
+  }
+
+  // The next `count` values, as a view (no copy).
+  take(count) {
+    const end = this.at + count;
+    if (end > this.values.length) throw endOfStream(this);
+    const values = this.values.subarray(this.at, end);
+    this.at = end;
+    return values;
+  }
+
+  done() {
+    return this.at === this.values.length;
+  }
+}
+
+export function fieldReader(values, name) {
+  return new FieldReader(values, name);
+}
+
+// The varints of a version 3 stream, as the values of its field: a loop on locals
+// for the values of up to four bytes (below 2^28), the reader's varint() for the rest.
+function varintValues(data, name) {
+  // one value per byte below 128 (a varint's last), and one for a varint cut short
+  let count = 0;
+  for (let i = 0; i < data.length; i++) count += data[i] < 0x80 ? 1 : 0;
+  if (data.length && data[data.length - 1] >= 0x80) count++;
+  const values = new Float64Array(count);
+  const reader = new StreamReader(data, name);
+  const length = data.length;
+  let n = 0, at = 0;
+  while (at < length) {
+    let byte = data[at];
+    let value = byte & 0x7f;
+    let end = at + 1;
+    for (let shift = 7; byte >= 0x80 && shift < 28 && end < length; shift += 7) {
+      byte = data[end++];
+      value |= (byte & 0x7f) << shift;
+    }
+    if (byte >= 0x80) {
+      reader.at = at;
+      values[n++] = reader.varint();
+      at = reader.at;
+    } else {
+      values[n++] = value;
+      at = end;
+    }
+  }
+  return values;
 }
 
 export function offGrid() {
@@ -261,9 +337,10 @@ function readAttributeGrid(bytes, view, at, name, width, code, bits, step,
   return { grid: attributeGrid(name, { encoding, origin, step, bits }, width), at };
 }
 
-// Parse a packet's header and inflate its streams: { grid, start, stop,
-// startFaces, stopFaces, attributes, hasMaterials, streams (Uint8Array views
-// into the body, in streamNames() order) }.
+// Parse a packet's header and decode its body: { grid, start, stop, startFaces,
+// stopFaces, attributes, hasMaterials, fields (Float64Array, one per stream in
+// streamNames() order: the values the records read; a byte stream's bytes, a varint
+// stream's varints) }.
 export async function readPacket(buffer) {
   let bytes = new Uint8Array(buffer);
   // version 4 ends in a CRC-32, checked before anything else is read
@@ -311,11 +388,11 @@ export async function readPacket(buffer) {
     stopFaces: view.getUint32(20, true),
     attributes,
     hasMaterials: (flags & HAS_MATERIALS) !== 0,
-    streams: [],
+    fields: [],
   };
   const bodyLength = view.getUint32(56, true);
   if (version === VERSION_4) {
-    packet.streams = readBodyV4(bytes.subarray(at), bodyLength, packet, flags);
+    packet.fields = readBodyV4(bytes.subarray(at), bodyLength, packet, flags);
     return packet;
   }
   let body;
@@ -329,8 +406,10 @@ export async function readPacket(buffer) {
                           `${bodyLength}`);
   }
   const table = makeReader(body, 'stream table');
-  for (const name of streamNames(attributes, packet.hasMaterials)) {
-    packet.streams.push(table.bytes(table.varint()));
+  for (const [i, name] of streamNames(attributes, packet.hasMaterials).entries()) {
+    const data = table.bytes(table.varint());
+    packet.fields.push(BYTE_STREAMS.includes(i) ? Float64Array.from(data)
+      : varintValues(data, name));
   }
   if (table.at !== body.length) {
     throw new PacketError("the packet's body has bytes after its last stream");

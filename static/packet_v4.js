@@ -1,45 +1,58 @@
 // Reading a version 4 packet (docs/packets.md, "Version 4"): the checksum, then
 // the body's segments of rANS-coded symbols (rans.js), each symbol in the
-// context its stream's rule gives, turned back into version 3's streams of
-// varints and bytes. packet.js's readPacket() hands a version 4 packet here,
-// and its result is the structure it gives for version 3, so LodState.apply()
-// runs the records unchanged: they are version 3's. The reference is
+// context its stream's rule gives, turned back into the values of version 3's
+// streams (its fields: the varints and bytes a version 3 packet holds, as
+// numbers). packet.js's readPacket() hands a version 4 packet here, and its
+// result is the structure it gives for version 3, so LodState.apply() runs the
+// records unchanged: they are version 3's. The reference is
 // lodserver/packets/decode_v4.py (and streams_v4.py for the contexts).
 
-import { makeReader, PacketError, streamNames } from './packet.js';
-import { SymbolReader } from './rans.js';
+import { BYTE_STREAMS, makeReader, PacketError, streamNames } from './packet.js';
+import {
+  CLASSED, CLASSES, FACES, MAX_SYMBOLS_PER_BYTE, PATTERNS, PLAIN, RUNS, SymbolReader,
+} from './rans.js';
 
 const HAS_MATERIALS = 1, EDGE_POSITIONS = 2, MAGNITUDE_CONTEXTS = 4;
 const FLAGS = HAS_MATERIALS | EDGE_POSITIONS | MAGNITUDE_CONTEXTS;
 const HEADER_BYTES = 60, CRC_BYTES = 4;
 // Stream indices in version 3's order (the v4 body puts `batch` before them).
-const VERTEX = 0, COUNT = 1, PATTERN = 2, FAN = 4, MASK = 5, POSITION = 6;
-const BYTE_STREAMS = [PATTERN, FAN, MASK];
-const CLASSES = 8;                  // magnitude classes of a classed context
+const VERTEX = 0, COUNT = 1, POSITION = 6;
 const PLACES = 16;                  // the split edge's places, in 16ths
 const PLACE_COLUMN = 3;             // the place is not zigzagged
-const PATTERNS = 27;                // 3 codes per corner, 3 corners
 const RUN_CONTEXTS = 2, FACE_CONTEXTS = PATTERNS + 1;
 // A damaged packet's work is bounded by its records: at most this many symbols per
 // record and this many more in any stream but the position's.
 const SYMBOLS_PER_RECORD = 64, SYMBOLS_SLACK = 2 ** 16;
-// Varint bytes of a symbol (below 2^44), and of any value the split edge can give
-// from symbols (below 2^90).
-const SYMBOL_VARINT_BYTES = 7, VARINT_BYTES = 13;
+
+const NO_AUX = new Float64Array(0);    // decode()'s aux for the rules without one
 
 // ---- the checksum ----------------------------------------------------------------
 
-const CRC_TABLE = new Int32Array(256);
+// Four tables (slicing by 4): CRC_TABLE[256 k + n] is byte n's CRC followed by k
+// zero bytes, so four bytes are folded in with four independent lookups.
+const CRC_TABLE = new Int32Array(4 * 256);
 for (let n = 0; n < 256; n++) {
   let c = n;
   for (let k = 0; k < 8; k++) c = c & 1 ? 0xedb88320 ^ (c >>> 1) : c >>> 1;
   CRC_TABLE[n] = c;
 }
+for (let n = 0; n < 256; n++) {
+  for (let k = 1; k < 4; k++) {
+    const c = CRC_TABLE[256 * (k - 1) + n];
+    CRC_TABLE[256 * k + n] = CRC_TABLE[c & 255] ^ (c >>> 8);
+  }
+}
 
 // CRC-32 (IEEE 802.3, zlib's crc32) of `bytes`, unsigned.
 function crc32(bytes) {
-  let c = -1;
-  for (let i = 0; i < bytes.length; i++) c = CRC_TABLE[(c ^ bytes[i]) & 255] ^ (c >>> 8);
+  const t = CRC_TABLE;
+  let c = -1, i = 0;
+  for (const end = bytes.length - 3; i < end; i += 4) {
+    c ^= bytes[i] | (bytes[i + 1] << 8) | (bytes[i + 2] << 16) | (bytes[i + 3] << 24);
+    c = t[768 + (c & 255)] ^ t[512 + ((c >>> 8) & 255)] ^ t[256 + ((c >>> 16) & 255)] ^
+        t[c >>> 24];
+  }
+  for (; i < bytes.length; i++) c = t[(c ^ bytes[i]) & 255] ^ (c >>> 8);
   return (c ^ -1) >>> 0;
 }
 
@@ -59,68 +72,74 @@ export function withoutChecksum(bytes) {
   return bytes.subarray(0, end);
 }
 
-// ---- version 3 streams -------------------------------------------------------------
+// ---- the fields ---------------------------------------------------------------------
 
-// A growing byte buffer: one version 3 stream being rewritten.
-class StreamWriter {
-  constructor() {
-    this.data = new Uint8Array(1024);
+// One field, filled segment by segment: allocated once at its size (symbolCounts).
+class Field {
+  constructor(size, name) {
+    this.values = allocate(size, name);
     this.length = 0;
   }
 
-  reserve(extra) {
-    if (this.length + extra <= this.data.length) return;
-    const bigger = new Uint8Array(Math.max(2 * this.data.length, this.length + extra));
-    bigger.set(this.data.subarray(0, this.length));
-    this.data = bigger;
+  // The next `count` values' room (a view), counted as filled.
+  append(count) {
+    const end = this.length + count;
+    const room = this.values.subarray(this.length, end);
+    this.length = end;
+    return room;
   }
+}
 
-  // Every value of `values`, as varints: one reservation, the loop on locals.
-  varints(values) {
-    this.reserve(SYMBOL_VARINT_BYTES * values.length);
-    const { data } = this;
-    let n = this.length;
-    for (let i = 0; i < values.length; i++) {
-      const v = values[i];
-      if (v < 128) data[n++] = v;
-      else n = putVarint(data, n, v);
+// The symbols each stream holds over all segments, and the most in one segment: a
+// pass over the segment table that skips the coded bytes, so that every field and
+// scratch array is allocated once. It stops, without an error, at the first stream
+// whose table entry is malformed (cut short, or a count its bytes cannot code):
+// decoding reaches the same entry after the ones counted here and refuses it, with
+// its own message and nothing allocated for it.
+function symbolCounts(body, streams) {
+  const table = makeReader(body, 'segment table');
+  const totals = new Float64Array(streams), largest = new Float64Array(streams);
+  try {
+    const segments = table.varint();
+    for (let i = 0; i < segments; i++) {
+      table.varint();
+      for (let k = 0; k < streams; k++) {
+        const count = table.varint();
+        if (count > 0) {
+          const bytes = table.varint();
+          if (count > MAX_SYMBOLS_PER_BYTE * bytes) return { totals, largest };
+          table.bytes(bytes);
+        }
+        totals[k] += count;
+        if (count > largest[k]) largest[k] = count;
+      }
     }
-    this.length = n;
+  } catch (error) {
+    if (!(error instanceof PacketError)) throw error;
   }
+  return { totals, largest };
+}
 
-  view() {
-    return this.data.subarray(0, this.length);
+// Room for a stream's values: a damaged count can ask for more than a browser will
+// allocate (rans.js bounds it by the stream's bytes, not below that).
+function allocate(count, name) {
+  try {
+    return new Float64Array(count);
+  } catch {
+    throw new PacketError(`the packet's ${name} stream holds more symbols (${count}) than ` +
+                          'can be decoded here');
   }
 }
 
-// `v` as a varint into data[n ..]; returns its end.
-function putVarint(data, n, v) {
-  while (v >= 0x80000000) {
-    data[n++] = (v % 128) | 128;
-    v = Math.floor(v / 128);
-  }
-  while (v >= 128) {
-    data[n++] = (v & 127) | 128;
-    v >>>= 7;
-  }
-  data[n++] = v;
-  return n;
-}
-
-// `d` zigzagged, as version 3's signed varints.
-function putSigned(data, n, d) {
-  return putVarint(data, n, d >= 0 ? 2 * d : -2 * d - 1);
-}
-
+// Even u is u / 2, odd u is -(u + 1) / 2, in float operations that are exact for
+// integers (% on a float is a slow library call).
 function unzigzag(u) {
-  return u % 2 === 0 ? u / 2 : -(u + 1) / 2;
+  const half = u / 2, floor = Math.floor(half);
+  return floor === half ? half : -(floor + 1);
 }
 
-// The class of a symbol: 0 below 8, then one per power of two, the last 512 and more.
-function magnitudeClass(v) {
-  if (v < 8) return 0;
-  if (v >= 512) return CLASSES - 1;
-  return 31 - Math.clz32(v) - 2;
+function zigzag(d) {
+  return d >= 0 ? 2 * d : -2 * d - 1;
 }
 
 // ---- the body ----------------------------------------------------------------------
@@ -146,8 +165,9 @@ function shapes(packet, forward, flags) {
   return out;
 }
 
-// The version 3 streams (Uint8Array, in streamNames() order) of a version 4 body,
-// for the packet whose header readPacket() parsed; `bodyLength` is the header's.
+// The fields (Float64Array, in streamNames() order: version 3's values) of a
+// version 4 body, for the packet whose header readPacket() parsed; `bodyLength` is
+// the header's.
 export function readBodyV4(body, bodyLength, packet, flags) {
   if (flags & ~FLAGS) throw new PacketError(`the packet sets unknown flags (${flags})`);
   if (body.length !== bodyLength) {
@@ -158,7 +178,14 @@ export function readBodyV4(body, bodyLength, packet, flags) {
   const records = Math.abs(packet.stop - packet.start);
   const names = ['batch', ...streamNames(packet.attributes, packet.hasMaterials)];
   const layout = shapes(packet, forward, flags);
-  const out = names.slice(1).map(() => new StreamWriter());
+  const { totals, largest } = symbolCounts(body, names.length);
+  const edges = forward && flags & EDGE_POSITIONS;
+  const out = names.slice(1).map((name, k) => new Field(
+    k === POSITION && edges ? 6 * (totals[k + 1] / 7) : totals[k + 1], name));
+  // scratch for one segment: its runs, gaps, and positions before they are turned back
+  const scratch = { runs: allocate(largest[0], names[0]),
+                    gaps: allocate(forward ? largest[1 + VERTEX] : 0, names[1 + VERTEX]),
+                    edges: allocate(edges ? largest[1 + POSITION] : 0, names[1 + POSITION]) };
   const table = makeReader(body, 'segment table');
   const segments = table.varint();
   let done = 0;
@@ -167,19 +194,23 @@ export function readBodyV4(body, bodyLength, packet, flags) {
     if (!(size > 0 && size <= records - done)) {
       throw new PacketError("the packet's segments do not add up to its records");
     }
-    const decoded = readSegment(table, names, layout, size, forward);
-    writeFields(decoded, out, forward ? packet.start + done : -1, flags);
+    readSegment(table, names, layout, size, forward ? packet.start + done : -1, flags, out,
+                scratch);
     done += size;
   }
   if (done !== records || table.at !== body.length) {
     throw new PacketError("the packet's segments do not add up to its records");
   }
-  return out.map((writer) => writer.view());
+  return out.map((field) => field.values);
 }
 
-// Every stream of one segment of `size` records, as arrays of symbols.
-function readSegment(table, names, layout, size, forward) {
-  const decoded = [];
+// Every stream of one segment of `size` records, appended to the fields `out`: the
+// symbols straight into their field, but for the batch runs, their gaps turned back
+// into vertex codes (`t0`, the segment's first new vertex; -1 for collapses), and the
+// split edge back to d1, d2.
+function readSegment(table, names, layout, size, t0, flags, out, scratch) {
+  const forward = t0 >= 0;
+  let runs = null, counts = null;
   for (let k = 0; k < names.length; k++) {
     const shape = layout[k], name = names[k];
     const stream = new SymbolReader(table, shape.contexts, name);
@@ -193,43 +224,46 @@ function readSegment(table, names, layout, size, forward) {
       throw new PacketError(`the packet's ${name} stream holds more symbols than its ` +
                             'records can read');
     }
-    const values = symbolArray(count, name);
-    if (shape.runs) {
-      if (count !== size) {
-        throw new PacketError("the packet's vertex stream does not hold one gap per split");
-      }
-      readGaps(stream, decoded[0], values);
-    } else if (shape.faces) {
-      readPatterns(stream, decoded[1 + COUNT], values);
-    } else if (shape.classed) {
-      readClassed(stream, shape.period, values);
-    } else {
-      const { period } = shape;
-      for (let i = 0, j = 0; i < count; i++) {
-        values[i] = stream.read(j);
-        if (++j === period) j = 0;
-      }
-    }
-    stream.done();
     if (k === 0) {
       if (!forward && count) {
         throw new PacketError("the packet's batch stream holds runs, but it collapses");
       }
-      if (forward) checkRuns(values, size);
+      runs = scratch.runs.subarray(0, count);
+      stream.decode(runs, PLAIN, 1, NO_AUX);
+      if (forward) checkRuns(runs, size);
+    } else if (shape.runs) {
+      if (count !== size) {
+        throw new PacketError("the packet's vertex stream does not hold one gap per split");
+      }
+      const gaps = scratch.gaps.subarray(0, count);
+      stream.decode(gaps, RUNS, 1, runs);
+      vertexCodes(runs, gaps, t0, out[VERTEX].append(count));
+    } else if (k === 1 + POSITION && forward && flags & EDGE_POSITIONS) {
+      const symbols = scratch.edges.subarray(0, count);
+      stream.decode(symbols, shape.classed ? CLASSED : PLAIN, shape.period, NO_AUX);
+      edgePositions(symbols, out[POSITION].append(6 * size));
+    } else {
+      const values = out[k - 1].append(count);
+      if (shape.faces) {
+        let total = 0;
+        for (let i = 0; i < counts.length; i++) total += counts[i];
+        if (count !== total) {
+          throw new PacketError("the packet's pattern stream does not hold one pattern per " +
+                                'new face');
+        }
+        stream.decode(values, FACES, 1, counts);
+      } else {
+        stream.decode(values, shape.classed ? CLASSED : PLAIN, shape.period, NO_AUX);
+      }
+      if (k - 1 === COUNT) counts = values;
+      if (BYTE_STREAMS.includes(k - 1)) {
+        for (let i = 0; i < count; i++) {
+          if (values[i] > 255) {
+            throw new PacketError('the packet holds a pattern, fan or mask symbol above 255');
+          }
+        }
+      }
     }
-    decoded.push(values);
-  }
-  return decoded;
-}
-
-// Room for a stream's symbols: a damaged count can ask for more than a browser
-// will allocate (rans.js bounds it by the stream's bytes, not below that).
-function symbolArray(count, name) {
-  try {
-    return new Float64Array(count);
-  } catch {
-    throw new PacketError(`the packet's ${name} stream holds more symbols (${count}) than ` +
-                          'can be decoded here');
   }
 }
 
@@ -245,122 +279,37 @@ function checkRuns(runs, size) {
   if (covered !== size) throw new PacketError("the packet's batch runs do not cover its segment");
 }
 
-// One gap per split, in context 0 for the first of its run and 1 for the others
-// (the runs walked as they go: a damaged segment size allocates nothing here).
-function readGaps(stream, runs, values) {
-  for (let i = 0, run = 0, left = 0; i < values.length; i++) {
-    let context = 1;
-    if (left === 0) {
-      left = runs[run++] + 1;
-      context = 0;
-    }
-    values[i] = stream.read(context);
-    left--;
-  }
-}
-
-// Patterns, each in the context of its place: 0 for a record's first new face,
-// 1 + p after a face of pattern p.
-function readPatterns(stream, counts, values) {
-  let total = 0;
-  for (const faces of counts) total += faces;
-  if (stream.count !== total) {
-    throw new PacketError("the packet's pattern stream does not hold one pattern per new face");
-  }
+// Version 3's vertex codes t - 1 - vs from the runs, into `codes`: a run's first gap
+// is its vs, each next one vs - previous vs - 1.
+function vertexCodes(runs, gaps, t0, codes) {
   let i = 0;
-  for (const faces of counts) {
-    for (let f = 0; f < faces; f++, i++) {
-      const p = stream.read(f === 0 ? 0 : 1 + values[i - 1]);
-      if (p >= PATTERNS) throw new PacketError(`the packet holds a pattern above ${PATTERNS - 1}`);
-      values[i] = p;
-    }
-  }
-}
-
-// A classed stream: symbol j of a group in context 8 j + the class of the largest
-// symbol before it in its group, or for the first, of the whole previous group.
-function readClassed(stream, period, values) {
-  let group = 0, previous = 0;
-  for (let i = 0, j = 0; i < values.length; i++) {
-    let v;
-    if (j === 0) {
-      previous = i ? group : 0;
-      group = 0;
-      v = stream.read(magnitudeClass(previous));
-    } else {
-      v = stream.read(j * CLASSES + magnitudeClass(group));
-    }
-    values[i] = v;
-    if (v > group) group = v;
-    if (++j === period) j = 0;
-  }
-}
-
-// Append one segment's fields to the version 3 streams: the batch runs' gaps back
-// to vertex codes (`t0`, its first new vertex; -1 for collapses), the split edge
-// back to d1, d2.
-function writeFields(decoded, out, t0, flags) {
-  for (let k = 0; k < out.length; k++) {
-    const values = decoded[k + 1], writer = out[k];
-    if (k === VERTEX && t0 >= 0) {
-      writeVertexCodes(decoded[0], values, t0, writer);
-    } else if (k === POSITION && t0 >= 0 && flags & EDGE_POSITIONS) {
-      writeEdgePositions(values, writer);
-    } else if (BYTE_STREAMS.includes(k)) {
-      writer.reserve(values.length);
-      const { data } = writer;
-      let n = writer.length;
-      for (let i = 0; i < values.length; i++) {
-        if (values[i] > 255) {
-          throw new PacketError('the packet holds a pattern, fan or mask symbol above 255');
-        }
-        data[n++] = values[i];
-      }
-      writer.length = n;
-    } else {
-      writer.varints(values);
-    }
-  }
-}
-
-// Version 3's vertex codes t - 1 - vs from the runs: a run's first gap is its vs,
-// each next one vs - previous vs - 1.
-function writeVertexCodes(runs, gaps, t0, writer) {
-  writer.reserve(SYMBOL_VARINT_BYTES * gaps.length);
-  const { data } = writer;
-  let n = writer.length, i = 0;
   for (const length of runs) {
     let s = -1;
     for (let k = 0; k <= length; k++, i++) {
       s = k === 0 ? gaps[i] : s + 1 + gaps[i];
       const t = t0 + i;
       if (s >= t) throw new PacketError(`split ${t} names vertex ${s}, which does not exist yet`);
-      n = putVarint(data, n, t - 1 - s);
+      codes[i] = t - 1 - s;
     }
   }
-  writer.length = n;
 }
 
 // Per split: the edge E (3, zigzagged), the place l, the rest r (3, zigzagged);
-// d1 = r - floor((l E + 8) / 16), d2 = E + 2 d1, written zigzagged.
-function writeEdgePositions(symbols, writer) {
-  writer.reserve(VARINT_BYTES * 6 * (symbols.length / 7));
-  const { data } = writer;
-  let n = writer.length;
-  for (let at = 0; at < symbols.length; at += 7) {
+// d1 = r - floor((l E + 8) / 16), d2 = E + 2 d1, into `out` zigzagged, six a split.
+function edgePositions(symbols, out) {
+  for (let at = 0, n = 0; at < symbols.length; at += 7, n += 6) {
     const place = symbols[at + PLACE_COLUMN];
     const ex = unzigzag(symbols[at]), ey = unzigzag(symbols[at + 1]),
           ez = unzigzag(symbols[at + 2]);
     const x = moved(symbols[at + 4], place, ex), y = moved(symbols[at + 5], place, ey),
           z = moved(symbols[at + 6], place, ez);
-    n = putSigned(data, n, x);
-    n = putSigned(data, n, y);
-    n = putSigned(data, n, z);
-    n = putSigned(data, n, ex + 2 * x);
-    n = putSigned(data, n, ey + 2 * y);
-    n = putSigned(data, n, ez + 2 * z);
+    out[n] = zigzag(x);
+    out[n + 1] = zigzag(y);
+    out[n + 2] = zigzag(z);
+    out[n + 3] = zigzag(ex + 2 * x);
+    out[n + 4] = zigzag(ey + 2 * y);
+    out[n + 5] = zigzag(ez + 2 * z);
   }
-  writer.length = n;
 }
 
 // d1 on one axis from its rest symbol, the place and the edge.

@@ -14,7 +14,7 @@
 // to another module's functions.
 
 import { grow } from './arrays.js';
-import { READ_AHEAD_VERTICES } from './fans.js';
+import { AHEAD_GROUP, READ_AHEAD_VERTICES } from './fans.js';
 import { offGrid, PacketError } from './packet.js';
 
 const FAN_PREDICTED = 0;
@@ -35,36 +35,29 @@ function applySplits(start, stop, readers) {
   if (stop - start > this.sources.length) this.sources = new Int32Array(2 * (stop - start));
   const sources = this.sources;
   for (let t = start; t < stop; t++) {
-    const s = t - 1 - vertex.varint();
+    const s = t - 1 - vertex.next();
     if (s < 0) throw new PacketError(`split ${t} names a vertex below 0`);
     sources[t - start] = s;
   }
-  let sink = 0;
   const ahead = this.vertexCapacity >= READ_AHEAD_VERTICES;
+  if (ahead) {
+    // the pipeline's first groups: the steps readAhead() takes for them before they run
+    this.readAhead(sources, -3 * AHEAD_GROUP, stop - start);
+    this.readAhead(sources, -2 * AHEAD_GROUP, stop - start);
+    this.readAhead(sources, -AHEAD_GROUP, stop - start);
+  }
   for (let t = start; t < stop; t++) {
     const s = sources[t - start];
-    // Reads whose values are not used (summed into a field, so they are kept):
-    // they start the cache misses of the next records' s while this one runs.
-    // Two records ahead, its row and position; one ahead, its corners and faces.
-    if (ahead && t + 2 < stop) {
-      const u = sources[t + 2 - start];
-      sink = (sink + this.ringInfo[4 * u] + positions[3 * u]) | 0;
-    }
-    if (ahead && t + 1 < stop) {
-      const info = this.ringInfo, ring = this.ring, row = 4 * sources[t + 1 - start];
-      for (let i = info[row], end = i + info[row + 1]; i < end; i++) {
-        sink = (sink + faces[ring[i]]) | 0;
-      }
-    }
+    if (ahead && (t - start) % AHEAD_GROUP === 0) this.readAhead(sources, t - start, stop - start);
     this.parent[t] = s;
     // held(s) and neighbours(s) are taken before the record changes anything.
     this.gatherCorners(s);
-    const k = count.varint();
+    const k = count.next();
     if (3 * k > this.added.length) this.added = new Int32Array(6 * k);
     const added = this.added;
     let neighboursKnown = false;
     for (let i = 0; i < 3 * k; i += 3) {
-      const code = pattern.byte();
+      const code = pattern.next();
       if (code > 26) throw new PacketError(`split ${t} has a face pattern out of range`);
       // the base-3 digits of code, first corner first
       for (let j = 0; j < 3; j++) {
@@ -79,7 +72,7 @@ function applySplits(start, stop, readers) {
             this.gatherNeighbours(s);
             neighboursKnown = true;
           }
-          v = this.decodeVertex(other.varint());
+          v = this.decodeVertex(other.next());
         }
         if (v > t) {
           throw new PacketError(`split ${t} adds a face on a vertex that does not exist yet`);
@@ -88,7 +81,7 @@ function applySplits(start, stop, readers) {
       }
     }
 
-    const moves = fan.byte() === FAN_PREDICTED
+    const moves = fan.next() === FAN_PREDICTED
       ? this.predictFan(s, t, k) : this.listedCorners(mask);
     if (moves < 0) {
       throw new PacketError(`split ${t} relies on a fan prediction that does not exist`);
@@ -124,7 +117,7 @@ function applySplits(start, stop, readers) {
     this.markVertices(s, t + 1);
     if (material) {
       for (let f = firstFace; f < this.faceCount; f++) {
-        this.faceMaterial[f] = material.varint() - 1;
+        this.faceMaterial[f] = material.next() - 1;
       }
     }
     if (hasWedges) {
@@ -137,7 +130,6 @@ function applySplits(start, stop, readers) {
       this.touchVertex(t);
     }
   }
-  this.sink = sink;
 }
 
 // The wedge part of split t (docs/packets.md), after its geometry part: the
@@ -150,7 +142,7 @@ function splitWedges(s, t, moves, firstFace, readers) {
   const { wedges, corners, components, faces, fine, ring, ringInfo } = this;
   const { attributeOffset, attributeComponents, attributeLimit } = this;
   const bottom = this.wedgeCount;
-  const m = wedgeCount.varint();
+  const m = wedgeCount.next();
   const top = bottom + m;
   if (top > this.wedgeCapacity) {
     throw new PacketError(`split ${t} adds wedges beyond the mesh this state was made for`);
@@ -161,7 +153,7 @@ function splitWedges(s, t, moves, firstFace, readers) {
   // parents, by rank among the wedges of held(s)
   let known = -1, ratio = -1;
   for (let x = bottom; x < top; x++) {
-    const u = wedgeParent.varint();
+    const u = wedgeParent.next();
     let p;
     if (u === 0) p = this.smallestWedge(this.aroundCorners, this.aroundCount, bottom, 0);
     else {
@@ -208,7 +200,7 @@ function splitWedges(s, t, moves, firstFace, readers) {
   for (let i = 0; i < moves; i++) {
     const c = sorted[i];
     const y = corners[c];
-    const u = wedgeCorner.varint();
+    const u = wedgeCorner.next();
     let w;
     if (u === 0) {
       w = y;
@@ -228,7 +220,7 @@ function splitWedges(s, t, moves, firstFace, readers) {
   const limit = 3 * firstFace;
   for (let c = limit; c < 3 * this.faceCount; c++) {
     const v = faces[c];
-    const u = wedgeCorner.varint();
+    const u = wedgeCorner.next();
     let w;
     if (u === 0) {
       w = -1;

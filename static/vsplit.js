@@ -3,8 +3,8 @@
 // lodserver/packets/ (reference.py: decode_packet, apply_packet; grids.py:
 // state_from_json), which it must match exactly; its parts, one module each:
 //
-//   packet.js      the header, the streams, varints, attribute grids
-//   packet_v4.js   a version 4 packet read into version 3's streams
+//   packet.js      the header, the fields of the streams, attribute grids
+//   packet_v4.js   a version 4 packet read into version 3's fields
 //   rans.js        version 4's entropy coder (rANS)
 //   levelstate.js  LodState: the level's arrays, dirty ranges, apply()
 //   splits.js      split records, and their wedge parts

@@ -32,7 +32,7 @@ from lodserver.packets import (
 )
 from lodserver.packets.decode_v4 import decode_packet_v4
 from lodserver.packets.encode_v4 import encode_packet_v4
-from lodserver.packets.format import EDGE_POSITIONS, MAGNITUDE_CONTEXTS
+from lodserver.packets.format import EDGE_POSITIONS, MAGNITUDE_CONTEXTS, Reader, stream_names
 
 from ..meshes import mesh as input_mesh
 from ..packets.test_attributes import _built as every_attribute_pm
@@ -90,8 +90,8 @@ APPLY_JS = """async ({ document, capacity, chains }) => {
 }"""
 
 # Each damaged packet read, then applied to a fresh state: what readPacket gave (a
-# PacketError, or the digest of each version 3 stream) and what apply gave (a
-# PacketError, or the digest of the positions reached).
+# PacketError, or the digest of each field: the values of a version 3 stream, as
+# float64) and what apply gave (a PacketError, or the digest of the positions reached).
 DAMAGED_JS = """async ({ document, capacity, packets }) => {
   const { LodState } = await import('/vsplit.js');
   const bytesOf = (b64) => Uint8Array.from(atob(b64), (c) => c.charCodeAt(0));
@@ -108,7 +108,9 @@ DAMAGED_JS = """async ({ document, capacity, packets }) => {
       continue;
     }
     const streams = [];
-    for (const stream of read.streams) streams.push(await hex(stream));
+    for (const field of read.fields) {
+      streams.push(await hex(new Uint8Array(field.buffer, field.byteOffset, field.byteLength)));
+    }
     const state = LodState.fromJson(document, capacity);
     try {
       state.apply(read);
@@ -275,14 +277,28 @@ def _damage_subject():
     return pm, state, _document(pm, a), capacity, encode_packet_v4(pm, a, b)
 
 
+def _field(stream, name):
+    """A version 3 stream's values as the browser's packet holds them (a field,
+    packet.js): its bytes, or its varints, as float64."""
+    if name in ("pattern", "fan", "mask"):
+        values = list(stream)
+    else:
+        reader, values = Reader(stream, name), []
+        while not reader.done():
+            values.append(reader.varint())
+    return np.array(values, dtype="<f8").tobytes()
+
+
 def _python_outcome(state, data):
     """What the reference gives: ("PacketError", None) when decode_packet_v4 refuses,
-    else (its streams' digests, "PacketError" or the positions' digest after apply)."""
+    else (its fields' digests, "PacketError" or the positions' digest after apply)."""
     try:
         packet = decode_packet_v4(data)
     except PacketError:
         return "PacketError", None
-    streams = [hashlib.sha256(s).hexdigest() for s in packet.streams]
+    names = stream_names(packet.attribute_grids, packet.has_materials)
+    streams = [hashlib.sha256(_field(s, name)).hexdigest()
+               for s, name in zip(packet.streams, names)]
     try:
         reached = apply_packet(state, packet)
     except PacketError:
@@ -314,7 +330,7 @@ def test_damaged_or_truncated_packets_are_packet_errors(page):
 def test_damage_behind_a_valid_checksum_decodes_as_the_reference_does(page):
     """Byte flips with the checksum made to match reach the symbol decoder: each ends
     (no hang) in a PacketError exactly when the reference decoder refuses it, and
-    otherwise in the reference's version 3 streams, stream for stream. Applied, those
+    otherwise in the reference's version 3 streams' values, stream for stream. Applied, those
     give a PacketError whenever the reference's apply does, or else the reference's
     state or a PacketError (LodState checks every record's values against their grids
     as it goes; the reference checks the state it ends on)."""
