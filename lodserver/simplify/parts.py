@@ -346,17 +346,21 @@ _MERGE_VALUES = ("merge_survivor", "merge_removed", "merge_value")
 
 
 def concatenate_logs(logs):
-    """The logs ``logs`` (``LogColumns``) one after another, as one ``LogColumns``."""
-    rows = {name: np.concatenate([getattr(log, name) for log in logs]) for name in _ROWS}
-    killed, killed_offsets = _concatenate_blocks(logs, "killed_offsets", "killed_faces")
-    moved, moved_offsets = _concatenate_blocks(logs, "moved_offsets", "moved_corners")
-    merge_survivor, merge_offsets = _concatenate_blocks(logs, "merge_offsets", "merge_survivor")
-    merge_removed, merge_value = (np.concatenate([getattr(log, name) for log in logs])
-                                  for name in _MERGE_VALUES[1:])
-    return LogColumns(**rows, killed_offsets=killed_offsets, killed_faces=killed,
-                      moved_offsets=moved_offsets, moved_corners=moved, merge_offsets=merge_offsets,
-                      merge_survivor=merge_survivor, merge_removed=merge_removed,
-                      merge_value=merge_value)
+    """The logs ``logs`` (a list of ``LogColumns``) one after another, as one
+    ``LogColumns``. ``logs`` is emptied: each column of the inputs is freed
+    once it is joined (if nothing else holds it), so the join needs room for
+    one column twice, not for the whole log twice."""
+    columns = [dict(log._asdict()) for log in logs]
+    logs.clear()
+    joined = {}
+    for values, offsets in (("killed_faces", "killed_offsets"), ("moved_corners", "moved_offsets"),
+                            ("merge_survivor", "merge_offsets")):
+        joined[values], joined[offsets] = _concatenate_blocks(columns, offsets, values)
+        for log in columns:
+            del log[values], log[offsets]
+    for name in _ROWS + _MERGE_VALUES[1:]:
+        joined[name] = np.concatenate([log.pop(name) for log in columns])
+    return LogColumns(**joined)
 
 
 def _take(logs, order):
@@ -378,12 +382,14 @@ def _take(logs, order):
 
 
 def _concatenate_blocks(logs, offsets_name, values_name):
-    """(values, offsets) of the block column ``values_name`` of every log, one
-    after another (its offsets ``offsets_name`` shifted to match)."""
+    """(values, offsets) of the block column ``values_name`` of every log
+    (``LogColumns`` or dicts of their columns), one after another (its offsets
+    ``offsets_name`` shifted to match)."""
+    logs = [log if isinstance(log, dict) else log._asdict() for log in logs]
     offsets, shift = [], 0
     for log in logs:
-        column = getattr(log, offsets_name)
+        column = log[offsets_name]
         offsets.append(column[:-1] + shift)
         shift += int(column[-1])
     offsets.append(np.array([shift], dtype=np.int64))
-    return np.concatenate([getattr(log, values_name) for log in logs]), np.concatenate(offsets)
+    return np.concatenate([log[values_name] for log in logs]), np.concatenate(offsets)
