@@ -50,6 +50,7 @@ import numba
 import numpy as np
 from numba import njit
 
+from ..heap import give_back
 from ..mesh import Mesh, MeshError, read_only, take_rows, to_unit_box, unit_box
 from ..overlap import both
 from .legality import check_legality
@@ -404,6 +405,7 @@ def _run_kernels(verts, faces, wedges, options, parts, states):
             rejected += sum(r[2] for r in results)
             passes += sum(r[3] for r in results)
             del results
+            give_back()     # the parts' copies, freed in the threads' own arenas
 
         def run_tail():
             """The rest of the hierarchy, on one dense copy of what is left
@@ -569,6 +571,8 @@ def decimate(mesh: Mesh, options: DecimateOptions = DecimateOptions(), *, locked
     if "log" not in result:
         raise RuntimeError("the decimation kernel failed")
     log, rejected, passes = result["log"]
+    del result, verts, wedges, faces
+    give_back()     # the kernels' working arrays: the progressive mesh is built next
     s, r = log.survivor, log.removed
     if order is not None:
         s, r = order[s], order[r]
