@@ -398,6 +398,8 @@ def _run_kernels(verts, faces, wedges, options, parts, states):
                 result = run(sub, stop, state)
                 # the next phase copies its parts out of the mesh's arrays
                 write_back(sub, verts, faces, face_alive, vertex_alive, wedges)
+                del sub
+                give_back()     # the copy and the kernel's queue and log, freed in this thread's arena
                 return result
 
             results = list(pool.map(run_part, range(count), [next(counters) for _ in range(count)]))
@@ -405,7 +407,6 @@ def _run_kernels(verts, faces, wedges, options, parts, states):
             rejected += sum(r[2] for r in results)
             passes += sum(r[3] for r in results)
             del results
-            give_back()     # the parts' copies, freed in the threads' own arenas
 
         def run_tail():
             """The rest of the hierarchy, on one dense copy of what is left
@@ -417,8 +418,7 @@ def _run_kernels(verts, faces, wedges, options, parts, states):
         # the tail is one kernel: the phases' logs are merged on this thread
         # meanwhile, off its critical path
         pending = pool.submit(run_tail)
-        logs = [merge_phases(phases)]
-        phases.clear()      # the parts' logs are in the merged one
+        logs = [merge_phases(phases)]       # which frees the parts' logs
         tail, _, refused, runs = pending.result()
         del pending
     logs.append(tail)
