@@ -383,6 +383,7 @@ def _run_kernels(verts, faces, wedges, options, parts, states):
             label = partition(verts.pos, live, vertex_alive, count, turned)
             face_ids, offsets = group_faces(faces, face_alive, label, count)
             face_count = np.bincount(live.ravel(), minlength=n)
+            del live        # a copy of the live faces, not needed while the parts run
             sizes = np.bincount(label[label >= 0], minlength=count)
             alive = int(np.count_nonzero(vertex_alive))
 
