@@ -24,7 +24,7 @@ PACKAGE = REPO / "lodserver"
 # The package's layers, in data-flow order: the first name that a module's dotted
 # name starts with gives its layer. A module may import its own layer and those before.
 LAYERS = [
-    ("lodserver.mesh", "lodserver.overlap", "lodserver.numba_cache"),
+    ("lodserver.mesh", "lodserver.overlap", "lodserver.numba_cache", "lodserver.heap"),
     ("lodserver.io",),
     ("lodserver.simplify", "lodserver.metrics", "lodserver.bake"),
     ("lodserver.options",),

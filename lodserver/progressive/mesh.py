@@ -51,6 +51,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 from numba import njit
 
+from ..heap import give_back
 from ..mesh import Attributes, Materials, Mesh, take_rows
 from ..overlap import both
 from .artefact import (ARRAYS, STORED_FIELDS, WEDGE_ARRAYS, ArtefactError, decode_artefact,
@@ -549,19 +550,28 @@ def from_collapse_log(mesh: Mesh, log: CollapseLog, metadata=None,
     faces, moved_corners = both(
         lambda: renumbered_faces(mesh.faces, face_order, new_id),
         lambda: reversed_corners(log.moved_corners, log.moved_offsets, new_face))
+    # freed before the turned copies and the derived arrays are made
+    del new_face, kept, new_id
 
     appearance = {}
     if mesh.attributes is not None:
         appearance = _renumber_wedges(mesh.attributes, log, face_order)
     # a codec then need not say where each new face starts
     turn = new_face_turns(faces, parent, face_counts, n0)
-    faces, moved_corners = turned_rows(faces, turn), turned_corners(moved_corners, turn)
+    # one after the other: each unturned array is freed before the next turned one is made
+    faces = turned_rows(faces, turn)
+    moved_corners = turned_corners(moved_corners, turn)
     if "corner_wedges" in appearance:
         appearance["corner_wedges"] = turned_rows(appearance["corner_wedges"], turn)
     if mesh.face_material is not None:
         appearance["face_material"] = mesh.face_material[face_order]
+    positions = take_rows(mesh.positions, order)
+    # the constructor's derived arrays are the last ones made, partly in
+    # another thread's malloc arena: the temporaries' pages are returned first
+    del turn, face_order, order
+    give_back()
     return ProgressiveMesh(
-        positions=take_rows(mesh.positions, order),
+        positions=positions,
         faces=faces,
         parent=parent, base_vertices=n0, coarse_position=coarse_position, error=error,
         face_counts=face_counts.astype(np.int64, copy=False), moved_offsets=moved_offsets,

@@ -50,6 +50,7 @@ import numba
 import numpy as np
 from numba import njit
 
+from ..heap import give_back
 from ..mesh import Mesh, MeshError, read_only, take_rows, to_unit_box, unit_box
 from ..overlap import both
 from .legality import check_legality
@@ -345,6 +346,8 @@ def _run_kernels(verts, faces, wedges, options, parts, states):
     on its own dense copy, ``simplify.submesh``, as many at once as there are
     threads), then the whole live mesh on a dense copy. ``states`` are the
     kernels' progress counters, one per kernel (``parts.kernel_count``).
+    ``faces`` is (m, 3) int64 for a whole-mesh run, int32 for a partitioned one
+    (its working copy, edited in place).
     Returns (the log, ``simplify.log.LogColumns``; rejections
     (REASON_COUNT,); passes)."""
     n = len(verts.pos)
@@ -354,8 +357,7 @@ def _run_kernels(verts, faces, wedges, options, parts, states):
             verts, topo, wedges, new_scratch(n), options, np.zeros(n, dtype=np.int32), 0,
             states[0])
         return columns, rejected, passes
-    # the mesh as the phases leave it; each phase copies its parts out of these
-    faces = faces.astype(np.int32)
+    # the mesh as the phases leave it (and ``faces``); each phase copies its parts out of these
     face_alive = np.ones(len(faces), dtype=bool)
     vertex_alive = np.bincount(faces.ravel(), minlength=n) > 0
     counters = iter(states)
@@ -366,7 +368,7 @@ def _run_kernels(verts, faces, wedges, options, parts, states):
         columns, keys, refused, runs = _decimate_kernel(
             sub.verts, sub.topo, sub.wedges, new_scratch(len(sub.vertex_ids)),
             options._replace(min_vertices=stop), sub.label, 0, state)
-        return map_log(columns, sub), keys, refused, runs
+        return map_log(columns, sub), keys.copy(), refused, runs
 
     threads = min(parts, numba.get_num_threads())
     # one (n,) array of -1 per thread for ``extract``, which hands it back
@@ -381,6 +383,7 @@ def _run_kernels(verts, faces, wedges, options, parts, states):
             label = partition(verts.pos, live, vertex_alive, count, turned)
             face_ids, offsets = group_faces(faces, face_alive, label, count)
             face_count = np.bincount(live.ravel(), minlength=n)
+            del live        # a copy of the live faces, not needed while the parts run
             sizes = np.bincount(label[label >= 0], minlength=count)
             alive = int(np.count_nonzero(vertex_alive))
 
@@ -396,12 +399,15 @@ def _run_kernels(verts, faces, wedges, options, parts, states):
                 result = run(sub, stop, state)
                 # the next phase copies its parts out of the mesh's arrays
                 write_back(sub, verts, faces, face_alive, vertex_alive, wedges)
+                del sub
+                give_back()     # the copy and the kernel's queue and log, freed in this thread's arena
                 return result
 
             results = list(pool.map(run_part, range(count), [next(counters) for _ in range(count)]))
             phases.append(([r[0] for r in results], [r[1] for r in results]))
             rejected += sum(r[2] for r in results)
             passes += sum(r[3] for r in results)
+            del results
 
         def run_tail():
             """The rest of the hierarchy, on one dense copy of what is left
@@ -413,9 +419,12 @@ def _run_kernels(verts, faces, wedges, options, parts, states):
         # the tail is one kernel: the phases' logs are merged on this thread
         # meanwhile, off its critical path
         pending = pool.submit(run_tail)
-        merged = merge_phases(phases)
+        logs = [merge_phases(phases)]       # which frees the parts' logs
         tail, _, refused, runs = pending.result()
-    return concatenate_logs([merged, tail]), rejected + refused, passes + runs
+        del pending
+    logs.append(tail)
+    del tail
+    return concatenate_logs(logs), rejected + refused, passes + runs
 
 
 # --------------------------------------------------------------------------
@@ -528,10 +537,16 @@ def decimate(mesh: Mesh, options: DecimateOptions = DecimateOptions(), *, locked
     # back at the end (its face and corner ids need nothing: faces keep their rows).
     mesh, order, locked, poses = _in_memory_order(mesh, locked, poses)
     verts, faces, wedges, kernel_options, scales, scale = _prepare(mesh, options, locked, poses)
+    attributes = mesh.attributes
+    # the renumbered copies are read by nothing past this point: freed before the kernels run
+    del mesh, locked, poses
     n = len(verts.pos)
     parts = default_parts(n) if options.parts is None else options.parts
     if parts > 1 and (kernel_options.pair_radius > 0 or kernel_options.max_collapses < n):
         parts = 1       # close pairs cross parts; a collapse limit is a prefix of the whole order
+    if parts > 1:
+        # the partitioned run's working faces; the int64 ones are then freed
+        faces = faces.astype(np.int32)
     # one progress counter (and stop flag) per kernel: each part's, then the whole mesh's
     states = [np.zeros(2, dtype=np.int64) for _ in range(kernel_count(parts))]
     result = {}
@@ -557,12 +572,14 @@ def decimate(mesh: Mesh, options: DecimateOptions = DecimateOptions(), *, locked
     if "log" not in result:
         raise RuntimeError("the decimation kernel failed")
     log, rejected, passes = result["log"]
+    del result, verts, wedges, faces
+    give_back()     # the kernels' working arrays: the progressive mesh is built next
     s, r = log.survivor, log.removed
     if order is not None:
         s, r = order[s], order[r]
     error = np.sqrt(log.cost / np.maximum(log.area, np.finfo(float).tiny)) * scale
     merges = {}
-    if mesh.attributes is not None:
+    if attributes is not None:
         # back from sqrt(weight)-scaled to input units
         merges = dict(merge_offsets=_own(log.merge_offsets),
                       merge_survivor=_own(log.merge_survivor),

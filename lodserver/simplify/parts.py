@@ -39,6 +39,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
+from ..heap import give_back
 from .log import LogColumns
 
 # Parts of a partitioned run: as many as give each part about PART_VERTICES
@@ -325,15 +326,17 @@ def merge_phases(phases, tail=None):
     ``phases`` is a list of (columns, keys) as ``merge_logs`` takes them.
     One gather of every column, whatever the number of phases; the tail is
     appended (``concatenate_logs``), so that the phases can be merged while
-    the tail is still being built."""
+    the tail is still being built. ``phases`` is emptied: each column of the
+    parts' logs is freed once gathered (if nothing else holds it)."""
     logs, order, start = [], [], 0
     for columns, keys in phases:
         # a running maximum keeps each part's own order under a stable sort
         envelope = [np.maximum.accumulate(k) if len(k) else k for k in keys]
         by_key = np.argsort(np.concatenate(envelope), kind="stable") if envelope else []
         order.append(start + np.asarray(by_key, dtype=np.int64))
-        logs += list(columns)
+        logs += [dict(log._asdict()) for log in columns]
         start += sum(len(k) for k in keys)
+    phases.clear()
     merged = _take(logs, np.concatenate(order))
     return merged if tail is None else concatenate_logs([merged, tail])
 
@@ -346,31 +349,49 @@ _MERGE_VALUES = ("merge_survivor", "merge_removed", "merge_value")
 
 
 def concatenate_logs(logs):
-    """The logs ``logs`` (``LogColumns``) one after another, as one ``LogColumns``."""
-    rows = {name: np.concatenate([getattr(log, name) for log in logs]) for name in _ROWS}
-    killed, killed_offsets = _concatenate_blocks(logs, "killed_offsets", "killed_faces")
-    moved, moved_offsets = _concatenate_blocks(logs, "moved_offsets", "moved_corners")
-    merge_survivor, merge_offsets = _concatenate_blocks(logs, "merge_offsets", "merge_survivor")
-    merge_removed, merge_value = (np.concatenate([getattr(log, name) for log in logs])
-                                  for name in _MERGE_VALUES[1:])
-    return LogColumns(**rows, killed_offsets=killed_offsets, killed_faces=killed,
-                      moved_offsets=moved_offsets, moved_corners=moved, merge_offsets=merge_offsets,
-                      merge_survivor=merge_survivor, merge_removed=merge_removed,
-                      merge_value=merge_value)
+    """The logs ``logs`` (a list of ``LogColumns``) one after another, as one
+    ``LogColumns``. ``logs`` is emptied: each column of the inputs is freed
+    once it is joined (if nothing else holds it), so the join needs room for
+    one column twice, not for the whole log twice."""
+    columns = [dict(log._asdict()) for log in logs]
+    logs.clear()
+    joined = {}
+    for values, offsets in (("killed_faces", "killed_offsets"), ("moved_corners", "moved_offsets"),
+                            ("merge_survivor", "merge_offsets")):
+        joined[values], joined[offsets] = _concatenate_blocks(columns, offsets, values)
+        for log in columns:
+            del log[values], log[offsets]
+    for name in _ROWS + _MERGE_VALUES[1:]:
+        joined[name] = np.concatenate([log.pop(name) for log in columns])
+    return LogColumns(**joined)
 
 
 def _take(logs, order):
-    """The rows ``order`` of the logs ``logs`` put one after another, as ``LogColumns``."""
-    rows = {name: np.concatenate([getattr(log, name) for log in logs])[order] for name in _ROWS}
+    """The rows ``order`` of the logs ``logs`` (dicts of ``LogColumns``'
+    columns) put one after another, as ``LogColumns``. Each column is taken
+    out of the dicts as it is gathered and its memory given back (the parts'
+    logs were made in the worker threads' arenas, which this thread's
+    gathers cannot reuse; ``heap``), so the merge needs room for the log
+    and one column, not for the log twice."""
+    def joined(name):
+        return np.concatenate([log.pop(name) for log in logs])
+
+    rows = {name: joined(name)[order] for name in _ROWS}
+    give_back()
     killed, killed_offsets = _gather_blocks(
         *_concatenate_blocks(logs, "killed_offsets", "killed_faces"), order)
+    for log in logs:
+        del log["killed_offsets"], log["killed_faces"]
+    give_back()
     moved, moved_offsets = _gather_blocks(
         *_concatenate_blocks(logs, "moved_offsets", "moved_corners"), order)
+    for log in logs:
+        del log["moved_offsets"], log["moved_corners"]
+    give_back()
     # the three merge columns share offsets: gather an index once
     merges, merge_offsets = _concatenate_blocks(logs, "merge_offsets", "merge_survivor")
     index, merge_offsets = _gather_blocks(np.arange(len(merges)), merge_offsets, order)
-    merge_survivor, merge_removed, merge_value = (
-        np.concatenate([getattr(log, name) for log in logs])[index] for name in _MERGE_VALUES)
+    merge_survivor, merge_removed, merge_value = (joined(name)[index] for name in _MERGE_VALUES)
     return LogColumns(**rows, killed_offsets=killed_offsets, killed_faces=killed,
                       moved_offsets=moved_offsets, moved_corners=moved, merge_offsets=merge_offsets,
                       merge_survivor=merge_survivor, merge_removed=merge_removed,
@@ -378,12 +399,14 @@ def _take(logs, order):
 
 
 def _concatenate_blocks(logs, offsets_name, values_name):
-    """(values, offsets) of the block column ``values_name`` of every log, one
-    after another (its offsets ``offsets_name`` shifted to match)."""
+    """(values, offsets) of the block column ``values_name`` of every log
+    (``LogColumns`` or dicts of their columns), one after another (its offsets
+    ``offsets_name`` shifted to match)."""
+    logs = [log if isinstance(log, dict) else log._asdict() for log in logs]
     offsets, shift = [], 0
     for log in logs:
-        column = getattr(log, offsets_name)
+        column = log[offsets_name]
         offsets.append(column[:-1] + shift)
         shift += int(column[-1])
     offsets.append(np.array([shift], dtype=np.int64))
-    return np.concatenate([getattr(log, values_name) for log in logs]), np.concatenate(offsets)
+    return np.concatenate([log[values_name] for log in logs]), np.concatenate(offsets)

@@ -215,10 +215,15 @@ def write_back(sub: SubMesh, verts, faces, face_alive, vertex_alive, wedges):
 def map_log(columns: LogColumns, sub: SubMesh) -> LogColumns:
     """The kernel's log of a copy (``simplify.log.filled``) with the copy's
     vertex, face and corner ids replaced by the mesh's (wedge ids are the
-    mesh's already)."""
+    mesh's already), every column an array of its own."""
     vertex_ids, face_ids = sub.vertex_ids, sub.face_ids
     moved = 3 * face_ids[columns.moved_corners // 3] + columns.moved_corners % 3
-    return columns._replace(survivor=vertex_ids[columns.survivor],
-                            removed=vertex_ids[columns.removed],
-                            killed_faces=face_ids[columns.killed_faces],
-                            moved_corners=moved)
+    mapped = columns._replace(survivor=vertex_ids[columns.survivor],
+                              removed=vertex_ids[columns.removed],
+                              killed_faces=face_ids[columns.killed_faces],
+                              moved_corners=moved)
+    # The kernel's columns are views of arrays sized for every vertex of the
+    # part to go; the phases' logs wait for the merge, so each keeps only its
+    # filled rows and the kernel's arrays are freed now.
+    return LogColumns(*(column.copy() if column.base is not None else column
+                        for column in mapped))

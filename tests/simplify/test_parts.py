@@ -97,6 +97,22 @@ def test_merged_logs_keep_each_order_and_follow_the_keys():
     np.testing.assert_array_equal(merged[7], 2 * np.arange(8))
 
 
+def test_merging_phases_lets_go_of_the_parts_logs():
+    # the build's peak memory: the merge and the final join take the parts'
+    # columns out of the lists they are handed, so each can be freed once joined
+    a, b, c, tail = _log([1, 5], 0), _log([3], 100), _log([2, 4], 300), _log([0.5], 200)
+    phases = [([a, b], [a.cost, b.cost]), ([c], [c.cost])]
+    logs = [parts.merge_phases(phases), tail]
+    assert phases == []
+    joined = parts.concatenate_logs(logs)
+    assert logs == []
+    np.testing.assert_array_equal(joined.survivor, [0, 100, 1, 300, 301, 200])
+    np.testing.assert_array_equal(joined.killed_faces, joined.survivor)
+    np.testing.assert_array_equal(joined.moved_corners, np.repeat(joined.survivor, 2))
+    np.testing.assert_array_equal(joined.killed_offsets, np.arange(7))
+    np.testing.assert_array_equal(joined.merge_value[:, 0], joined.survivor)
+
+
 @pytest.mark.parametrize("parts", [2, 4, 8])
 @pytest.mark.parametrize("name", GEOMETRY)
 def test_every_level_is_exact(name, parts):
