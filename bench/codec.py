@@ -37,7 +37,10 @@ from lodserver.packets.encode_v4 import encode_packet_v4  # noqa: E402
 from lodserver.packets.format import EDGE_POSITIONS, MAGNITUDE_CONTEXTS  # noqa: E402
 from lodserver.service.levels import encode_level  # noqa: E402
 
-GLTFPACK = OUT / "npm" / "node_modules" / ".bin" / "gltfpack"
+# gltfpack and glTF-Transform: bench/out/codec/npm's, else the tests' (tests/tools, npm ci)
+TOOLS = [OUT / "npm" / "node_modules" / ".bin",
+         OUT.parents[2] / "tests" / "tools" / "node_modules" / ".bin"]
+GLTFPACK = next((d / "gltfpack" for d in TOOLS if (d / "gltfpack").exists()), TOOLS[0] / "gltfpack")
 PACKET_SPLITS = 8192
 VARIANTS = {
     "v4 plain": 0,

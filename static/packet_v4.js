@@ -4,13 +4,17 @@
 // varints and bytes. packet.js's readPacket() hands a version 4 packet here,
 // and its result is the structure it gives for version 3, so LodState.apply()
 // runs the records unchanged: they are version 3's. The reference is
-// lodserver/packets/decode_v4.py (and streams_v4.py for the contexts).
+// lodserver/packets/decode_v4.py (and streams_v4.py for the contexts). With
+// RING_POSITIONS a split's positions need the state after its faces: the
+// packet's position stream is then empty and its `positionReader(state)` gives
+// the reader LodState.apply() reads them through (ringpositions.js).
 
 import { makeReader, PacketError, streamNames } from './packet.js';
 import { SymbolReader } from './rans.js';
+import { edgeSymbols, ringPositions } from './ringpositions.js';
 
-const HAS_MATERIALS = 1, EDGE_POSITIONS = 2, MAGNITUDE_CONTEXTS = 4;
-const FLAGS = HAS_MATERIALS | EDGE_POSITIONS | MAGNITUDE_CONTEXTS;
+const HAS_MATERIALS = 1, EDGE_POSITIONS = 2, MAGNITUDE_CONTEXTS = 4, RING_POSITIONS = 8;
+const FLAGS = HAS_MATERIALS | EDGE_POSITIONS | MAGNITUDE_CONTEXTS | RING_POSITIONS;
 const HEADER_BYTES = 60, CRC_BYTES = 4;
 // Stream indices in version 3's order (the v4 body puts `batch` before them).
 const VERTEX = 0, COUNT = 1, PATTERN = 2, FAN = 4, MASK = 5, POSITION = 6;
@@ -148,8 +152,13 @@ function shapes(packet, forward, flags) {
 
 // The version 3 streams (Uint8Array, in streamNames() order) of a version 4 body,
 // for the packet whose header readPacket() parsed; `bodyLength` is the header's.
+// A split packet with RING_POSITIONS also gets packet.positionReader.
 export function readBodyV4(body, bodyLength, packet, flags) {
   if (flags & ~FLAGS) throw new PacketError(`the packet sets unknown flags (${flags})`);
+  if (flags & RING_POSITIONS && !(flags & EDGE_POSITIONS)) {
+    throw new PacketError('the packet predicts the split edge from the ring (flag 8) without ' +
+                          'coding the edge (flag 2)');
+  }
   if (body.length !== bodyLength) {
     throw new PacketError(`the packet's body is ${body.length} bytes, the header says ` +
                           `${bodyLength}`);
@@ -159,6 +168,8 @@ export function readBodyV4(body, bodyLength, packet, flags) {
   const names = ['batch', ...streamNames(packet.attributes, packet.hasMaterials)];
   const layout = shapes(packet, forward, flags);
   const out = names.slice(1).map(() => new StreamWriter());
+  // with the ring: every split's symbols E - P, l, r, resolved as it is applied
+  const edges = forward && flags & RING_POSITIONS ? [] : null;
   const table = makeReader(body, 'segment table');
   const segments = table.varint();
   let done = 0;
@@ -168,12 +179,17 @@ export function readBodyV4(body, bodyLength, packet, flags) {
       throw new PacketError("the packet's segments do not add up to its records");
     }
     const decoded = readSegment(table, names, layout, size, forward);
+    if (edges) {
+      edges.push(edgeSymbols(decoded[1 + POSITION]));
+      decoded[1 + POSITION] = [];
+    }
     writeFields(decoded, out, forward ? packet.start + done : -1, flags);
     done += size;
   }
   if (done !== records || table.at !== body.length) {
     throw new PacketError("the packet's segments do not add up to its records");
   }
+  if (edges) packet.positionReader = ringPositions(edges, packet.start);
   return out.map((writer) => writer.view());
 }
 

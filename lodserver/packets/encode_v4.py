@@ -57,7 +57,7 @@ DEFAULT_FLAGS = EDGE_POSITIONS
 
 def encode_packet_v4(pm: ProgressiveMesh, start: int, stop: int, *, bits: int | None = None,
                      attribute_bits: dict | None = None, batch: np.ndarray | None = None,
-                     flags: int = DEFAULT_FLAGS) -> bytes:
+                     flags: int | None = None) -> bytes:
     """The version 4 packet taking the quantized form of level ``start`` to ``stop``.
 
     Parameters
@@ -68,7 +68,7 @@ def encode_packet_v4(pm: ProgressiveMesh, start: int, stop: int, *, bits: int | 
         The batch of every split (non-decreasing; within a batch ``vs`` ascending):
         a run of one batch codes its ``vs`` as gaps. Default: the mesh's own
         schedule (``pm.split_batch``, a batched build), else every split its own batch.
-    flags : int
+    flags : int, optional
         Which codings to use: :data:`~.format.EDGE_POSITIONS`,
         :data:`~.format.MAGNITUDE_CONTEXTS`, :data:`~.format.RING_POSITIONS` (only
         with the edge; default :data:`DEFAULT_FLAGS`).
@@ -85,6 +85,7 @@ def encode_packet_v4(pm: ProgressiveMesh, start: int, stop: int, *, bits: int | 
         ``flags`` ask for the ring without the edge.
     """
     start, stop = pm.check_level(start), pm.check_level(stop)
+    flags = DEFAULT_FLAGS if flags is None else flags
     if flags & RING_POSITIONS and not flags & EDGE_POSITIONS:
         raise ValueError("RING_POSITIONS predicts the split edge: it needs EDGE_POSITIONS")
     grid = grid_of(pm, bits=bits)

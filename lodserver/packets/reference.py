@@ -30,6 +30,7 @@ from .format import (
     IS_NEW,
     IS_VS,
     MAX_SPLIT_RATIO,
+    RING_SCALE,
     TANGENT,
     PacketError,
     Reader,
@@ -279,7 +280,7 @@ def ring_prediction(work: Working, s: int, t: int) -> list[int]:
     (ss, st), (ns, nt) = sums, counts
     if ns == 0 or nt == 0:
         return [0, 0, 0]
-    return [math.floor((st[a] / nt - ss[a] / ns) * 0.5 + 0.5) for a in range(3)]
+    return [math.floor((st[a] / nt - ss[a] / ns) * RING_SCALE + 0.5) for a in range(3)]
 
 
 def ring_edge_fields(work: Working, s: int, t: int, symbols) -> tuple[list, list]:

@@ -4,18 +4,18 @@ docs/packets.md, "Version 4", "Positions from the ring". After a split's faces
 are in place (its step 6) and before its positions are read, the decoder knows
 every position around the split but the two it is about to read: ``vs``'s fine
 position and the new vertex's. The rings of the two, each without the other,
-lean apart along the split edge, so half the difference of their centroids
-predicts the edge ``E`` (the new vertex less vs's fine position):
+lean apart along the split edge, so a fraction of the difference of their
+centroids predicts the edge ``E`` (the new vertex less vs's fine position):
 
-    P = floor((St / nt - Ss / ns) * 0.5 + 0.5)     per axis, float64
+    P = floor((St / nt - Ss / ns) * 0.625 + 0.5)     per axis, float64
 
 with ``Ss``, ``ns`` the sum of the grid positions and the number of the distinct
 neighbours of ``vs`` other than the new vertex, ``St``, ``nt`` those of the new
 vertex other than ``vs`` (both in the state after the split's faces, before its
 positions), and ``P = 0`` when either ring is empty. Every term is an exact
 float64 integer and each of the two divisions, the subtraction, the product by
-0.5 and the sum are single IEEE operations, so every decoder gets the same
-``P``. The packet then codes ``E - P`` in place of ``E``.
+0.625 (``format.RING_SCALE``) and the sum are single IEEE operations, so every
+decoder gets the same ``P``. The packet then codes ``E - P`` in place of ``E``.
 
 The prediction is a function of the level alone (the state of a level is the
 same whichever way a client reached it), so the encoder computes it for a
@@ -34,6 +34,7 @@ from numba import njit
 
 from .corners import add_corner, corner_lists, remove_corner
 from .encode import index_dtype
+from .format import RING_SCALE
 from .grids import Grid
 
 if TYPE_CHECKING:
@@ -64,7 +65,7 @@ def predicted_edge(ss, ns, st, nt, out):
         if ns == 0 or nt == 0:
             out[a] = 0
         else:
-            out[a] = np.int64(math.floor((st[a] / nt - ss[a] / ns) * 0.5 + 0.5))
+            out[a] = np.int64(math.floor((st[a] / nt - ss[a] / ns) * RING_SCALE + 0.5))
 
 
 @njit(cache=True, nogil=True)
