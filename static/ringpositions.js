@@ -20,11 +20,6 @@ const PLACES = 16;                 // the split edge's places, in 16ths
 const FIELDS = 7, V3_FIELDS = 6;   // symbols per split; version 3's d1 (3), d2 (3)
 const PLACE_COLUMN = 3;            // the place is not zigzagged
 
-// The vertices seen in the ring being summed, by a mark per vertex (one array
-// for every reader: the marks only ever grow, so none is stale).
-let seen = new Int32Array(0);
-let mark = 0;
-
 // A segment's position symbols, signed: E - P and r unzigzagged, the place as it is.
 export function edgeSymbols(symbols) {
   const out = new Float64Array(symbols.length);
@@ -56,7 +51,6 @@ class RingPositions {
     this.data = { length: V3_FIELDS * (edges.length / FIELDS) };
     this.fields = new Float64Array(V3_FIELDS);
     this.sums = new Float64Array(6);
-    if (seen.length < state.vertexCapacity) seen = new Int32Array(state.vertexCapacity);
   }
 
   // The next version 3 field: a split's first resolves the whole split.
@@ -83,23 +77,18 @@ class RingPositions {
     }
   }
 
-  // sums[into .. into+2]: the positions of v's distinct neighbours other than
-  // `other` (in float64, exact: integers); returns their number.
+  // sums[into .. into+2]: the positions of the two other corners' vertices of
+  // every corner of v, but v and `other` (float64, exact: integers); returns
+  // how many were summed.
   ringSum(v, other, into) {
     const { faces, positions, ring, ringInfo } = this.state;
     const { sums } = this;
-    if (mark === 0x7fffffff) {
-      seen.fill(0);
-      mark = 0;
-    }
-    const stamp = ++mark;
     let x = 0, y = 0, z = 0, n = 0;
     for (let i = ringInfo[4 * v], end = i + ringInfo[4 * v + 1]; i < end; i++) {
       const c = ring[i], f3 = c - c % 3;
       for (let step = 1; step <= 2; step++) {
         const u = faces[f3 + (c - f3 + step) % 3];
-        if (u === v || u === other || seen[u] === stamp) continue;
-        seen[u] = stamp;
+        if (u === v || u === other) continue;
         x += positions[3 * u];
         y += positions[3 * u + 1];
         z += positions[3 * u + 2];

@@ -50,9 +50,10 @@ SEGMENT_RECORDS = CHUNK_RECORDS
 # The version 3 streams that hold bytes rather than varints.
 BYTE_STREAMS = (PATTERN, FAN, MASK)
 # The codings used unless asked otherwise: the split edge pays on meshes of tens of
-# thousands of splits and costs little on small ones; the magnitude classes do not
-# earn their contexts' learning (bench/codec.py measures both).
-DEFAULT_FLAGS = EDGE_POSITIONS
+# thousands of splits and costs little on small ones, and its prediction from the
+# ring pays on every mesh measured; the magnitude classes do not earn their contexts'
+# learning (bench/codec.py and bench/codec_levers.py measure each).
+DEFAULT_FLAGS = EDGE_POSITIONS | RING_POSITIONS
 
 
 def encode_packet_v4(pm: ProgressiveMesh, start: int, stop: int, *, bits: int | None = None,

@@ -274,7 +274,11 @@ def ring_prediction(work: Working, s: int, t: int) -> list[int]:
     from the ring"), in the state after split ``t``'s faces, before its positions."""
     sums, counts = [], []
     for v, other in ((s, t), (t, s)):
-        ring = set(work.neighbours(v)) - {other}
+        ring = []                  # with repeats: the other two corners of each corner of v
+        for c in work.corners.of(v):
+            f, k = divmod(c, 3)
+            ring += [int(work.faces[f, (k + j) % 3]) for j in (1, 2)]
+        ring = [u for u in ring if u not in (v, other)]
         sums.append([float(sum(int(work.positions[u, a]) for u in ring)) for a in range(3)])
         counts.append(len(ring))
     (ss, st), (ns, nt) = sums, counts

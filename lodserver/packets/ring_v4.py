@@ -9,10 +9,12 @@ centroids predicts the edge ``E`` (the new vertex less vs's fine position):
 
     P = floor((St / nt - Ss / ns) * 0.625 + 0.5)     per axis, float64
 
-with ``Ss``, ``ns`` the sum of the grid positions and the number of the distinct
-neighbours of ``vs`` other than the new vertex, ``St``, ``nt`` those of the new
-vertex other than ``vs`` (both in the state after the split's faces, before its
-positions), and ``P = 0`` when either ring is empty. Every term is an exact
+with ``Ss``, ``ns`` the sum of the grid positions and the number of the
+vertices of vs's ring, ``St``, ``nt`` those of the new vertex's, in the state
+after the split's faces, before its positions. A vertex's ring counts, for every
+corner it holds, the vertices of the face's two other corners, but the vertex
+itself and the split's other vertex: every neighbour inside a closed surface
+twice, with no set to keep. ``P = 0`` when either ring is empty. Every term is an exact
 float64 integer and each of the two divisions, the subtraction, the product by
 0.625 (``format.RING_SCALE``) and the sum are single IEEE operations, so every
 decoder gets the same ``P``. The packet then codes ``E - P`` in place of ``E``.
@@ -69,9 +71,9 @@ def predicted_edge(ss, ns, st, nt, out):
 
 
 @njit(cache=True, nogil=True)
-def _ring_sum(state, pool, v, other, stamp, seen, total):
-    """Sum into ``total`` (3,) the positions of ``v``'s distinct neighbours other than
-    ``other`` (marking them ``stamp`` in ``seen``); returns their number."""
+def _ring_sum(state, pool, v, other, total):
+    """Sum into ``total`` (3,) the positions of the two other corners' vertices of
+    every corner of ``v``, but ``v`` and ``other``; returns how many were summed."""
     faces, positions = state.faces, state.positions
     first, d = state.blocks[v, 0], state.blocks[v, 1]
     total[:] = 0
@@ -81,8 +83,7 @@ def _ring_sum(state, pool, v, other, stamp, seen, total):
         f3 = c - c % 3
         for step in (1, 2):
             u = faces[f3 + (c - f3 + step) % 3]
-            if u != v and u != other and seen[u] != stamp:
-                seen[u] = stamp
+            if u != v and u != other:
                 for a in range(3):
                     total[a] += positions[u, a]
                 n += 1
@@ -94,7 +95,6 @@ def _ring_predictions(positions, faces, face_count, start, stop, base, parent, f
                       birth_faces, moved_offsets, moved_corners, fine, new):
     state, pool = corner_lists(positions, faces, face_count)
     out = np.zeros((stop - start, 3), dtype=np.int64)
-    seen = np.full(positions.shape[0], -1, dtype=np.int64)
     ss = np.zeros(3, dtype=np.int64)
     st = np.zeros(3, dtype=np.int64)
     for t in range(start, stop):
@@ -111,8 +111,8 @@ def _ring_predictions(positions, faces, face_count, start, stop, base, parent, f
                 faces[c] = birth_faces[f, k]
                 pool = add_corner(state, pool, faces[c], c)
             face_count += 1
-        ns = _ring_sum(state, pool, s, t, 2 * i, seen, ss)
-        nt = _ring_sum(state, pool, t, s, 2 * i + 1, seen, st)
+        ns = _ring_sum(state, pool, s, t, ss)
+        nt = _ring_sum(state, pool, t, s, st)
         predicted_edge(ss.astype(np.float64), ns, st.astype(np.float64), nt, out[i])
         for a in range(3):
             positions[s, a] = fine[i, a]
