@@ -51,7 +51,7 @@ EDGE_POSITIONS, MAGNITUDE_CONTEXTS, RING_POSITIONS = 2, 4, 8
 # RING_POSITIONS predicts the split edge as this fraction of the difference of the two
 # rings' centroids: each ring, without the other vertex, leans away from it, so the
 # difference overshoots the edge, by a little less than twice (bench/README.md, "Positions
-# from the ring"). A power-of-two fraction, exact in float64.
+# from the ring"). A dyadic fraction (5/8), exact in float64.
 RING_SCALE = 0.625
 
 # Version 2's attribute kind codes (read only); version 3 names every attribute.

@@ -11,13 +11,14 @@ centroids predicts the edge ``E`` (the new vertex less vs's fine position):
 
 with ``Ss``, ``ns`` the sum of the grid positions and the number of the
 vertices of vs's ring, ``St``, ``nt`` those of the new vertex's, in the state
-after the split's faces, before its positions. A vertex's ring counts, for every
-corner it holds, the vertices of the face's two other corners, but the vertex
-itself and the split's other vertex: every neighbour inside a closed surface
-twice, with no set to keep. ``P = 0`` when either ring is empty. Every term is an exact
-float64 integer and each of the two divisions, the subtraction, the product by
-0.625 (``format.RING_SCALE``) and the sum are single IEEE operations, so every
-decoder gets the same ``P``. The packet then codes ``E - P`` in place of ``E``.
+after the split's faces, before its positions. A vertex's ring counts, for
+every corner it holds, the vertices of the face's two other corners, but the
+vertex itself and the split's other vertex: every neighbour inside a closed
+surface twice, with no set to keep. ``P = 0`` when either ring is empty. Every
+term is an exact float64 integer and each of the two divisions, the
+subtraction, the product by 0.625 (``format.RING_SCALE``) and the sum are single
+IEEE operations, so every decoder gets the same ``P``. The packet then codes
+``E - P`` in place of ``E``.
 
 The prediction is a function of the level alone (the state of a level is the
 same whichever way a client reached it), so the encoder computes it for a
