@@ -84,8 +84,9 @@ def test_base_to_full_and_back_are_exact(name, flags):
 
 @pytest.mark.parametrize("name", ["spot", "every_attribute", "materials"])
 def test_every_level_is_exact_both_ways_with_the_ring(name):
-    # every split and every collapse of the mesh, one record per packet, chained:
-    # each ring prediction reads the state the packets before it left
+    # every split and every collapse of the mesh, in about 150 chained packets each
+    # way, each landing checked: each ring prediction reads the state the packets
+    # before it left
     pm = _pm(name)
     n0, n = pm.base_vertices, pm.vertex_count
     flags = EDGE_POSITIONS | RING_POSITIONS
