@@ -1,8 +1,10 @@
 """How fast the browser decodes and applies a version 4 packet, against version 3,
 in one run of headless Chromium (Playwright over Debian's binary, software GL).
 
-For each mesh, the base -> full packet (one packet, all splits) is encoded both
-ways (``encode_packet``, ``encode_packet_v4`` at its default flags), and the page
+For each mesh, the base -> full packet (one packet, all splits) is encoded three
+ways (``encode_packet``, ``encode_packet_v4`` at its default flags, and as
+``v4 edge`` with the split edge alone, without ``RING_POSITIONS``: what the ring
+prediction costs the browser), and the page
 (``static/`` served on loopback by ``static_server.py``) times, per repeat and
 alternating the versions: ``LodState.readPacket`` (v3: inflate and cut the
 streams; v4: checksum, rANS symbols, back to version 3's streams) and
@@ -43,6 +45,7 @@ from static_server import serve  # noqa: E402
 
 from lodserver.packets import encode_packet, grid_of, quantized_level  # noqa: E402
 from lodserver.packets.encode_v4 import encode_packet_v4  # noqa: E402
+from lodserver.packets.format import EDGE_POSITIONS  # noqa: E402
 
 STATIC = Path(__file__).resolve().parents[1] / "static"
 ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--no-first-run",
@@ -121,11 +124,13 @@ def measure(pages, name, repeats, bits):
     full = quantized_level(pm, n, grid)
     packets = {"v3": encode_packet(pm, n0, n, bits=bits),
                "v4": encode_packet_v4(pm, n0, n, bits=bits),
+               "v4 edge": encode_packet_v4(pm, n0, n, bits=bits, flags=EDGE_POSITIONS),
                "v3 down": encode_packet(pm, n, n0, bits=bits)}
+    up = list(packets)[:-1]
     argument = {
         "document": document_of(base, 0 if full.wedges is None else len(full.wedges)),
         "capacity": {"vertexCapacity": n, "faceCapacity": int(pm.face_counts[-1])},
-        "packets": [base64.b64encode(packets[v]).decode() for v in ("v3", "v4")],
+        "packets": [base64.b64encode(packets[v]).decode() for v in up],
         "down": base64.b64encode(packets["v3 down"]).decode()}
     totals = {build: {v: [] for v in packets} for build in pages}
     reads = {build: {v: [] for v in packets} for build in pages}
@@ -134,9 +139,10 @@ def measure(pages, name, repeats, bits):
         for build, page in pages.items():
             result = page.evaluate(TIME_JS, argument)
             ends = result["ends"]
-            assert ends[0] == ends[1], f"{build}: v3 and v4 end on different states: {ends}"
+            assert all(e == ends[0] for e in ends[1:-1]), \
+                f"{build}: v3 and v4 end on different states: {ends}"
             assert ends[0][:2] == [n, int(pm.face_counts[-1])], ends
-            assert ends[2][:2] == [n0, int(pm.face_counts[0])], ends
+            assert ends[-1][:2] == [n0, int(pm.face_counts[0])], ends
             updates[build].append(result["update"])
             for version, times in zip(packets, result["times"]):
                 totals[build][version].append(times["read"] + times["apply"])

@@ -1,9 +1,11 @@
 """Each size lever of version 4 alone and together: bytes base -> full per mesh.
 
 Levers: **turned faces** (``progressive/face_rotation.py``: every new face starts at
-its split vertex, so its pattern need not say where it starts) and **batches**
+its split vertex, so its pattern need not say where it starts), **batches**
 (``BuildOptions.batched``: splits in batches of independent ones, ``vs`` coded as
-gaps within a batch). The meshes without turned faces are built by the code before
+gaps within a batch) and **the ring** (``RING_POSITIONS``, ``packets/ring_v4.py``:
+the split edge coded less its prediction from the two rings; columns ``+ring``,
+on the turned build and on both). Without the unturned folder its columns are ``-``. The meshes without turned faces are built by the code before
 the turn (commit ``2ce85ce``) into a folder of their own; the turned ones are
 bench/codec_meshes.py's. For every mesh at ``bits=14``: the base json gzipped plus
 the version 4 packets of 8192 splits (as bench/codec.py counts them), each mesh
@@ -49,7 +51,7 @@ def build_all(folder: Path, names) -> None:
 CHECKED_SPLITS = 100_000
 
 
-def streamed(pm, attribute_bits=None) -> tuple[int, int]:
+def streamed(pm, attribute_bits=None, flags=None) -> tuple[int, int]:
     """(base json gzipped, packets) bytes base -> full; decoded back onto full detail
     exactly when the mesh has at most :data:`CHECKED_SPLITS` splits."""
     from codec import PACKET_SPLITS, gz
@@ -65,7 +67,7 @@ def streamed(pm, attribute_bits=None) -> tuple[int, int]:
     packets = 0
     for a in range(n0, n, PACKET_SPLITS):
         data = encode_packet_v4(pm, a, min(n, a + PACKET_SPLITS), bits=BITS,
-                                attribute_bits=attribute_bits)
+                                attribute_bits=attribute_bits, flags=flags)
         if check:
             state = apply_packet(state, decode_packet_v4(data))
         packets += len(data)
@@ -87,17 +89,24 @@ def main(argv=None):
         return
     from codec import gltfpack_bytes
 
+    from lodserver.packets.format import EDGE_POSITIONS, RING_POSITIONS
     from lodserver.progressive.mesh import ProgressiveMesh
-    columns = {"baseline": (args.unturned, ""), "turned": (OUT, ""),
-               "batches": (args.unturned, "-batched"), "both": (OUT, "-batched")}
+    edge, ring = EDGE_POSITIONS, EDGE_POSITIONS | RING_POSITIONS
+    columns = {"baseline": (args.unturned, "", edge), "turned": (OUT, "", edge),
+               "batches": (args.unturned, "-batched", edge), "both": (OUT, "-batched", edge),
+               "turned +ring": (OUT, "", ring), "both +ring": (OUT, "-batched", ring)}
     lines = ["| mesh | splits | " + " | ".join(f"{c} KB (B/split)" for c in columns)
-             + " | both n8 KB | gltfpack -cc KB | best / -cc |", "|---" * (len(columns) + 5) + "|"]
+             + " | both +ring n8 KB | gltfpack -cc KB | best / -cc |",
+             "|---" * (len(columns) + 5) + "|"]
     for name in args.meshes:
         cells, cc = [], None
-        for label, (folder, suffix) in columns.items():
+        for label, (folder, suffix, flags) in columns.items():
+            if not (folder / f"{name}{suffix}.pm").exists():
+                cells.append("-")
+                continue
             pm = ProgressiveMesh.load(folder / f"{name}{suffix}.pm")
             splits = pm.vertex_count - pm.base_vertices
-            base, packets = streamed(pm)
+            base, packets = streamed(pm, flags=flags)
             cells.append(f"{(base + packets) / 1000:.1f} ({packets / splits:.2f})")
             print(name, label, base, packets, file=sys.stderr, flush=True)
             if cc is None:
@@ -105,7 +114,7 @@ def main(argv=None):
         best = float(cells[-1].split()[0]) * 1000
         n8 = "-"
         if any(a == "NORMAL" for a, _ in pm.attribute_layout or ()):
-            base, packets = streamed(pm, {"NORMAL": 8})
+            base, packets = streamed(pm, {"NORMAL": 8}, flags=ring)
             n8 = f"{(base + packets) / 1000:.1f} ({packets / splits:.2f})"
             best = min(best, base + packets)
         ratio = f"{best / cc:.2f}x" if cc else "-"

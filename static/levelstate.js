@@ -246,6 +246,9 @@ export class LodState {
     }
     const names = streamNames(packet.attributes, packet.hasMaterials);
     const readers = packet.fields.map((values, i) => fieldReader(values, names[i]));
+    // a version 4 packet whose positions need the state as it goes (packet_v4.js,
+    // RING_POSITIONS) gives the reader of its position field itself
+    if (packet.positionReader) readers[names.indexOf('position')] = packet.positionReader(this);
     if (packet.stop > packet.start) this.applySplits(packet.start, packet.stop, readers);
     else this.applyCollapses(packet.start, packet.stop, readers);
     if (!readers.every((reader) => reader.done())) {

@@ -5,15 +5,19 @@
 // numbers). packet.js's readPacket() hands a version 4 packet here, and its
 // result is the structure it gives for version 3, so LodState.apply() runs the
 // records unchanged: they are version 3's. The reference is
-// lodserver/packets/decode_v4.py (and streams_v4.py for the contexts).
+// lodserver/packets/decode_v4.py (and streams_v4.py for the contexts). With
+// RING_POSITIONS a split's positions need the state after its faces: the
+// packet's position field is then empty and its `positionReader(state)` gives
+// the reader LodState.apply() reads them through (ringpositions.js).
 
 import { BYTE_STREAMS, makeReader, PacketError, streamNames } from './packet.js';
 import {
   CLASSED, CLASSES, FACES, MAX_SYMBOLS_PER_BYTE, PATTERNS, PLAIN, RUNS, SymbolReader,
 } from './rans.js';
+import { edgeSymbols, ringPositions } from './ringpositions.js';
 
-const HAS_MATERIALS = 1, EDGE_POSITIONS = 2, MAGNITUDE_CONTEXTS = 4;
-const FLAGS = HAS_MATERIALS | EDGE_POSITIONS | MAGNITUDE_CONTEXTS;
+const HAS_MATERIALS = 1, EDGE_POSITIONS = 2, MAGNITUDE_CONTEXTS = 4, RING_POSITIONS = 8;
+const FLAGS = HAS_MATERIALS | EDGE_POSITIONS | MAGNITUDE_CONTEXTS | RING_POSITIONS;
 const HEADER_BYTES = 60, CRC_BYTES = 4;
 // Stream indices in version 3's order (the v4 body puts `batch` before them).
 const VERTEX = 0, COUNT = 1, POSITION = 6;
@@ -167,9 +171,13 @@ function shapes(packet, forward, flags) {
 
 // The fields (Float64Array, in streamNames() order: version 3's values) of a
 // version 4 body, for the packet whose header readPacket() parsed; `bodyLength` is
-// the header's.
+// the header's. A split packet with RING_POSITIONS also gets packet.positionReader.
 export function readBodyV4(body, bodyLength, packet, flags) {
   if (flags & ~FLAGS) throw new PacketError(`the packet sets unknown flags (${flags})`);
+  if (flags & RING_POSITIONS && !(flags & EDGE_POSITIONS)) {
+    throw new PacketError('the packet predicts the split edge from the ring (flag 8) without ' +
+                          'coding the edge (flag 2)');
+  }
   if (body.length !== bodyLength) {
     throw new PacketError(`the packet's body is ${body.length} bytes, the header says ` +
                           `${bodyLength}`);
@@ -180,12 +188,17 @@ export function readBodyV4(body, bodyLength, packet, flags) {
   const layout = shapes(packet, forward, flags);
   const { totals, largest } = symbolCounts(body, names.length);
   const edges = forward && flags & EDGE_POSITIONS;
+  // with the ring, every split's seven signed symbols (E - P, l, r), resolved as
+  // it is applied; the position field stays empty
+  const ring = edges && flags & RING_POSITIONS
+    ? { values: allocate(totals[1 + POSITION], names[1 + POSITION]), at: 0 } : null;
   const out = names.slice(1).map((name, k) => new Field(
-    k === POSITION && edges ? 6 * (totals[k + 1] / 7) : totals[k + 1], name));
+    k === POSITION && edges ? (ring ? 0 : 6 * (totals[k + 1] / 7)) : totals[k + 1], name));
   // scratch for one segment: its runs, gaps, and positions before they are turned back
   const scratch = { runs: allocate(largest[0], names[0]),
                     gaps: allocate(forward ? largest[1 + VERTEX] : 0, names[1 + VERTEX]),
-                    edges: allocate(edges ? largest[1 + POSITION] : 0, names[1 + POSITION]) };
+                    edges: allocate(edges ? largest[1 + POSITION] : 0, names[1 + POSITION]),
+                    ring };
   const table = makeReader(body, 'segment table');
   const segments = table.varint();
   let done = 0;
@@ -201,6 +214,7 @@ export function readBodyV4(body, bodyLength, packet, flags) {
   if (done !== records || table.at !== body.length) {
     throw new PacketError("the packet's segments do not add up to its records");
   }
+  if (ring) packet.positionReader = ringPositions(ring.values, packet.start);
   return out.map((field) => field.values);
 }
 
@@ -241,7 +255,13 @@ function readSegment(table, names, layout, size, t0, flags, out, scratch) {
     } else if (k === 1 + POSITION && forward && flags & EDGE_POSITIONS) {
       const symbols = scratch.edges.subarray(0, count);
       stream.decode(symbols, shape.classed ? CLASSED : PLAIN, shape.period, NO_AUX);
-      edgePositions(symbols, out[POSITION].append(6 * size));
+      const { ring } = scratch;
+      if (ring) {
+        edgeSymbols(symbols, ring.values.subarray(ring.at, ring.at + count));
+        ring.at += count;
+      } else {
+        edgePositions(symbols, out[POSITION].append(6 * size));
+      }
     } else {
       const values = out[k - 1].append(count);
       if (shape.faces) {

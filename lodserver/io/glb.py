@@ -574,10 +574,13 @@ def _bounds(values: np.ndarray) -> tuple[list, list]:
 
 def pack_glb(document: dict, *binary) -> bytes:
     """The GLB container: 12-byte header, JSON chunk (space padded), BIN chunk
-    (the concatenation of ``binary``, byte buffers; copied once)."""
+    (the concatenation of ``binary``, byte buffers; copied once; zero padded)."""
     header = json.dumps(document, separators=(",", ":")).encode()
     header += b" " * (-len(header) % 4)  # chunks are 4-byte aligned
     size = sum(len(b) for b in binary)
+    # the BIN chunk too: its length may exceed the buffer's byteLength by up to 3
+    binary = (*binary, b"\0" * (-size % 4))
+    size += -size % 4
     total = 12 + 8 + len(header) + 8 + size
     return b"".join([struct.pack("<4sII", b"glTF", 2, total),
                      struct.pack("<I4s", len(header), b"JSON"), header,

@@ -26,6 +26,7 @@ from .format import (
     MASK,
     PATTERN,
     POSITION,
+    RING_POSITIONS,
     VERSION_4,
     PacketError,
     Reader,
@@ -35,7 +36,15 @@ from .format import (
 from .grids import AttributeGrid, Grid
 from .rans import SymbolReader
 from .reference import Packet, decode_packet
-from .streams_v4 import FACE_CONTEXTS, context_of, position_fields, shapes, stream_names_v4
+from .streams_v4 import (
+    FACE_CONTEXTS,
+    PLACE_COLUMN,
+    context_of,
+    position_fields,
+    shapes,
+    stream_names_v4,
+    unzigzag,
+)
 
 # At most this many symbols per record of a segment, and this many more, in any stream
 # but the position's (whose count is fixed): bounds a damaged packet's work.
@@ -66,8 +75,8 @@ def decode_packet_v4(data: bytes) -> Packet:
     if CRC.unpack_from(data, len(data) - CRC.size)[0] != zlib.crc32(data[:-CRC.size]):
         raise PacketError("the packet's checksum does not match: it is damaged or truncated")
     data = data[:-CRC.size]
-    fields, records, at = unpack_header(data, (VERSION_4,),
-                                        HAS_MATERIALS | EDGE_POSITIONS | MAGNITUDE_CONTEXTS)
+    fields, records, at = unpack_header(data, (VERSION_4,), HAS_MATERIALS | EDGE_POSITIONS
+                                        | MAGNITUDE_CONTEXTS | RING_POSITIONS)
     body = data[at:]
     if len(body) != fields["body_length"]:
         raise PacketError(f"the packet's body is {len(body)} bytes, the header says "
@@ -75,11 +84,16 @@ def decode_packet_v4(data: bytes) -> Packet:
     grids = tuple(AttributeGrid(name, encoding, origin, step, bits, width)
                   for name, width, encoding, origin, step, bits in records)
     start, stop, flags = fields["start"], fields["stop"], fields["flags"]
+    if flags & RING_POSITIONS and not flags & EDGE_POSITIONS:
+        raise PacketError("the packet predicts the split edge from the ring (flag 8) without "
+                          "coding the edge (flag 2)")
+    ring = bool(flags & RING_POSITIONS) and stop > start
     has_materials = bool(flags & HAS_MATERIALS)
     forward = stop > start
     layout = shapes(grids, has_materials, forward, flags)
     names = stream_names_v4(grids, has_materials)
     out = [bytearray() for _ in names[1:]]
+    edges: list = []       # with the ring: each split's (E - P, l, r), resolved when applied
     reader = Reader(body, "segment table")
     done = 0
     for _ in range(reader.varint()):
@@ -87,13 +101,25 @@ def decode_packet_v4(data: bytes) -> Packet:
         if not 0 < size <= abs(stop - start) - done:
             raise PacketError("the packet's segments do not add up to its records")
         decoded = _segment(reader, names, layout, size, forward, flags)
+        if ring:
+            edges.append(_edge_symbols(decoded[1 + POSITION]))
+            decoded[1 + POSITION] = []
         _fields(decoded, out, start + done if forward else None, flags)
         done += size
     if done != abs(stop - start) or not reader.done():
         raise PacketError("the packet's segments do not add up to its records")
     return Packet(start, stop, fields["start_faces"], fields["stop_faces"],
                   Grid(fields["origin"], fields["step"], fields["bits"]),
-                  tuple(bytes(s) for s in out), grids, has_materials)
+                  tuple(bytes(s) for s in out), grids, has_materials,
+                  np.concatenate(edges) if ring else None)
+
+
+def _edge_symbols(symbols: list) -> np.ndarray:
+    """(records, 7) signed ``E - P, l, r`` from a segment's position symbols."""
+    e = np.array(symbols, dtype=np.int64).reshape(-1, 7)
+    out = unzigzag(e)
+    out[:, PLACE_COLUMN] = e[:, PLACE_COLUMN]
+    return out
 
 
 def _segment(reader: Reader, names, layout, size: int, forward: bool, flags: int) -> list:

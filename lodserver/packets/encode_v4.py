@@ -30,6 +30,7 @@ from .format import (
     MASK,
     PATTERN,
     POSITION,
+    RING_POSITIONS,
     VERSION_4,
     pack_header,
     put_varint,
@@ -38,6 +39,7 @@ from .format import (
 from .grids import attribute_grids_of, grid_of
 from .rans import encode_symbols
 from .records import CHUNK_RECORDS
+from .ring_v4 import ring_predictions
 from .streams_v4 import contexts, face_contexts, position_symbols, shapes, unzigzag
 
 if TYPE_CHECKING:
@@ -48,14 +50,15 @@ SEGMENT_RECORDS = CHUNK_RECORDS
 # The version 3 streams that hold bytes rather than varints.
 BYTE_STREAMS = (PATTERN, FAN, MASK)
 # The codings used unless asked otherwise: the split edge pays on meshes of tens of
-# thousands of splits and costs little on small ones; the magnitude classes do not
-# earn their contexts' learning (bench/codec.py measures both).
-DEFAULT_FLAGS = EDGE_POSITIONS
+# thousands of splits and costs little on small ones, and its prediction from the
+# ring pays on every mesh measured; the magnitude classes do not earn their contexts'
+# learning (bench/codec.py and bench/codec_levers.py measure each).
+DEFAULT_FLAGS = EDGE_POSITIONS | RING_POSITIONS
 
 
 def encode_packet_v4(pm: ProgressiveMesh, start: int, stop: int, *, bits: int | None = None,
                      attribute_bits: dict | None = None, batch: np.ndarray | None = None,
-                     flags: int = DEFAULT_FLAGS) -> bytes:
+                     flags: int | None = None) -> bytes:
     """The version 4 packet taking the quantized form of level ``start`` to ``stop``.
 
     Parameters
@@ -66,9 +69,10 @@ def encode_packet_v4(pm: ProgressiveMesh, start: int, stop: int, *, bits: int | 
         The batch of every split (non-decreasing; within a batch ``vs`` ascending):
         a run of one batch codes its ``vs`` as gaps. Default: the mesh's own
         schedule (``pm.split_batch``, a batched build), else every split its own batch.
-    flags : int
+    flags : int, optional
         Which codings to use: :data:`~.format.EDGE_POSITIONS`,
-        :data:`~.format.MAGNITUDE_CONTEXTS` (default :data:`DEFAULT_FLAGS`).
+        :data:`~.format.MAGNITUDE_CONTEXTS`, :data:`~.format.RING_POSITIONS` (only
+        with the edge; default :data:`DEFAULT_FLAGS`).
 
     Returns
     -------
@@ -78,9 +82,13 @@ def encode_packet_v4(pm: ProgressiveMesh, start: int, stop: int, *, bits: int | 
     Raises
     ------
     ValueError
-        When ``batch`` does not fit the mesh or a run's ``vs`` are not ascending.
+        When ``batch`` does not fit the mesh or a run's ``vs`` are not ascending, or
+        ``flags`` ask for the ring without the edge.
     """
     start, stop = pm.check_level(start), pm.check_level(stop)
+    flags = DEFAULT_FLAGS if flags is None else flags
+    if flags & RING_POSITIONS and not flags & EDGE_POSITIONS:
+        raise ValueError("RING_POSITIONS predicts the split edge: it needs EDGE_POSITIONS")
     grid = grid_of(pm, bits=bits)
     grids = attribute_grids_of(pm, attribute_bits=attribute_bits)
     has_materials = pm.face_material is not None
@@ -99,11 +107,13 @@ def encode_packet_v4(pm: ProgressiveMesh, start: int, stop: int, *, bits: int | 
         streams = encode_streams(pm, start, stop, grid, grids, marks)
         first = start - n0 if forward else n - start
         layout = shapes(grids, has_materials, forward, flags)
+        ring = (ring_predictions(pm, start, stop, grid)
+                if forward and flags & RING_POSITIONS else None)
         for r0, r1 in segment_cuts(first, records):
             slices = [s[m[r0]:m[r1]] for s, m in zip(streams, marks)]
             ids = None if batch is None else batch[first + r0:first + r1]
             segments.append(segment_bytes(slices, start + r0 if forward else None, ids, flags,
-                                          layout))
+                                          layout, None if ring is None else ring[r0:r1]))
     return assemble_v4(pm, grid, grids, start, stop, flags, segments)
 
 
@@ -115,14 +125,16 @@ def segment_cuts(first: int, records: int) -> list:
     return list(zip(cuts, cuts[1:] + [records]))
 
 
-def segment_bytes(slices: list, t0: int | None, ids, flags: int, layout: list) -> bytes:
+def segment_bytes(slices: list, t0: int | None, ids, flags: int, layout: list,
+                  ring: np.ndarray | None = None) -> bytes:
     """One segment of the body: varint records, then every coded stream, from the
-    segment's version 3 stream bytes ``slices`` (``t0``, ``ids``: as
+    segment's version 3 stream bytes ``slices`` (``t0``, ``ids``, ``ring``: as
     :func:`_segment_symbols`; ``layout``: :func:`~.streams_v4.shapes`)."""
     fields = [_integers(s, k in BYTE_STREAMS) for k, s in enumerate(slices)]
     out = bytearray()
     put_varint(out, len(fields[POSITION]) // (6 if t0 is not None else 3))
-    for symbols, ctx, shape in zip(*_segment_symbols(fields, t0, ids, flags, layout), layout):
+    for symbols, ctx, shape in zip(*_segment_symbols(fields, t0, ids, flags, layout, ring),
+                                   layout):
         encode_symbols(out, symbols, ctx, shape.contexts)
     return bytes(out)
 
@@ -141,11 +153,13 @@ def assemble_v4(pm: ProgressiveMesh, grid, grids: tuple, start: int, stop: int, 
     return packet + struct.pack("<I", zlib.crc32(packet))
 
 
-def _segment_symbols(fields: list, t0: int | None, ids, flags: int, layout: list):
+def _segment_symbols(fields: list, t0: int | None, ids, flags: int, layout: list,
+                     ring: np.ndarray | None = None):
     """The symbols and contexts of one segment's streams (version 4 body order), from
     the integers of its version 3 streams ``fields``. ``t0``: the first new vertex of
     a split segment (None for collapses); ``ids`` its splits' batch ids (None: one
-    batch each)."""
+    batch each); ``ring``: with :data:`~.format.RING_POSITIONS`, the predicted split
+    edge of each split (records, 3; ``ring_v4.py``)."""
     symbols = list(fields)
     vertex_contexts = None
     if t0 is not None:
@@ -155,7 +169,8 @@ def _segment_symbols(fields: list, t0: int | None, ids, flags: int, layout: list
         symbols[0] = gaps
         vertex_contexts = np.where(first_of_run, 0, 1)
         symbols[POSITION] = position_symbols(unzigzag(fields[POSITION]).reshape(-1, 6),
-                                             bool(flags & EDGE_POSITIONS))
+                                             bool(flags & EDGE_POSITIONS),
+                                             ring if flags & RING_POSITIONS else None)
         symbols.insert(0, runs)
     else:
         symbols.insert(0, np.zeros(0, dtype=np.int64))

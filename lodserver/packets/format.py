@@ -45,8 +45,14 @@ MAX_ATTRIBUTES, MAX_NAME = 255, 64
 HAS_MATERIALS = 1
 # version 4 only: positions coded as the split edge and the place of vs along it
 # (EDGE_POSITIONS); position and value symbols coded in contexts of the magnitudes
-# before them (MAGNITUDE_CONTEXTS)
-EDGE_POSITIONS, MAGNITUDE_CONTEXTS = 2, 4
+# before them (MAGNITUDE_CONTEXTS); the split edge coded less its prediction from the
+# rings of the split's two vertices (RING_POSITIONS, only with EDGE_POSITIONS)
+EDGE_POSITIONS, MAGNITUDE_CONTEXTS, RING_POSITIONS = 2, 4, 8
+# RING_POSITIONS predicts the split edge as this fraction of the difference of the two
+# rings' centroids: each ring, without the other vertex, leans away from it, so the
+# difference overshoots the edge, by a little less than twice (bench/README.md, "Positions
+# from the ring"). A dyadic fraction (5/8), exact in float64.
+RING_SCALE = 0.625
 
 # Version 2's attribute kind codes (read only); version 3 names every attribute.
 ATTRIBUTE_IDS = {"NORMAL": 0, "TEXCOORD_0": 1, "TEXCOORD_1": 2, "COLOR_0": 3}

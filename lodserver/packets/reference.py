@@ -30,6 +30,7 @@ from .format import (
     IS_NEW,
     IS_VS,
     MAX_SPLIT_RATIO,
+    RING_SCALE,
     TANGENT,
     PacketError,
     Reader,
@@ -268,6 +269,35 @@ def scaled(ratio: float, d: int) -> int:
     return math.floor(ratio * d + 0.5)
 
 
+def ring_prediction(work: Working, s: int, t: int) -> list[int]:
+    """``P``, the split edge predicted from the rings (docs/packets.md, "Positions
+    from the ring"), in the state after split ``t``'s faces, before its positions."""
+    sums, counts = [], []
+    for v, other in ((s, t), (t, s)):
+        ring = []                  # with repeats: the other two corners of each corner of v
+        for c in work.corners.of(v):
+            f, k = divmod(c, 3)
+            ring += [int(work.faces[f, (k + j) % 3]) for j in (1, 2)]
+        ring = [u for u in ring if u not in (v, other)]
+        sums.append([float(sum(int(work.positions[u, a]) for u in ring)) for a in range(3)])
+        counts.append(len(ring))
+    (ss, st), (ns, nt) = sums, counts
+    if ns == 0 or nt == 0:
+        return [0, 0, 0]
+    return [math.floor((st[a] / nt - ss[a] / ns) * RING_SCALE + 0.5) for a in range(3)]
+
+
+def ring_edge_fields(work: Working, s: int, t: int, symbols) -> tuple[list, list]:
+    """Version 3's ``d1``, ``d2`` of split ``t`` from its signed position symbols
+    ``E - P, l, r`` (7) and the ring's ``P``: ``E``, then ``d1 = r - floor((l E + 8) /
+    16)`` and ``d2 = E + 2 d1`` per axis (docs/packets.md, "Version 4", "Records")."""
+    predicted = ring_prediction(work, s, t)
+    place = int(symbols[3])
+    edge = [int(symbols[a]) + predicted[a] for a in range(3)]
+    d1 = [int(symbols[4 + a]) - (place * edge[a] + 8) // 16 for a in range(3)]
+    return d1, [edge[a] + 2 * d1[a] for a in range(3)]
+
+
 def moved_prediction(parents: list[int], bottom: int, y: int) -> int:
     """The predicted finer wedge of a moved corner holding ``y``: the first new wedge
     (``bottom + i``, parent ``parents[i]``) that is a child of ``y``, else ``y``."""
@@ -338,6 +368,10 @@ class Packet:
     streams: tuple[bytes, ...]
     attribute_grids: tuple = ()
     has_materials: bool = False
+    # Version 4 with RING_POSITIONS only: every split's position symbols, (records, 7)
+    # signed ``E - P, l, r``, resolved as each split is applied (the prediction ``P``
+    # reads the state after its faces); the position stream is then empty.
+    ring_edges: np.ndarray | None = None
 
     @property
     def records(self) -> int:
@@ -413,7 +447,8 @@ def apply_packet(state: LodState, packet) -> LodState:
     readers = [Reader(s, name) for s, name in zip(packet.streams, names)]
     try:
         if packet.stop > packet.start:
-            _apply_splits(work, packet.start, packet.stop, readers, packet.attribute_grids)
+            _apply_splits(work, packet.start, packet.stop, readers, packet.attribute_grids,
+                          packet.ring_edges)
         else:
             _apply_collapses(work, packet.start, packet.stop, readers, packet.attribute_grids)
     except (IndexError, KeyError, ValueError) as exc:
@@ -448,7 +483,7 @@ def apply_packet(state: LodState, packet) -> LodState:
                     state.attribute_grids, material)
 
 
-def _apply_splits(work: Working, start, stop, readers, grids):
+def _apply_splits(work: Working, start, stop, readers, grids, ring_edges=None):
     vertex, count, pattern, other, fan, mask, position = readers[:7]
     for t in range(start, stop):
         s = t - 1 - vertex.varint()
@@ -486,9 +521,14 @@ def _apply_splits(work: Working, start, stop, readers, grids):
             work.append_face(corners)
 
         coarse = work.positions[s].copy()
-        fine = coarse + [position.signed() for _ in range(3)]
+        if ring_edges is None:
+            d1 = [position.signed() for _ in range(3)]
+            d2 = [position.signed() for _ in range(3)]
+        else:
+            d1, d2 = ring_edge_fields(work, s, t, ring_edges[t - start])
+        fine = coarse + d1
         work.positions[s] = fine
-        work.positions[t] = 2 * coarse - fine + [position.signed() for _ in range(3)]
+        work.positions[t] = 2 * coarse - fine + d2
         if grids:
             geometry = (coarse.tolist(), fine.tolist(), work.positions[t].tolist())
             _split_wedges(work, s, t, held, set(moved), first, geometry, readers, grids)

@@ -185,12 +185,15 @@ def to_edge(d: np.ndarray) -> np.ndarray:
 PLACE_COLUMN = 3
 
 
-def position_symbols(d: np.ndarray, edge: bool) -> np.ndarray:
+def position_symbols(d: np.ndarray, edge: bool, ring: np.ndarray | None = None) -> np.ndarray:
     """The position stream's symbols of split records, from version 3's signed
-    (records, 6) ``d1, d2``: zigzagged, through :func:`to_edge` when ``edge``."""
+    (records, 6) ``d1, d2``: zigzagged, through :func:`to_edge` when ``edge``, the
+    edge less its prediction ``ring`` (records, 3) when given (``ring_v4.py``)."""
     if not edge:
         return zigzag(d).ravel()
     e = to_edge(d)
+    if ring is not None:
+        e[:, :3] -= ring
     out = zigzag(e)
     out[:, PLACE_COLUMN] = e[:, PLACE_COLUMN]
     return out.ravel()

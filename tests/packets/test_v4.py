@@ -26,15 +26,20 @@ from lodserver.packets import (
 )
 from lodserver.packets import rans
 from lodserver.packets.decode_v4 import decode_any, decode_packet_v4
-from lodserver.packets.encode_v4 import encode_packet_v4
-from lodserver.packets.format import EDGE_POSITIONS, MAGNITUDE_CONTEXTS, Reader
+from lodserver.packets.encode_v4 import DEFAULT_FLAGS, encode_packet_v4
+from lodserver.packets.format import EDGE_POSITIONS, MAGNITUDE_CONTEXTS, RING_POSITIONS, Reader
 from lodserver.packets.streams_v4 import from_edge, to_edge
 
 from ..meshes import mesh as input_mesh
 from .test_attributes import _built as every_attribute_pm
 from .test_packets import _book, _flipped_torus, _same, _with_materials
 
-ALL_FLAGS = (0, EDGE_POSITIONS, MAGNITUDE_CONTEXTS, EDGE_POSITIONS | MAGNITUDE_CONTEXTS)
+ALL_FLAGS = (0, EDGE_POSITIONS, MAGNITUDE_CONTEXTS, EDGE_POSITIONS | MAGNITUDE_CONTEXTS,
+             EDGE_POSITIONS | RING_POSITIONS, EDGE_POSITIONS | MAGNITUDE_CONTEXTS | RING_POSITIONS)
+# The position codings the exactness properties run with: the default, and the
+# split edge alone and predicted from the ring (whichever of them the default is).
+POSITION_FLAGS = tuple(dict.fromkeys((DEFAULT_FLAGS, EDGE_POSITIONS,
+                                      EDGE_POSITIONS | RING_POSITIONS)))
 
 
 @cache
@@ -68,12 +73,59 @@ GENERATED = ["spot", "torus", "grid", "two_boxes", "icosphere", "textured_sphere
              "flipped_torus", "materials", "every_attribute"]
 
 
+@pytest.mark.parametrize("flags", POSITION_FLAGS)
 @pytest.mark.parametrize("name", GENERATED)
-def test_base_to_full_and_back_are_exact(name):
+def test_base_to_full_and_back_are_exact(name, flags):
     pm = _pm(name)
     n0, n = pm.base_vertices, pm.vertex_count
     for a, b in ((n0, n), (n, n0), ((n0 + n) // 2, n0 + 1), (n0 + 1, n - 1)):
-        _check(pm, a, b)
+        _check(pm, a, b, flags=flags)
+
+
+@pytest.mark.parametrize("name", ["spot", "every_attribute", "materials"])
+def test_every_level_is_exact_both_ways_with_the_ring(name):
+    # every split and every collapse of the mesh, in about 150 chained packets each
+    # way, each landing checked: each ring prediction reads the state the packets
+    # before it left
+    pm = _pm(name)
+    n0, n = pm.base_vertices, pm.vertex_count
+    flags = EDGE_POSITIONS | RING_POSITIONS
+    step = max(1, (n - n0) // 150)
+    state = _state(pm, n0)
+    for a in range(n0, n, step):
+        b = min(n, a + step)
+        state = apply_packet(state, decode_packet_v4(encode_packet_v4(pm, a, b, flags=flags)))
+        _same(state, _state(pm, b))
+    for a in range(n, n0, -step):
+        b = max(n0, a - step)
+        state = apply_packet(state, decode_packet_v4(encode_packet_v4(pm, a, b, flags=flags)))
+        _same(state, _state(pm, b))
+
+
+def test_the_ring_needs_the_edge():
+    pm = _pm("spot")
+    n0 = pm.base_vertices
+    with pytest.raises(ValueError, match="EDGE_POSITIONS"):
+        encode_packet_v4(pm, n0, n0 + 10, flags=RING_POSITIONS)
+    data = bytearray(encode_packet_v4(pm, n0, n0 + 10, flags=EDGE_POSITIONS | RING_POSITIONS))
+    data[7] &= ~EDGE_POSITIONS                      # the header's flags byte
+    import struct
+    import zlib
+    data[-4:] = struct.pack("<I", zlib.crc32(bytes(data[:-4])))
+    with pytest.raises(PacketError, match="ring"):
+        decode_packet_v4(bytes(data))
+
+
+def test_the_ring_saves_bytes_on_a_real_mesh():
+    pm = _pm("spot")
+    n0, n = pm.base_vertices, pm.vertex_count
+    edge = encode_packet_v4(pm, n0, n, flags=EDGE_POSITIONS)
+    ring = encode_packet_v4(pm, n0, n, flags=EDGE_POSITIONS | RING_POSITIONS)
+    assert len(ring) < len(edge)
+    # collapses carry no split edge: the flag changes only the header's flags byte
+    back = encode_packet_v4(pm, n, n0, flags=EDGE_POSITIONS)
+    back_ring = encode_packet_v4(pm, n, n0, flags=EDGE_POSITIONS | RING_POSITIONS)
+    assert len(back) == len(back_ring) and back[8:-4] == back_ring[8:-4]
 
 
 @pytest.mark.parametrize("flags", ALL_FLAGS)
@@ -92,11 +144,13 @@ def test_any_levels_and_compositions_land_on_the_level(data):
     levels = st.integers(pm.base_vertices, pm.vertex_count)
     a, b, c = data.draw(levels), data.draw(levels), data.draw(levels)
     bits = data.draw(st.sampled_from([None, 10, 14]))
-    _check(pm, a, c, bits=bits)
+    flags = data.draw(st.sampled_from(POSITION_FLAGS))
+    _check(pm, a, c, bits=bits, flags=flags)
     # a -> b -> c lands on the state of the direct packet a -> c
-    state = apply_packet(_state(pm, a, bits), decode_packet_v4(encode_packet_v4(pm, a, b,
-                                                                                bits=bits)))
-    state = apply_packet(state, decode_packet_v4(encode_packet_v4(pm, b, c, bits=bits)))
+    state = apply_packet(_state(pm, a, bits), decode_packet_v4(
+        encode_packet_v4(pm, a, b, bits=bits, flags=flags)))
+    state = apply_packet(state, decode_packet_v4(encode_packet_v4(pm, b, c, bits=bits,
+                                                                  flags=flags)))
     _same(state, _state(pm, c, bits))
 
 
@@ -156,13 +210,14 @@ def test_a_batch_with_descending_vertices_is_refused():
         encode_packet_v4(pm, pm.base_vertices, pm.vertex_count, batch=np.zeros(3))
 
 
+@pytest.mark.parametrize("flags", POSITION_FLAGS)
 @pytest.mark.parametrize("name", ["stanford-bunny.obj", "Duck.glb"])
-def test_shared_meshes_are_exact(shared_meshes, name):
+def test_shared_meshes_are_exact(shared_meshes, name, flags):
     pm = _pm(name)
     n0, n = pm.base_vertices, pm.vertex_count
     for a, b in ((n0, min(n, n0 + 3000)), (n, max(n0, n - 3000)), (n - 500, n0 + 200)):
         for bits in (None, 14):
-            _check(pm, a, b, bits=bits)
+            _check(pm, a, b, bits=bits, flags=flags)
 
 
 @pytest.mark.parametrize("scene", ["Fox.glb", "AnimatedMorphCube.glb"])
@@ -174,7 +229,8 @@ def test_skinned_and_morphed_scene_meshes_are_exact(shared_meshes, scene):
         pm = build(mesh, poses=scene_poses(loaded, index, mesh))
         n0, n = pm.base_vertices, pm.vertex_count
         for a, b in ((n0, n), (n, n0), ((n0 + n) // 2, n0 + 1)):
-            _check(pm, a, b)
+            for flags in POSITION_FLAGS:
+                _check(pm, a, b, flags=flags)
 
 
 def test_decode_any_reads_every_version():
@@ -190,9 +246,9 @@ def test_empty_packet_is_the_identity():
 
 
 @cache
-def _some_packet():
+def _some_packet(flags=DEFAULT_FLAGS):
     pm = _pm("every_attribute")
-    return pm, encode_packet_v4(pm, pm.base_vertices + 3, pm.vertex_count - 20)
+    return pm, encode_packet_v4(pm, pm.base_vertices + 3, pm.vertex_count - 20, flags=flags)
 
 
 def _apply(pm, data):
@@ -202,7 +258,7 @@ def _apply(pm, data):
 @settings(max_examples=200, deadline=None)
 @given(st.data())
 def test_a_truncated_or_damaged_packet_is_a_packet_error(data):
-    pm, packet = _some_packet()
+    pm, packet = _some_packet(data.draw(st.sampled_from(POSITION_FLAGS)))
     damaged = bytearray(packet)
     if data.draw(st.booleans()):
         damaged = damaged[:data.draw(st.integers(0, len(packet) - 1))]
@@ -221,7 +277,7 @@ def test_damage_behind_a_valid_checksum_is_still_a_packet_error_or_exact(data):
     still be a valid record); it never raises anything else."""
     import struct
     import zlib
-    pm, packet = _some_packet()
+    pm, packet = _some_packet(data.draw(st.sampled_from(POSITION_FLAGS)))
     damaged = bytearray(packet[:-4])
     at = data.draw(st.integers(0, len(damaged) - 1))
     damaged[at] ^= data.draw(st.integers(1, 255))
@@ -282,13 +338,14 @@ def test_packets_cut_from_kept_segments_are_the_encoded_packets(data):
     from lodserver.packets.records_v4 import packet_between_v4
     pm = _pm(data.draw(st.sampled_from(["every_attribute", "materials", "spot+batched"])))
     size = data.draw(st.sampled_from([64, 8192]))
+    flags = data.draw(st.sampled_from(POSITION_FLAGS))
     levels = st.integers(pm.base_vertices, pm.vertex_count)
     a, b = data.draw(levels), data.draw(levels)
-    original = encode_v4.SEGMENT_RECORDS
-    encode_v4.SEGMENT_RECORDS = size
+    original = encode_v4.SEGMENT_RECORDS, encode_v4.DEFAULT_FLAGS
+    encode_v4.SEGMENT_RECORDS, encode_v4.DEFAULT_FLAGS = size, flags
     try:
         # twice: the second cuts from the segments the first kept
         for _ in range(2):
-            assert packet_between_v4(pm, a, b) == encode_packet_v4(pm, a, b)
+            assert packet_between_v4(pm, a, b) == encode_packet_v4(pm, a, b, flags=flags)
     finally:
-        encode_v4.SEGMENT_RECORDS = original
+        encode_v4.SEGMENT_RECORDS, encode_v4.DEFAULT_FLAGS = original

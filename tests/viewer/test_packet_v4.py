@@ -32,7 +32,9 @@ from lodserver.packets import (
 )
 from lodserver.packets.decode_v4 import decode_packet_v4
 from lodserver.packets.encode_v4 import encode_packet_v4
-from lodserver.packets.format import EDGE_POSITIONS, MAGNITUDE_CONTEXTS, Reader, stream_names
+from lodserver.packets.format import (
+    EDGE_POSITIONS, MAGNITUDE_CONTEXTS, RING_POSITIONS, Reader, stream_names,
+)
 
 from ..meshes import mesh as input_mesh
 from ..packets.test_attributes import _built as every_attribute_pm
@@ -41,7 +43,7 @@ from ..packets.test_v4 import _ascending_runs
 STATIC = Path(__file__).resolve().parents[2] / "static"
 ORIGIN = "http://localhost:8765"   # localhost: a secure context, for crypto.subtle
 TYPES = {".js": "text/javascript", ".html": "text/html", ".css": "text/css"}
-E, M = EDGE_POSITIONS, MAGNITUDE_CONTEXTS
+E, M, R = EDGE_POSITIONS, MAGNITUDE_CONTEXTS, RING_POSITIONS
 SHARED = Path(__file__).resolve().parents[3] / "shared" / "meshes"
 
 # The state's arrays as the browser keeps them (levelstate.js), by the Python
@@ -221,7 +223,7 @@ def _run(page, pm, steps):
         assert want == _digests(quantized_level(pm, step[1], grid))
 
 
-def _chain(pm, flag_cycle=(E, 0, E | M, M)):
+def _chain(pm, flag_cycle=(E | R, E, 0, E | M | R, E | M, M)):
     """Base -> full -> base, then mid levels both ways, the flags cycling."""
     n0, n = pm.base_vertices, pm.vertex_count
     levels = [n0, n, n0, (n0 + n) // 2, n0 + 1, n - 1, (n0 + 2 * n) // 3, n0]
@@ -241,7 +243,7 @@ def test_every_flag_combination_both_ways(page):
     pm = _pm("spot")
     n0, n = pm.base_vertices, pm.vertex_count
     steps = []
-    for flags in (0, E, M, E | M):
+    for flags in (0, E, M, E | M, E | R, E | M | R):
         steps += [(n0, n, flags, None), (n, n0, flags, None)]
     _run(page, pm, steps)
 
@@ -252,7 +254,7 @@ def test_batch_runs(page, longest):
     n0, n = pm.base_vertices, pm.vertex_count
     batch = _ascending_runs(pm, longest)
     steps = [(n0, n, E, batch), (n, n0 + 5, E, batch), (n0 + 5, n - 9, E | M, batch),
-             (n - 9, n0, 0, batch)]
+             (n - 9, n0, 0, batch), (n0, n, E | R, batch)]
     _run(page, pm, steps)
 
 
@@ -262,19 +264,19 @@ def test_segments_of_a_long_packet(page):
     n0, n = pm.base_vertices, pm.vertex_count
     assert n - n0 > 2 * 8192
     _run(page, pm, [(n0, n0 + 8191, E, None), (n0 + 8191, n, M | E, None),
-                    (n, n0 + 8193, E, None)])
+                    (n, n0 + 8193, E, None), (n0 + 8193, n, E | R, None)])
 
 
 # ---- damage ---------------------------------------------------------------------------
 
 @cache
-def _damage_subject():
+def _damage_subject(flags=None):
     pm = _pm("every_attribute")
     a, b = pm.base_vertices + 3, pm.vertex_count - 20
     grid = grid_of(pm)
     state = quantized_level(pm, a, grid)
     capacity = {"vertexCapacity": pm.vertex_count, "faceCapacity": int(pm.face_counts[-1])}
-    return pm, state, _document(pm, a), capacity, encode_packet_v4(pm, a, b)
+    return pm, state, _document(pm, a), capacity, encode_packet_v4(pm, a, b, flags=flags)
 
 
 def _field(stream, name):
@@ -307,10 +309,11 @@ def _python_outcome(state, data):
                                    ).hexdigest()
 
 
-def test_damaged_or_truncated_packets_are_packet_errors(page):
+@pytest.mark.parametrize("flags", [None, E | R])
+def test_damaged_or_truncated_packets_are_packet_errors(page, flags):
     """Random truncations and byte flips (seeded): the checksum refuses every one, as a
     PacketError and nothing else."""
-    pm, state, document, capacity, packet = _damage_subject()
+    pm, state, document, capacity, packet = _damage_subject(flags)
     rng = np.random.default_rng(4)
     damaged = []
     for _ in range(300):
@@ -327,14 +330,16 @@ def test_damaged_or_truncated_packets_are_packet_errors(page):
         [o for o in outcomes if o.get("read") != "PacketError"][:3]
 
 
-def test_damage_behind_a_valid_checksum_decodes_as_the_reference_does(page):
+@pytest.mark.parametrize("flags", [None, E | R])
+def test_damage_behind_a_valid_checksum_decodes_as_the_reference_does(page, flags):
     """Byte flips with the checksum made to match reach the symbol decoder: each ends
     (no hang) in a PacketError exactly when the reference decoder refuses it, and
     otherwise in the reference's version 3 streams' values, stream for stream. Applied, those
     give a PacketError whenever the reference's apply does, or else the reference's
     state or a PacketError (LodState checks every record's values against their grids
-    as it goes; the reference checks the state it ends on)."""
-    pm, state, document, capacity, packet = _damage_subject()
+    as it goes; the reference checks the state it ends on). With the ring (``E | R``)
+    the positions resolve as the records apply, in both."""
+    pm, state, document, capacity, packet = _damage_subject(flags)
     rng = np.random.default_rng(44)
     damaged, expected = [], []
     for _ in range(200):
