@@ -206,9 +206,8 @@ def _cluster_stuck(pms: dict, chosen: dict, levels: dict, k: int, ratio: float,
     else stopped at its base. ``reach`` names the method (``ChainOptions.reach``).
     Returns mesh index -> the clustered level's error, mesh units: its sampled
     two-sided Hausdorff distance to the full mesh."""
-    from ..bake.level import merged_level, with_skin
+    from ..chains import reached_level
     from ..metrics.surface import surface_distance
-    from ..simplify.cluster import cluster
 
     replaced = {}
     for index, pm in pms.items():
@@ -218,17 +217,9 @@ def _cluster_stuck(pms: dict, chosen: dict, levels: dict, k: int, ratio: float,
         if not short:
             continue
         full = pm.at(pm.vertex_count)
-        names = [name for name, _ in full.attributes.layout] if full.attributes else []
-        if reach == "merge" and any(name.startswith("TARGET") for name in names):
-            continue    # a morphed part stays a part: clustering cannot keep its targets
-        try:
-            joined = (merged_level(full, budget) if reach == "merge" else
-                      cluster(Mesh(full.positions, full.faces), target_faces=budget))
-            if reach == "merge" and any(name.startswith("JOINTS_") for name in names):
-                joined = with_skin(full, joined)    # one skeleton: the part keeps its skin
-        except MeshError:
-            continue    # clustering cannot bring a tiny part (a few faces) to its budget
-        if joined.face_count < levels[index][k].face_count:
+        # None: a morphed part, or a tiny part (a few faces) clustering cannot bring down
+        joined = reached_level(pm, budget, reach, coverage=None)
+        if joined is not None and joined.face_count < levels[index][k].face_count:
             levels[index][k] = joined
             try:
                 distance = surface_distance(Mesh(full.positions, full.faces), joined,

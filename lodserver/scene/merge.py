@@ -28,8 +28,13 @@ _COLUMNS = (("NORMAL", 3), ("TEXCOORD_0", 2), ("TEXCOORD_1", 2), ("COLOR_0", 4),
 MAX_WORLD_FACES = 5_000_000
 
 
-def static_reason(scene) -> str | None:
-    """Why ``scene``'s parts cannot be merged into one mesh, or None when they can."""
+def static_reason(scene, parts: dict | None = None) -> str | None:
+    """Why ``scene``'s parts cannot be merged into one mesh, or None when they can.
+    ``parts``: glTF mesh index -> (its attribute layout, its faces) when
+    ``scene.meshes`` does not hold the meshes (a stored asset's scene)."""
+    if parts is None:
+        parts = {index: (mesh.attributes.layout if mesh.attributes is not None else (),
+                         mesh.face_count) for index, mesh in scene.meshes.items()}
     document = scene.document
     if document.get("animations"):
         return "it is animated"
@@ -37,13 +42,12 @@ def static_reason(scene) -> str | None:
         return "it has skins"
     if scene.as_is:
         return "some of its meshes have no triangles"
-    for mesh in scene.meshes.values():
-        if mesh.attributes is not None and any(name.startswith(("TARGET", "JOINTS"))
-                                               for name, _ in mesh.attributes.layout):
+    for layout, _ in parts.values():
+        if any(name.startswith(("TARGET", "JOINTS")) for name, _ in layout):
             return "it has morph targets or skinned meshes"
     world = node_worlds(scene.document, scene.carried)
-    drawn = sum(len(instance_matrices(scene, index, world)) * mesh.face_count
-                for index, mesh in scene.meshes.items())
+    drawn = sum(len(instance_matrices(scene, index, world)) * faces
+                for index, (_, faces) in parts.items())
     if drawn > MAX_WORLD_FACES:
         return f"it draws {drawn} triangles, more than the {MAX_WORLD_FACES} merged at once"
     return None

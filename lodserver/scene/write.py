@@ -6,11 +6,11 @@ import dataclasses
 
 from ..io.scene import Scene
 from ..io.scene_glb import encode_scene
-from .asset import SceneAsset, instances_and_diagonal
+from .asset import SceneAsset, instances_and_diagonal, instances_of
 from .budget import chain_levels
 from .textures import level_meshes, texture_levels
 
-__all__ = ["scene_chain_glb", "scene_glb"]
+__all__ = ["merged_scene_budget", "merged_scene_glb", "scene_chain_glb", "scene_glb"]
 
 
 def _labelled(asset: SceneAsset) -> Scene:
@@ -60,3 +60,37 @@ def scene_chain_glb(asset: SceneAsset, ratios, coverage, *, compress: str = "non
                   for index, levels in meshes.items()}
         scene = dataclasses.replace(scene, materials=found.chain)
     return encode_scene(scene, meshes, list(coverage), compress=compress)
+
+
+def merged_scene_budget(asset: SceneAsset, ratio: float, levels: dict) -> int | None:
+    """The whole scene's face budget at ``ratio`` (each instance counted) when its
+    parts at ``levels`` (part index -> vertex count, ``scene_levels_for``) draw
+    more than ``chains.REACH_SLACK`` times it and the scene can be drawn as one
+    mesh (``merge.static_reason``); else None (edge collapse's level stands)."""
+    from ..chains import REACH_SLACK
+    from .merge import static_reason
+
+    instances = instances_of(asset)
+    full = sum(len(instances[p.index]) * p.pm.face_count for p in asset.parts)
+    drawn = sum(len(instances[p.index]) * p.pm.faces_at_level(levels[p.index])
+                for p in asset.parts)
+    budget = max(1, round(ratio * full))
+    if drawn <= REACH_SLACK * budget:
+        return None
+    parts = {p.mesh: (p.pm.attribute_layout, p.pm.face_count) for p in asset.parts}
+    return budget if static_reason(asset.scene, parts) is None else None
+
+
+def merged_scene_glb(asset: SceneAsset, budget: int, compress: str = "none",
+                     coverage: float = 1.0) -> bytes:
+    """The GLB of a static scene's far level as one mesh (``merged_scene_budget``):
+    every part's full detail placed in the world (``merge.world_mesh``), remeshed to
+    ``budget`` faces and baked for a level drawn up to ``coverage`` of the screen
+    (``bake.level.merged_level``): one node, one primitive, one material."""
+    from ..bake.level import merged_level
+    from ..io.glb import encode_glb
+    from .merge import world_mesh
+
+    full = dataclasses.replace(asset.scene, meshes={
+        part.mesh: part.pm.at(part.pm.vertex_count) for part in asset.parts})
+    return encode_glb(merged_level(world_mesh(full), budget, coverage=coverage), compress)
