@@ -20,6 +20,7 @@ from ..io.glb import encode_glb
 from ..io.scene_glb import encode_scene
 from ..mesh import Mesh, MeshError
 from .budget import chain_levels, coverage_from_errors, scene_instances, world_errors
+from .groups import grouped_levels
 from .textures import level_meshes, texture_levels
 
 __all__ = ["export_scene"]
@@ -78,6 +79,7 @@ def export_scene(scene, source: Path, output: Path, chain: ChainOptions, options
     drawn = [sum(len(instances[index]) * levels[index][k].face_count for index in pms)
              for k in range(count)]
     clustered = set()
+    collapsed = {index: list(chain_) for index, chain_ in levels.items()}
     merged = _merge_static(scene, chain, drawn, worst, diagonal) if lods else {}
     clustered.update(merged)
     if chain.reach != "none":
@@ -104,6 +106,13 @@ def export_scene(scene, source: Path, output: Path, chain: ChainOptions, options
                      for index in scene.as_is)
     coverage = coverage_from_errors(worst, diagonal) if count else []
     scenes, levels, notes = _scene_texture_levels(scene, levels, chain, drawn)
+    # a partly animated scene: the parts that move together merged (scene.groups)
+    grouped = grouped_levels(scenes, levels, collapsed, lods, instances, slack=REACH_SLACK,
+                             atlas=chain.atlas, hints=[1.0, *coverage[:-1]], skip=merged) \
+        if chain.reach == "merge" and chain.separate and not per_mesh and lods else {}
+    for k, (_, _, drawn_k) in grouped.items():
+        drawn[k] = drawn_k
+        clustered.add(k)
     seconds = []
     if chain.separate:
         outputs = [output.with_name(f"{output.stem}_lod{i}{output.suffix}") for i in range(count)]
@@ -112,6 +121,11 @@ def export_scene(scene, source: Path, output: Path, chain: ChainOptions, options
             begun = time.perf_counter()
             blobs.append(encode_glb(merged[i][0], chain.compress, name=f"{output.stem}_LOD{i}")
                          if i in merged else
+                         encode_scene(*_with_baked(grouped[i][0], {index: [mesh] for index, mesh
+                                                                   in grouped[i][1].items()},
+                                                   [0], scene.materials),
+                                      [coverage[i]], level=0, compress=chain.compress)
+                         if i in grouped else
                          encode_scene(*_with_baked(scenes[i], levels, [i], scene.materials),
                                       coverage, level=i, compress=chain.compress))
             seconds.append(time.perf_counter() - begun)
@@ -126,6 +140,7 @@ def export_scene(scene, source: Path, output: Path, chain: ChainOptions, options
             seconds[i] += time.perf_counter() - begun
     kept = sum(scene.as_is_faces.values())
     faces = [merged[k][0].face_count if k in merged else
+             kept + sum(mesh.face_count for mesh in grouped[k][1].values()) if k in grouped else
              kept + sum(chain_[k].face_count for chain_ in levels.values()) for k in range(count)]
     base = sum(pm.faces_at_level(pm.base_vertices) for pm in pms.values())
     # base_faces: the coarsest the simplified meshes reach, with the kept ones beside them

@@ -57,18 +57,27 @@ def world_mesh(scene) -> Mesh:
     """Every instance of every part of ``scene`` in world space, as one mesh whose
     ``face_material`` indexes ``scene.materials``."""
     world = node_worlds(scene.document, scene.carried)
+    return placed_mesh([(scene.meshes[index], instance_matrices(scene, index, world))
+                        for index in sorted(scene.meshes)], scene.materials)
+
+
+def placed_mesh(pieces: list, materials) -> Mesh:
+    """One mesh of ``pieces``: (a mesh, its (k, 4, 4) placements) each, every
+    placement a copy of the mesh moved by it (normals by the inverse transpose,
+    mirrored copies turned), in one layout of the columns a bake reads; its
+    ``face_material`` indexes ``materials``, as the pieces' do."""
+    meshes = [mesh for mesh, _ in pieces]
     layout = [(name, width) for name, width in _COLUMNS if name != "TANGENT" or all(
         m.attributes is not None and m.attributes.columns("TANGENT") is not None
-        for m in scene.meshes.values())]
+        for m in meshes)]
     layout = [(name, width) for name, width in layout if name in ("NORMAL", "TANGENT") or any(
         m.attributes is not None and m.attributes.columns(name) is not None
-        for m in scene.meshes.values())]
-    positions, faces, values, corners, materials = [], [], [], [], []
+        for m in meshes)]
+    positions, faces, values, corners, face_material = [], [], [], [], []
     vertex_base = wedge_base = 0
-    for index in sorted(scene.meshes):
-        mesh = scene.meshes[index]
+    for mesh, matrices in pieces:
         own = _columns(mesh, layout)
-        for matrix in instance_matrices(scene, index, world):
+        for matrix in matrices:
             linear = matrix[:3, :3]
             placed = mesh.positions @ linear.T + matrix[:3, 3]
             turned = own.copy()
@@ -92,13 +101,13 @@ def world_mesh(scene) -> Mesh:
             wedges = (mesh.attributes.corners if mesh.attributes is not None
                       else np.asarray(mesh.faces))
             corners.append(wedges[:, order] + wedge_base)
-            materials.append(mesh.face_material if mesh.face_material is not None
-                             else np.full(mesh.face_count, -1, np.int32))
+            face_material.append(mesh.face_material if mesh.face_material is not None
+                                 else np.full(mesh.face_count, -1, np.int32))
             vertex_base += len(placed)
             wedge_base += len(turned)
     return Mesh(np.concatenate(positions), np.concatenate(faces),
                 Attributes(tuple(layout), np.concatenate(values), np.concatenate(corners)),
-                np.concatenate(materials), scene.materials)
+                np.concatenate(face_material), materials)
 
 
 def _columns(mesh: Mesh, layout) -> np.ndarray:
