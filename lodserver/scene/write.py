@@ -10,7 +10,7 @@ from .asset import SceneAsset, instances_and_diagonal, instances_of
 from .budget import chain_levels
 from .textures import level_meshes, texture_levels
 
-__all__ = ["merged_scene_budget", "merged_scene_glb", "scene_chain_glb", "scene_glb"]
+__all__ = ["far_scene_glb", "scene_budget_beyond_reach", "scene_chain_glb", "scene_glb"]
 
 
 def _labelled(asset: SceneAsset) -> Scene:
@@ -62,35 +62,44 @@ def scene_chain_glb(asset: SceneAsset, ratios, coverage, *, compress: str = "non
     return encode_scene(scene, meshes, list(coverage), compress=compress)
 
 
-def merged_scene_budget(asset: SceneAsset, ratio: float, levels: dict) -> int | None:
+
+def scene_budget_beyond_reach(asset: SceneAsset, ratio: float, levels: dict) -> int | None:
     """The whole scene's face budget at ``ratio`` (each instance counted) when its
     parts at ``levels`` (part index -> vertex count, ``scene_levels_for``) draw
-    more than ``chains.REACH_SLACK`` times it and the scene can be drawn as one
-    mesh (``merge.static_reason``); else None (edge collapse's level stands)."""
+    more than ``chains.REACH_SLACK`` times it, else None (edge collapse reaches it)."""
     from ..chains import REACH_SLACK
-    from .merge import static_reason
 
     instances = instances_of(asset)
     full = sum(len(instances[p.index]) * p.pm.face_count for p in asset.parts)
     drawn = sum(len(instances[p.index]) * p.pm.faces_at_level(levels[p.index])
                 for p in asset.parts)
     budget = max(1, round(ratio * full))
-    if drawn <= REACH_SLACK * budget:
-        return None
-    parts = {p.mesh: (p.pm.attribute_layout, p.pm.face_count) for p in asset.parts}
-    return budget if static_reason(asset.scene, parts) is None else None
+    return budget if drawn > REACH_SLACK * budget else None
 
 
-def merged_scene_glb(asset: SceneAsset, budget: int, compress: str = "none",
-                     coverage: float = 1.0) -> bytes:
-    """The GLB of a static scene's far level as one mesh (``merged_scene_budget``):
-    every part's full detail placed in the world (``merge.world_mesh``), remeshed to
-    ``budget`` faces and baked for a level drawn up to ``coverage`` of the screen
-    (``bake.level.merged_level``): one node, one primitive, one material."""
+def far_scene_glb(asset: SceneAsset, ratio: float, levels: dict, compress: str = "none") -> bytes:
+    """The GLB of the scene's level at ``ratio`` beyond edge collapse's reach
+    (``scene_budget_beyond_reach``; ``levels`` edge collapse's), merged as an
+    export with ``--separate`` merges it: a static scene (``merge.static_reason``)
+    as one mesh, every part placed in the world, remeshed and baked (one node, one
+    primitive, one material); a moving one by groups (``groups.grouped_level``:
+    the meshes that move together merged, the rest at ``levels``). Its atlases
+    are sized for the coverage a chain from full detail to ``ratio`` draws it up
+    to. MeshError where clustering keeps no face."""
     from ..bake.level import merged_level
-    from ..io.glb import encode_glb
-    from .merge import world_mesh
+    from ..chains import REACH_SLACK
+    from ..io.glb import coverage_from_ratios, encode_glb
+    from .groups import grouped_level
+    from .merge import static_reason, world_mesh
 
-    full = dataclasses.replace(asset.scene, meshes={
+    coverage = coverage_from_ratios([1.0, ratio])[0]
+    scene = _labelled(asset)
+    full = dataclasses.replace(scene, meshes={
         part.mesh: part.pm.at(part.pm.vertex_count) for part in asset.parts})
-    return encode_glb(merged_level(world_mesh(full), budget, coverage=coverage), compress)
+    if static_reason(full) is None:
+        budget = scene_budget_beyond_reach(asset, ratio, levels)
+        return encode_glb(merged_level(world_mesh(full), budget, coverage=coverage), compress)
+    drawn = {part.mesh: part.pm.at(levels[part.index]) for part in asset.parts}
+    grouped, kept, _ = grouped_level(full, drawn, ratio, slack=REACH_SLACK, coverage=coverage)
+    return encode_scene(grouped, {index: [mesh] for index, mesh in kept.items()}, [1.0],
+                        level=0, compress=compress)

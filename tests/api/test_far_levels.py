@@ -24,6 +24,7 @@ from lodserver.mesh import Attributes, Materials, Mesh
 
 from ..io import test_gltf
 from ..io.test_gltf import assert_valid
+from ..scene.test_groups import assembled_scene
 from . import settled
 
 gltf_validator = test_gltf.gltf_validator    # the session fixture, shared
@@ -207,3 +208,25 @@ def test_a_static_scene_far_level_is_one_mesh(tmp_path, gltf_validator):
         # a scene's chain keeps edge collapse's levels (MSFT_lod is per node)
         chain = client.get(f"/meshes/{mesh_id}/chain", params={"lods": "1,0.02"})
         assert chain.status_code == 200
+
+
+def test_a_moving_scene_far_level_merges_what_moves_together(tmp_path, gltf_validator):
+    """The assembled scene of ``tests/scene/test_groups.py`` (static walls, an
+    animated carrier of two meshes, a spinner): its far level holds one merged
+    node per group and the spinner as a part, as ``export --separate`` writes it."""
+    options = {"data_dir": tmp_path / "data", "warm_kernels": False}
+    with TestClient(create_app(Settings(**options))) as client:
+        created = client.post("/meshes", files={"file": ("moving.glb", assembled_scene())})
+        assert created.status_code == 202, created.text
+        body = settled(client, created.json()["id"], timeout=180)
+        assert body["status"] == "ready", body["failure"]
+        response = client.get(f"/meshes/{body['id']}/lod", params={"ratio": 0.02,
+                                                                   "format": "glb"})
+        assert response.status_code == 200, response.text
+        assert_valid(gltf_validator, response.content, "a moving scene's far level")
+        document = _document(response.content)
+        nodes = document["nodes"]
+        assert sum(node.get("name") == "merged" for node in nodes) == 2
+        assert "mesh" in nodes[7] and all("mesh" not in nodes[n] for n in (1, 2, 3, 5, 6))
+        assert sorted(c["target"]["node"] for c in document["animations"][0]["channels"]) \
+            == [4, 7]

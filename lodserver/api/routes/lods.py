@@ -36,7 +36,7 @@ from ...service.levels import (
 )
 from ...scene.asset import SceneAsset, scene_levels_for
 from ...scene.textures import chain_with_texture_levels, texture_levels_bytes
-from ...scene.write import merged_scene_budget, merged_scene_glb, scene_chain_glb, scene_glb
+from ...scene.write import far_scene_glb, scene_budget_beyond_reach, scene_chain_glb, scene_glb
 from ..bodies import BodiesDep
 from ..caching import VersionQuery, etag_for, load_versioned, version_of
 from ..deps import MeshId, StoreDep
@@ -98,9 +98,10 @@ def get_lod(mesh_id: MeshId, store: StoreDep, bodies: BodiesDep, request: Reques
     (of the scene's triangles, one budget over its parts) or error (a fraction
     of its bounding-box diagonal); each part's glTF mesh says its part in
     ``extras.lodserver_part``. Its parts' levels: ``/meshes/{id}/parts/{p}/lod``.
-    A static scene (no animation, skin or morph target) whose level by ratio edge
-    collapse leaves over its budget is, with ``reach=merge``, one mesh: every
-    part placed in the world, remeshed and baked (``scene.write.merged_scene_glb``).
+    A scene's level by ratio that edge collapse leaves over its budget is, with
+    ``reach=merge``, merged as ``export --separate`` merges it
+    (``scene.write.far_scene_glb``): a static scene as one mesh, remeshed and
+    baked; a moving one by groups of the meshes that move together.
     """
     asset, digest, policy = load_versioned(store, mesh_id, v)
     if asset.single is None:
@@ -318,13 +319,12 @@ def _scene_lod(asset: SceneAsset, digest: str, policy: str, request: Request, bo
         raise LevelError("a scene's level is chosen by exactly one of ratio (of the scene's "
                          "triangles) and error (a fraction of its bounding-box diagonal)")
     levels = _scene_levels(asset, ratio=ratio, error=error)
-    budget = merged_scene_budget(asset, ratio, levels) if ratio is not None \
+    budget = scene_budget_beyond_reach(asset, ratio, levels) if ratio is not None \
         and reach == "merge" else None
     if budget is not None:
         def make():
             try:
-                return merged_scene_glb(asset, budget, compress,
-                                        coverage_from_ratios([1.0, ratio])[0])
+                return far_scene_glb(asset, ratio, levels, compress)
             except MeshError:       # a scene of a few faces asked for fewer
                 return scene_glb(asset, levels, compress)
         etag = etag_for(digest, "scene-lod-reach", reach, budget,
