@@ -25,6 +25,7 @@ from lodserver.pipeline import export_lods
 from lodserver.scene.groups import rigid_groups
 
 from ..io import test_gltf
+from ..meshes import GlbBuilder
 from ..io.test_gltf import assert_valid
 
 gltf_validator = test_gltf.gltf_validator    # the session fixture, shared
@@ -40,23 +41,8 @@ def assembled_scene() -> bytes:
     """The GLB described in the module docstring: nodes 1-3 static (mesh 0 twice,
     mesh 1), node 4 the carrier (animated translation) of nodes 5 (mesh 1) and 6
     (mesh 2), node 7 spinning (animated rotation, mesh 2)."""
-    binary, views, accessors = bytearray(), [], []
-
-    def add(values, kind, component, target=None, bounds=False):
-        data = np.ascontiguousarray(values).tobytes()
-        binary.extend(b"\0" * (-len(binary) % 4))
-        view = {"buffer": 0, "byteOffset": len(binary), "byteLength": len(data)}
-        if target:
-            view["target"] = target
-        views.append(view)
-        binary.extend(data)
-        accessor = {"bufferView": len(views) - 1, "componentType": component,
-                    "count": len(values), "type": kind}
-        if bounds:
-            accessor["min"] = np.min(values, axis=0).tolist()
-            accessor["max"] = np.max(values, axis=0).tolist()
-        accessors.append(accessor)
-        return len(accessors) - 1
+    builder = GlbBuilder()
+    add = builder.add
 
     meshes = []
     for number, (count, seed) in enumerate(((20, 1), (15, 2), (10, 3))):
@@ -88,14 +74,8 @@ def assembled_scene() -> bytes:
             {"sampler": 1, "target": {"node": 7, "path": "rotation"}}], "samplers": [
             {"input": times, "output": moves, "interpolation": "LINEAR"},
             {"input": times, "output": turns, "interpolation": "LINEAR"}]}],
-        "accessors": accessors, "bufferViews": views,
-        "buffers": [{"byteLength": len(binary) + (-len(binary) % 4)}]}
-    text = json.dumps(document).encode()
-    text += b" " * (-len(text) % 4)
-    binary.extend(b"\0" * (-len(binary) % 4))
-    total = 12 + 8 + len(text) + 8 + len(binary)
-    return (struct.pack("<4sII", b"glTF", 2, total) + struct.pack("<I4s", len(text), b"JSON")
-            + text + struct.pack("<I4s", len(binary), b"BIN\0") + bytes(binary))
+    }
+    return builder.glb(document)
 
 
 def _document(glb: bytes) -> dict:
