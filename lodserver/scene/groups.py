@@ -43,9 +43,9 @@ _MOVING = ("translation", "rotation", "scale")
 
 @dataclass
 class Group:
-    """Meshes that move together: ``members`` (node, glTF mesh) each placed by
-    ``matrices`` (k, 4, 4) in the frame of node ``anchor`` (None: the world; a
-    skinned group's frame is its bind space) or drawn with skin ``skin``;
+    """Meshes that move together: ``members`` (node, glTF mesh), each placed by its
+    (4, 4) matrix of ``matrices`` in the frame of node ``anchor`` (None: the world;
+    a skinned group's frame is its bind space) or drawn with skin ``skin``;
     the merged mesh's node goes into scene ``scene``'s roots when it has no anchor."""
 
     anchor: int | None
@@ -145,7 +145,7 @@ def grouped_level(scene, levels: dict, ratio: float, *, slack: float, collapsed=
 
     document = copy.deepcopy(scene.document)
     nodes, meshes = document.setdefault("nodes", []), document.setdefault("meshes", [])
-    made, taken = [], set()
+    made = []
     for group in rigid_groups(scene):
         full = sum(scene.meshes[index].face_count for _, index in group.members)
         drawn = sum((collapsed or levels)[index].face_count for _, index in group.members)
@@ -175,7 +175,6 @@ def grouped_level(scene, levels: dict, ratio: float, *, slack: float, collapsed=
             nodes[group.anchor].setdefault("children", []).append(len(nodes) - 1)
         for number, _ in group.members:
             nodes[number].pop("mesh", None)
-        taken.update(number for number, _ in group.members)
         made.append((len(meshes) - 1, mesh))
     if not made:
         return scene, levels, 0
