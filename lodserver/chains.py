@@ -135,13 +135,20 @@ def joined_materials(base: Materials | None, meshes) -> tuple:
     gltf = {key: list((base.gltf if base is not None else {}).get(key) or [])
             for key in ("materials", "textures", "samplers", "images")}
     images = list(base.images) if base is not None else []
-    moved = []
+    moved, appended = [], {}
     for mesh in meshes:
         if mesh.materials is None or mesh.materials is base:
             moved.append((mesh, mesh.face_material))
             continue
+        if id(mesh.materials) in appended:
+            # parts baked together share one material list: appended once
+            moved.append((mesh, None if mesh.face_material is None else np.where(
+                mesh.face_material >= 0, mesh.face_material
+                + appended[id(mesh.materials)], -1)))
+            continue
         own = mesh.materials.gltf
         offsets = {key: len(gltf[key]) for key in gltf}
+        appended[id(mesh.materials)] = offsets["materials"]
         for texture in own.get("textures", ()):
             texture = dict(texture)
             for key, kind in (("source", "images"), ("sampler", "samplers")):

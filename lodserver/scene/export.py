@@ -218,22 +218,29 @@ def _cluster_stuck(pms: dict, chosen: dict, levels: dict, k: int, ratio: float,
     """Replace level ``k`` of the meshes edge collapse left short, by clustering of
     the full mesh at ``ratio`` of its faces where that has fewer faces. Short: over
     ``REACH_SLACK`` times its own budget (``per_mesh``, as :func:`lod_chain` does),
-    else stopped at its base. ``reach`` names the method (``ChainOptions.reach``).
-    Returns mesh index -> the clustered level's error, mesh units: its sampled
+    else stopped at its base. ``reach`` names the method (``ChainOptions.reach``);
+    with ``merge`` the level's clustered parts are baked together, one atlas and
+    one material for all of them (:func:`_baked_together`). Returns mesh index -> the clustered level's error, mesh units: its sampled
     two-sided Hausdorff distance to the full mesh."""
     from ..chains import reached_level
     from ..metrics.surface import surface_distance
 
-    replaced = {}
+    replaced, fulls, joins = {}, {}, {}
     for index, pm in pms.items():
         budget = max(1, round(ratio * pm.face_count))
         short = (levels[index][k].face_count > REACH_SLACK * budget if per_mesh
                  else chosen[index] == pm.base_vertices)
         if not short:
             continue
-        full = pm.at(pm.vertex_count)
-        # None: a morphed part, or a tiny part (a few faces) clustering cannot bring down
-        joined = reached_level(pm, budget, reach, coverage=None)
+        fulls[index] = pm.at(pm.vertex_count)
+        # None: a morphed part, or a tiny part (a few faces) clustering cannot bring down;
+        # merged parts are clustered here and baked together below
+        joins[index] = (_clustered(fulls[index], budget) if reach == "merge"
+                        else reached_level(pm, budget, reach))
+    if reach == "merge":
+        joins = _baked_together(fulls, joins)
+    for index, joined in joins.items():
+        full = fulls[index]
         if joined is not None and joined.face_count < levels[index][k].face_count:
             levels[index][k] = joined
             try:
@@ -243,6 +250,45 @@ def _cluster_stuck(pms: dict, chosen: dict, levels: dict, k: int, ratio: float,
             except ValueError:      # a flat or degenerate part: no area to sample
                 replaced[index] = pm.error_at_level(pm.base_vertices)
     return replaced
+
+
+def _clustered(full: Mesh, budget: int) -> Mesh | None:
+    """``full``'s geometry clustered within ``bake.level.REACH_WINDOW`` of ``budget``
+    faces, or None for a morphed mesh (clustering cannot keep its targets) or where
+    clustering keeps no face."""
+    from ..bake.level import REACH_WINDOW
+    from ..simplify.cluster import cluster_within
+
+    names = [name for name, _ in full.attributes.layout] if full.attributes else []
+    if any(name.startswith("TARGET") for name in names):
+        return None
+    try:
+        return cluster_within(Mesh(full.positions, full.faces), budget, REACH_WINDOW)
+    except MeshError:
+        return None
+
+
+def _baked_together(fulls: dict, joins: dict) -> dict:
+    """The clustered levels ``joins`` (mesh index -> level or None) of the full
+    meshes ``fulls`` baked into one atlas and material (``merge.baked_together``):
+    one bake for every part a level merges; a skinned part keeps its skin
+    (``bake.level.with_skin``). Parts with nothing to bake (no attributes, no
+    materials) keep their clustered geometry."""
+    from ..bake.level import with_skin
+    from .merge import baked_together
+
+    looks = [index for index, joined in joins.items() if joined is not None
+             and (fulls[index].attributes is not None or fulls[index].materials is not None)]
+    if not looks:
+        return joins
+    materials = next((fulls[i].materials for i in looks if fulls[i].materials is not None), None)
+    baked = baked_together([fulls[i] for i in looks], [joins[i] for i in looks], materials)
+    joins = dict(joins)
+    for index, level in zip(looks, baked):
+        layout = fulls[index].attributes.layout if fulls[index].attributes else ()
+        joins[index] = (with_skin(fulls[index], level)
+                        if any(name.startswith("JOINTS_") for name, _ in layout) else level)
+    return joins
 
 
 def _scene_texture_levels(scene, levels: dict, chain: ChainOptions, drawn: list):

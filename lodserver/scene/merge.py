@@ -131,3 +131,49 @@ def _columns(mesh: Mesh, layout) -> np.ndarray:
         else:
             out.append(np.zeros((count, width)))
     return np.concatenate(out, axis=1) if out else np.zeros((count, 0))
+
+
+def baked_together(fulls: list, levels: list, materials) -> list:
+    """Far levels of several parts (``levels[i]``: positions and faces in the space
+    of the full-detail ``fulls[i]``, whose ``face_material`` indexes ``materials``)
+    baked into one atlas and one material (``bake.level.bake_level``): each part
+    set apart from the others by more than their sizes while the atlas is made
+    and sampled, so that a texel's nearest full-detail point is on its own part,
+    then moved back. Returns each part's level with ``NORMAL``, ``TANGENT``,
+    ``TEXCOORD_0`` and the one shared material; the atlas side grows with the
+    parts' count (``bake.level.atlas_size`` per part, up to its largest)."""
+    from ..bake.level import DEFAULT_ATLAS, MAX_ATLAS, bake_level
+
+    extent = max(float(np.ptp(np.concatenate([full.positions, level.positions]), axis=0).max())
+                 for full, level in zip(fulls, levels))
+    lows = [np.minimum(full.positions.min(axis=0), level.positions.min(axis=0))
+            for full, level in zip(fulls, levels)]
+    # part i's lowest corner moved to (3 i extent, 0, 0): two extents of gap between parts
+    offsets = [np.array([3.0 * i * max(extent, 1e-9), 0.0, 0.0]) - low
+               for i, low in enumerate(lows)]
+    full = placed_mesh([(mesh, _translation(offset)[None]) for mesh, offset
+                        in zip(fulls, offsets)], materials)
+    level = Mesh(np.concatenate([m.positions + offset for m, offset in zip(levels, offsets)]),
+                 np.concatenate([m.faces + base for m, base
+                                 in zip(levels, np.cumsum([0] + [m.vertex_count
+                                                                 for m in levels[:-1]]))]))
+    side = int(min(MAX_ATLAS, DEFAULT_ATLAS * 2 ** np.ceil(np.log2(np.sqrt(len(levels))))))
+    baked = bake_level(full, level, side)
+    out, start = [], 0
+    for part, offset in zip(levels, offsets):
+        stop = start + part.face_count
+        faces, corners = baked.faces[start:stop], baked.attributes.corners[start:stop]
+        vertices, faces = np.unique(faces, return_inverse=True)
+        wedges, corners = np.unique(corners, return_inverse=True)
+        out.append(Mesh(baked.positions[vertices] - offset, faces.reshape(-1, 3),
+                        Attributes(baked.attributes.layout, baked.attributes.values[wedges],
+                                   corners.reshape(-1, 3)),
+                        baked.face_material[start:stop], baked.materials))
+        start = stop
+    return out
+
+
+def _translation(offset) -> np.ndarray:
+    matrix = np.eye(4)
+    matrix[:3, 3] = offset
+    return matrix

@@ -163,3 +163,19 @@ def test_skinned_meshes_group_only_within_their_skeleton(shared_meshes):
     groups = rigid_groups(scene)
     assert [(group.skin, sorted(n for n, _ in group.members)) for group in groups] == [
         (nodes[skinned]["skin"], [skinned, len(nodes)])]
+
+
+def test_one_file_chain_bakes_its_merged_parts_once(scene_file, tmp_path, gltf_validator):
+    """In one file (``MSFT_lod`` per node, so every part keeps its own levels) the
+    parts a level merges share one atlas and one material: one bake, not one each."""
+    done = export_lods(scene_file, tmp_path / "one.glb", lods=(1, 0.02))
+    budget = 0.02 * done.drawn[0]
+    assert done.drawn[1] <= (1 + 0.1) * budget, (done.drawn, budget)
+    data = done.outputs[0].read_bytes()
+    assert_valid(gltf_validator, data, "a one-file chain with parts baked together")
+    document = _document(data)
+    coarse = [mesh for mesh in document["meshes"] if mesh.get("name", "").endswith("LOD1")]
+    assert len(coarse) == 3
+    used = {primitive.get("material") for mesh in coarse for primitive in mesh["primitives"]}
+    assert len(used) == 1 and len(document["materials"]) == 1
+    assert len(document["images"]) == 2        # base colour and normal map, once
