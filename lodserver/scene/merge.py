@@ -140,9 +140,11 @@ def baked_together(fulls: list, levels: list, materials) -> list:
     set apart from the others by more than their sizes while the atlas is made
     and sampled, so that a texel's nearest full-detail point is on its own part,
     then moved back. Returns each part's level with ``NORMAL``, ``TANGENT``,
-    ``TEXCOORD_0`` and the one shared material; the atlas side grows with the
-    parts' count (``bake.level.atlas_size`` per part, up to its largest)."""
-    from ..bake.level import DEFAULT_ATLAS, MAX_ATLAS, bake_level
+    ``TEXCOORD_0`` and the one shared material, on an atlas of the side a merged
+    level has by default (``bake.level.DEFAULT_ATLAS``), larger only where its
+    charts do not fit (``bake.atlas.make_atlas``): a bake's memory grows with its
+    texels, and a far level is drawn small."""
+    from ..bake.level import DEFAULT_ATLAS, bake_level
 
     extent = max(float(np.ptp(np.concatenate([full.positions, level.positions]), axis=0).max())
                  for full, level in zip(fulls, levels))
@@ -157,8 +159,7 @@ def baked_together(fulls: list, levels: list, materials) -> list:
                  np.concatenate([m.faces + base for m, base
                                  in zip(levels, np.cumsum([0] + [m.vertex_count
                                                                  for m in levels[:-1]]))]))
-    side = int(min(MAX_ATLAS, DEFAULT_ATLAS * 2 ** np.ceil(np.log2(np.sqrt(len(levels))))))
-    baked = bake_level(full, level, side)
+    baked = bake_level(full, level, DEFAULT_ATLAS)
     out, start = [], 0
     for part, offset in zip(levels, offsets):
         stop = start + part.face_count
