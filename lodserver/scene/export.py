@@ -220,8 +220,9 @@ def _cluster_stuck(pms: dict, chosen: dict, levels: dict, k: int, ratio: float,
     ``REACH_SLACK`` times its own budget (``per_mesh``, as :func:`lod_chain` does),
     else stopped at its base. ``reach`` names the method (``ChainOptions.reach``);
     with ``merge`` the level's clustered parts are baked together, one atlas and
-    one material for all of them (:func:`_baked_together`). Returns mesh index -> the clustered level's error, mesh units: its sampled
-    two-sided Hausdorff distance to the full mesh."""
+    one material for all of them (:func:`_baked_together`). Returns mesh index ->
+    the clustered level's error, mesh units: its sampled two-sided Hausdorff
+    distance to the full mesh."""
     from ..chains import reached_level
     from ..metrics.surface import surface_distance
 
