@@ -135,13 +135,20 @@ def joined_materials(base: Materials | None, meshes) -> tuple:
     gltf = {key: list((base.gltf if base is not None else {}).get(key) or [])
             for key in ("materials", "textures", "samplers", "images")}
     images = list(base.images) if base is not None else []
-    moved = []
+    moved, appended = [], {}
     for mesh in meshes:
         if mesh.materials is None or mesh.materials is base:
             moved.append((mesh, mesh.face_material))
             continue
+        if id(mesh.materials) in appended:
+            # parts baked together share one material list: appended once
+            moved.append((mesh, None if mesh.face_material is None else np.where(
+                mesh.face_material >= 0, mesh.face_material
+                + appended[id(mesh.materials)], -1)))
+            continue
         own = mesh.materials.gltf
         offsets = {key: len(gltf[key]) for key in gltf}
+        appended[id(mesh.materials)] = offsets["materials"]
         for texture in own.get("textures", ()):
             texture = dict(texture)
             for key, kind in (("source", "images"), ("sampler", "samplers")):
@@ -187,9 +194,9 @@ def lod_chain(pm: ProgressiveMesh, lods=DEFAULT_LODS, *, reach: str = DEFAULT_RE
     for k, ratio in enumerate(ratios):
         mesh = pm.at(pm.level_for(ratio=ratio))
         budget = max(1, round(ratio * pm.face_count))
-        if reach != "none" and mesh.face_count > REACH_SLACK * budget:
+        if reach != "none" and out_of_reach(pm, budget):
             # drawn up to the finer level's coverage: the atlas is sized for that
-            joined = _reached(pm, budget, reach, atlas, coverage[k - 1] if k else 1.0)
+            joined = reached_level(pm, budget, reach, atlas, coverage[k - 1] if k else 1.0)
             if joined is not None and joined.face_count < mesh.face_count:
                 mesh = joined
                 clustered.append(len(meshes))
@@ -197,20 +204,35 @@ def lod_chain(pm: ProgressiveMesh, lods=DEFAULT_LODS, *, reach: str = DEFAULT_RE
     return meshes, coverage, clustered
 
 
-def _reached(pm: ProgressiveMesh, budget: int, reach: str, atlas: int | None = None,
-             coverage: float = 1.0) -> Mesh | None:
-    """The level ``reach`` makes of ``pm``'s full mesh at ``budget`` faces, or None
-    where clustering keeps no face (a part of a few faces asked for fewer)."""
-    from .bake.level import merged_level
+def out_of_reach(pm: ProgressiveMesh, budget: int) -> bool:
+    """Whether edge collapse's finest level within ``budget`` faces still has more
+    than :data:`REACH_SLACK` times them (it stopped at its base above the budget)."""
+    return pm.faces_at_level(pm.level_for(faces=max(1, int(budget)))) > REACH_SLACK * budget
+
+
+def reached_level(pm: ProgressiveMesh, budget: int, reach: str, atlas: int | None = None,
+                  coverage: float | None = 1.0) -> Mesh | None:
+    """The level ``reach`` makes of ``pm``'s full mesh at ``budget`` faces (a merged
+    level's atlas ``atlas`` texels a side, else sized for ``coverage``, None: the
+    default size), or None where clustering keeps no face (a part of a few faces
+    asked for fewer) or a merge cannot keep the mesh's morph targets. A skinned
+    mesh's merged level keeps its skin (``bake.level.with_skin``)."""
+    from .bake.level import merged_level, with_skin
     from .simplify.cluster import cluster
 
     full = pm.at(pm.vertex_count)
+    names = [name for name, _ in full.attributes.layout] if full.attributes else []
+    if reach == "merge" and any(name.startswith("TARGET") for name in names):
+        return None     # a morphed part stays a part: clustering cannot keep its targets
     try:
-        if reach == "merge":
-            return merged_level(full, budget, atlas=atlas, coverage=coverage)
-        return cluster(Mesh(full.positions, full.faces), target_faces=budget)
+        if reach != "merge":
+            return cluster(Mesh(full.positions, full.faces), target_faces=budget)
+        joined = merged_level(full, budget, atlas=atlas, coverage=coverage)
     except MeshError:
         return None
+    # one skeleton: the level keeps its skin
+    return with_skin(full, joined) if any(name.startswith("JOINTS_") for name in names) \
+        else joined
 
 
 def error_chain(pm: ProgressiveMesh, errors):

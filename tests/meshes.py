@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import json
+import struct
 from functools import lru_cache
 from pathlib import Path
 
@@ -163,3 +165,38 @@ def skinned_sphere(nu=32, nv=16) -> Mesh:
                          ("TARGET0_POSITION", 3), ("TARGET1_POSITION", 3), ("_BAND", 1))
     values = np.concatenate([a.values, tangent, handed, joints, weights, inflate, lift, band], 1)
     return Mesh(base.positions, base.faces, Attributes(layout, values, a.corners))
+
+
+class GlbBuilder:
+    """A GLB assembled by hand: :meth:`add` appends an array to the binary chunk as an
+    accessor (returning its index); :meth:`glb` packs a document around them."""
+
+    def __init__(self):
+        self.binary, self.views, self.accessors = bytearray(), [], []
+
+    def add(self, values, kind, component, target=None, bounds=False) -> int:
+        data = np.ascontiguousarray(values).tobytes()
+        self.binary.extend(b"\0" * (-len(self.binary) % 4))
+        view = {"buffer": 0, "byteOffset": len(self.binary), "byteLength": len(data)}
+        if target:
+            view["target"] = target
+        self.views.append(view)
+        self.binary.extend(data)
+        accessor = {"bufferView": len(self.views) - 1, "componentType": component,
+                    "count": len(values), "type": kind}
+        if bounds:
+            accessor["min"] = np.min(values, axis=0).tolist()
+            accessor["max"] = np.max(values, axis=0).tolist()
+        self.accessors.append(accessor)
+        return len(self.accessors) - 1
+
+    def glb(self, document: dict) -> bytes:
+        """``document`` with the accessors, views and buffer added, as GLB bytes."""
+        binary = self.binary + b"\0" * (-len(self.binary) % 4)
+        document = {**document, "accessors": self.accessors, "bufferViews": self.views,
+                    "buffers": [{"byteLength": len(binary)}]}
+        text = json.dumps(document).encode()
+        text += b" " * (-len(text) % 4)
+        total = 12 + 8 + len(text) + 8 + len(binary)
+        return (struct.pack("<4sII", b"glTF", 2, total) + struct.pack("<I4s", len(text), b"JSON")
+                + text + struct.pack("<I4s", len(binary), b"BIN\0") + bytes(binary))

@@ -249,6 +249,12 @@ def _parents(nodes: list) -> np.ndarray:
     return parent
 
 
+def node_parents(document: dict) -> np.ndarray:
+    """(N,) int64 each node's parent, -1 for a node no other has as a child
+    (``MeshError`` on a node that is a child twice, of itself, or not there)."""
+    return _parents(document.get("nodes", []))
+
+
 def check_scene(document: dict, carried: dict) -> None:
     """MeshError (one sentence) unless what the poses and the writer evaluate is sound:
     the node tree (children that are nodes, each with one parent, no cycle), finite

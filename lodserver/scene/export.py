@@ -20,6 +20,7 @@ from ..io.glb import encode_glb
 from ..io.scene_glb import encode_scene
 from ..mesh import Mesh, MeshError
 from .budget import chain_levels, coverage_from_errors, scene_instances, world_errors
+from .groups import grouped_levels
 from .textures import level_meshes, texture_levels
 
 __all__ = ["export_scene"]
@@ -78,6 +79,7 @@ def export_scene(scene, source: Path, output: Path, chain: ChainOptions, options
     drawn = [sum(len(instances[index]) * levels[index][k].face_count for index in pms)
              for k in range(count)]
     clustered = set()
+    collapsed = {index: list(chain_) for index, chain_ in levels.items()}
     merged = _merge_static(scene, chain, drawn, worst, diagonal) if lods else {}
     clustered.update(merged)
     if chain.reach != "none":
@@ -104,6 +106,13 @@ def export_scene(scene, source: Path, output: Path, chain: ChainOptions, options
                      for index in scene.as_is)
     coverage = coverage_from_errors(worst, diagonal) if count else []
     scenes, levels, notes = _scene_texture_levels(scene, levels, chain, drawn)
+    # a partly animated scene: the parts that move together merged (scene.groups)
+    grouped = grouped_levels(scenes, levels, collapsed, lods, instances, slack=REACH_SLACK,
+                             atlas=chain.atlas, hints=[1.0, *coverage[:-1]], skip=merged) \
+        if chain.reach == "merge" and chain.separate and not per_mesh and lods else {}
+    for k, (_, _, drawn_k) in grouped.items():
+        drawn[k] = drawn_k
+        clustered.add(k)
     seconds = []
     if chain.separate:
         outputs = [output.with_name(f"{output.stem}_lod{i}{output.suffix}") for i in range(count)]
@@ -112,6 +121,11 @@ def export_scene(scene, source: Path, output: Path, chain: ChainOptions, options
             begun = time.perf_counter()
             blobs.append(encode_glb(merged[i][0], chain.compress, name=f"{output.stem}_LOD{i}")
                          if i in merged else
+                         encode_scene(*_with_baked(grouped[i][0], {index: [mesh] for index, mesh
+                                                                   in grouped[i][1].items()},
+                                                   [0], scene.materials),
+                                      [coverage[i]], level=0, compress=chain.compress)
+                         if i in grouped else
                          encode_scene(*_with_baked(scenes[i], levels, [i], scene.materials),
                                       coverage, level=i, compress=chain.compress))
             seconds.append(time.perf_counter() - begun)
@@ -126,6 +140,7 @@ def export_scene(scene, source: Path, output: Path, chain: ChainOptions, options
             seconds[i] += time.perf_counter() - begun
     kept = sum(scene.as_is_faces.values())
     faces = [merged[k][0].face_count if k in merged else
+             kept + sum(mesh.face_count for mesh in grouped[k][1].values()) if k in grouped else
              kept + sum(chain_[k].face_count for chain_ in levels.values()) for k in range(count)]
     base = sum(pm.faces_at_level(pm.base_vertices) for pm in pms.values())
     # base_faces: the coarsest the simplified meshes reach, with the kept ones beside them
@@ -203,32 +218,31 @@ def _cluster_stuck(pms: dict, chosen: dict, levels: dict, k: int, ratio: float,
     """Replace level ``k`` of the meshes edge collapse left short, by clustering of
     the full mesh at ``ratio`` of its faces where that has fewer faces. Short: over
     ``REACH_SLACK`` times its own budget (``per_mesh``, as :func:`lod_chain` does),
-    else stopped at its base. ``reach`` names the method (``ChainOptions.reach``).
-    Returns mesh index -> the clustered level's error, mesh units: its sampled
-    two-sided Hausdorff distance to the full mesh."""
-    from ..bake.level import merged_level, with_skin
+    else stopped at its base. ``reach`` names the method (``ChainOptions.reach``);
+    with ``merge`` the level's clustered parts are baked together, one atlas and
+    one material for all of them (:func:`_baked_together`). Returns mesh index ->
+    the clustered level's error, mesh units: its sampled two-sided Hausdorff
+    distance to the full mesh."""
+    from ..chains import reached_level
     from ..metrics.surface import surface_distance
-    from ..simplify.cluster import cluster
 
-    replaced = {}
+    replaced, fulls, joins = {}, {}, {}
     for index, pm in pms.items():
         budget = max(1, round(ratio * pm.face_count))
         short = (levels[index][k].face_count > REACH_SLACK * budget if per_mesh
                  else chosen[index] == pm.base_vertices)
         if not short:
             continue
-        full = pm.at(pm.vertex_count)
-        names = [name for name, _ in full.attributes.layout] if full.attributes else []
-        if reach == "merge" and any(name.startswith("TARGET") for name in names):
-            continue    # a morphed part stays a part: clustering cannot keep its targets
-        try:
-            joined = (merged_level(full, budget) if reach == "merge" else
-                      cluster(Mesh(full.positions, full.faces), target_faces=budget))
-            if reach == "merge" and any(name.startswith("JOINTS_") for name in names):
-                joined = with_skin(full, joined)    # one skeleton: the part keeps its skin
-        except MeshError:
-            continue    # clustering cannot bring a tiny part (a few faces) to its budget
-        if joined.face_count < levels[index][k].face_count:
+        fulls[index] = pm.at(pm.vertex_count)
+        # None: a morphed part, or a tiny part (a few faces) clustering cannot bring down;
+        # merged parts are clustered here and baked together below
+        joins[index] = (_clustered(fulls[index], budget) if reach == "merge"
+                        else reached_level(pm, budget, reach))
+    if reach == "merge":
+        joins = _baked_together(fulls, joins)
+    for index, joined in joins.items():
+        full = fulls[index]
+        if joined is not None and joined.face_count < levels[index][k].face_count:
             levels[index][k] = joined
             try:
                 distance = surface_distance(Mesh(full.positions, full.faces), joined,
@@ -237,6 +251,45 @@ def _cluster_stuck(pms: dict, chosen: dict, levels: dict, k: int, ratio: float,
             except ValueError:      # a flat or degenerate part: no area to sample
                 replaced[index] = pm.error_at_level(pm.base_vertices)
     return replaced
+
+
+def _clustered(full: Mesh, budget: int) -> Mesh | None:
+    """``full``'s geometry clustered within ``bake.level.REACH_WINDOW`` of ``budget``
+    faces, or None for a morphed mesh (clustering cannot keep its targets) or where
+    clustering keeps no face."""
+    from ..bake.level import REACH_WINDOW
+    from ..simplify.cluster import cluster_within
+
+    names = [name for name, _ in full.attributes.layout] if full.attributes else []
+    if any(name.startswith("TARGET") for name in names):
+        return None
+    try:
+        return cluster_within(Mesh(full.positions, full.faces), budget, REACH_WINDOW)
+    except MeshError:
+        return None
+
+
+def _baked_together(fulls: dict, joins: dict) -> dict:
+    """The clustered levels ``joins`` (mesh index -> level or None) of the full
+    meshes ``fulls`` baked into one atlas and material (``merge.baked_together``):
+    one bake for every part a level merges; a skinned part keeps its skin
+    (``bake.level.with_skin``). Parts with nothing to bake (no attributes, no
+    materials) keep their clustered geometry."""
+    from ..bake.level import with_skin
+    from .merge import baked_together
+
+    looks = [index for index, joined in joins.items() if joined is not None
+             and (fulls[index].attributes is not None or fulls[index].materials is not None)]
+    if not looks:
+        return joins
+    materials = next((fulls[i].materials for i in looks if fulls[i].materials is not None), None)
+    baked = baked_together([fulls[i] for i in looks], [joins[i] for i in looks], materials)
+    joins = dict(joins)
+    for index, level in zip(looks, baked):
+        layout = fulls[index].attributes.layout if fulls[index].attributes else ()
+        joins[index] = (with_skin(fulls[index], level)
+                        if any(name.startswith("JOINTS_") for name, _ in layout) else level)
+    return joins
 
 
 def _scene_texture_levels(scene, levels: dict, chain: ChainOptions, drawn: list):

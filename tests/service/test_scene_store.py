@@ -19,6 +19,8 @@ from lodserver.scene.load import scene_reason
 from lodserver.scene.write import scene_glb
 from lodserver.service.store import LocalStore, NotReadyError, Status
 
+from ..meshes import GlbBuilder
+
 
 def scene_glb_bytes() -> bytes:
     """A GLB scene: mesh 0 (a ball, 1280 faces) placed by two nodes (one at half
@@ -26,23 +28,8 @@ def scene_glb_bytes() -> bytes:
     animation moving the capsule's node. Positions and normals, indices."""
     ball = trimesh.creation.icosphere(subdivisions=3, radius=1.0)
     pill = trimesh.creation.capsule(height=1.0, radius=0.4, count=[24, 24])
-    binary, views, accessors = bytearray(), [], []
-
-    def add(values, kind, component, target=None, bounds=False):
-        data = np.ascontiguousarray(values).tobytes()
-        binary.extend(b"\0" * (-len(binary) % 4))
-        view = {"buffer": 0, "byteOffset": len(binary), "byteLength": len(data)}
-        if target:
-            view["target"] = target
-        views.append(view)
-        binary.extend(data)
-        accessor = {"bufferView": len(views) - 1, "componentType": component,
-                    "count": len(values), "type": kind}
-        if bounds:
-            accessor["min"] = np.min(values, axis=0).tolist()
-            accessor["max"] = np.max(values, axis=0).tolist()
-        accessors.append(accessor)
-        return len(accessors) - 1
+    builder = GlbBuilder()
+    add = builder.add
 
     meshes = []
     for name, shape in (("ball", ball), ("pill", pill)):
@@ -66,14 +53,8 @@ def scene_glb_bytes() -> bytes:
         "animations": [{"name": "bob", "channels": [{"sampler": 0, "target": {
             "node": 3, "path": "translation"}}], "samplers": [{
                 "input": times, "output": moves, "interpolation": "LINEAR"}]}],
-        "accessors": accessors, "bufferViews": views,
-        "buffers": [{"byteLength": len(binary) + (-len(binary) % 4)}]}
-    text = json.dumps(document).encode()
-    text += b" " * (-len(text) % 4)
-    binary.extend(b"\0" * (-len(binary) % 4))
-    total = 12 + 8 + len(text) + 8 + len(binary)
-    return (struct.pack("<4sII", b"glTF", 2, total) + struct.pack("<I4s", len(text), b"JSON")
-            + text + struct.pack("<I4s", len(binary), b"BIN\0") + bytes(binary))
+    }
+    return builder.glb(document)
 
 
 @pytest.fixture(scope="module")

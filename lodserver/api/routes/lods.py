@@ -16,11 +16,13 @@ from typing import Annotated, Literal
 
 from fastapi import APIRouter, Query, Request, Response
 
-from ...io import SERVED_FORMATS
+from ...io import SERVED_FORMATS, encode_mesh
+from ...mesh import MeshError
 from ...io.glb import COMPRESSIONS, coverage_from_ratios, encode_lod_chain
 from ...packets import MAX_BITS, MIN_BITS, prepare_records, records_ready
 from ...packets.served import DEFAULT_VERSION, PACKET_WRITERS, SERVED_VERSIONS
-from ...chains import DEFAULT_LODS, lod_chain, parse_lods
+from ...chains import (DEFAULT_LODS, DEFAULT_REACH, REACH_METHODS, lod_chain, out_of_reach,
+                       parse_lods, reached_level, shared_materials)
 from ...service.levels import (
     LevelError,
     chain_bytes,
@@ -34,7 +36,7 @@ from ...service.levels import (
 )
 from ...scene.asset import SceneAsset, scene_levels_for
 from ...scene.textures import chain_with_texture_levels, texture_levels_bytes
-from ...scene.write import scene_chain_glb, scene_glb
+from ...scene.write import far_scene_glb, scene_budget_beyond_reach, scene_chain_glb, scene_glb
 from ..bodies import BodiesDep
 from ..caching import VersionQuery, etag_for, load_versioned, version_of
 from ..deps import MeshId, StoreDep
@@ -61,6 +63,11 @@ Compress = Annotated[Literal[tuple(COMPRESSIONS)], Query(description=(
     "How a GLB stores the level: none (float32), quantize (KHR_mesh_quantization) or meshopt "
     "(also EXT_meshopt_compression); quantize and meshopt in vertex cache order."))]
 _GLB = SERVED_FORMATS["glb"]
+Reach = Annotated[Literal[tuple(REACH_METHODS)], Query(description=(
+    "Levels whose face budget edge collapse cannot reach (separate parts, soups): merge "
+    "(the default, as lodserver export --lods) remeshes the full mesh by clustering and "
+    "bakes its look into one atlas and one material; cluster remeshes positions only; "
+    "none keeps the coarsest level edge collapse reaches."))]
 
 
 @router.get("/{mesh_id}/lod", responses={**_ERRORS, 200: {"content": {
@@ -72,7 +79,7 @@ def get_lod(mesh_id: MeshId, store: StoreDep, bodies: BodiesDep, request: Reques
             ratio: Annotated[float | None, Query(gt=0, le=1)] = None,
             error: Annotated[float | None, Query(ge=0)] = None,
             format: LevelFormat = "json",
-            bits: Bits = None, compress: Compress = "none",
+            bits: Bits = None, compress: Compress = "none", reach: Reach = DEFAULT_REACH,
             v: VersionQuery = None) -> Response:
     """One level, chosen by exactly one of vertices, faces, ratio or error.
 
@@ -80,28 +87,46 @@ def get_lod(mesh_id: MeshId, store: StoreDep, bodies: BodiesDep, request: Reques
     (docs/packets.md); glb, obj and ply carry exact positions. A json level
     names its materials document, at version ``v`` when it is given.
 
+    A glb, obj or ply level asked for by ``faces`` or ``ratio`` that edge
+    collapse cannot bring within ``chains.REACH_SLACK`` of its budget is made
+    as ``reach`` says (``chains.reached_level``; a merged level in GLB has one
+    material, its baked atlas). Such a level is made from the full mesh, so it
+    takes every heavy slot while it is made (``api/bodies.py``), and is cached
+    like any level. A json level is always edge collapse's: packets apply to it.
+
     A scene's level is the whole scene as GLB (``format=glb``), chosen by ratio
     (of the scene's triangles, one budget over its parts) or error (a fraction
     of its bounding-box diagonal); each part's glTF mesh says its part in
     ``extras.lodserver_part``. Its parts' levels: ``/meshes/{id}/parts/{p}/lod``.
+    A scene's level by ratio that edge collapse leaves over its budget is, with
+    ``reach=merge``, merged as ``export --separate`` merges it
+    (``scene.write.far_scene_glb``): a static scene as one mesh, remeshed and
+    baked; a moving one by groups of the meshes that move together.
     """
     asset, digest, policy = load_versioned(store, mesh_id, v)
     if asset.single is None:
         return _scene_lod(asset, digest, policy, request, bodies, mesh_id=mesh_id,
                           vertices=vertices, faces=faces, ratio=ratio, error=error,
-                          format=format, compress=compress)
+                          format=format, compress=compress, reach=reach)
     return level_response(asset.single, digest, policy, request, bodies, mesh_id=mesh_id,
                           criterion={"vertices": vertices, "faces": faces, "ratio": ratio,
                                      "error": error}, format=format, bits=bits, v=v,
-                          compress=compress)
+                          compress=compress, reach=reach)
 
 
 def level_response(pm, digest: str, policy: str, request: Request, bodies, *, mesh_id: str,
                    criterion: dict, format: str, bits: int | None, v: str | None,
-                   part: int | None = None, compress: str = "none") -> Response:
+                   part: int | None = None, compress: str = "none",
+                   reach: str = "none") -> Response:
     """The response of one level of ``pm`` (a mesh, or part ``part`` of a scene:
-    None for a single mesh, whose part 0 is then the mesh's own level, ETag too)."""
+    None for a single mesh, whose part 0 is then the mesh's own level, ETag too);
+    beyond edge collapse's reach made as ``reach`` says (:func:`get_lod`)."""
     level = resolve_level(pm, **criterion)
+    budget = _budget(pm, criterion)
+    if reach != "none" and format != "json" and budget is not None and out_of_reach(pm, budget):
+        return _reached_response(pm, digest, policy, request, bodies, mesh_id=mesh_id,
+                                 budget=budget, reach=reach, format=format, part=part,
+                                 compress=compress, fallback=level)
     bits = checked_bits(bits) if format == "json" else None
     if format == "json":
         prepare_records(pm)     # the json form is where packet clients start
@@ -145,6 +170,40 @@ def get_splits(mesh_id: MeshId, store: StoreDep, bodies: BodiesDep, request: Req
                            bits=bits, version=version)
 
 
+def _budget(pm, criterion: dict) -> int | None:
+    """The face budget a level criterion names (``faces`` or ``ratio``), else None."""
+    if criterion.get("faces") is not None:
+        return int(criterion["faces"])
+    if criterion.get("ratio") is not None:
+        return max(1, round(criterion["ratio"] * pm.face_count))
+    return None
+
+
+def _reached_response(pm, digest: str, policy: str, request: Request, bodies, *, mesh_id: str,
+                      budget: int, reach: str, format: str, part: int | None, compress: str,
+                      fallback: int) -> Response:
+    """The level of ``budget`` faces that ``reach`` makes of ``pm``'s full mesh
+    (edge collapse's level ``fallback`` where clustering keeps no face), named by
+    the budget and method. Its atlas is sized for the coverage a chain from full
+    detail to this budget would draw it up to."""
+    if compress != "none" and format != "glb":
+        raise LevelError(f"compress={compress} applies to format=glb only")
+    scope = () if part is None else ("part", part)
+    etag = etag_for(digest, *scope, "lod-reach", reach, budget, format,
+                    *([compress] if compress != "none" else []))
+    # out of reach, so the budget is below the mesh's faces
+    coverage = coverage_from_ratios([1.0, budget / pm.face_count])[0]
+
+    def make():
+        mesh = reached_level(pm, budget, reach, coverage=coverage)
+        return encode_mesh(pm.at(fallback) if mesh is None else mesh, format, compress=compress)
+    return bodies.cached(
+        request, etag, policy, make, media_type=SERVED_FORMATS[format],
+        filename=f"{mesh_id}-{'' if part is None else f'part{part}-'}{budget}f.{format}",
+        # made from the full mesh: every slot while it is made
+        estimate=lambda: bodies.heavy.budget)
+
+
 def splits_response(pm, digest: str, policy: str, request: Request, bodies, *, start: int,
                     to: int, bits: int | None, part: int | None = None,
                     version: int = DEFAULT_VERSION) -> Response:
@@ -179,9 +238,7 @@ def get_chain(mesh_id: MeshId, store: StoreDep, bodies: BodiesDep, request: Requ
               lods: Annotated[str, Query(max_length=200, description=(
                   "Face ratios of the levels, finest first, comma-separated, each in (0, 1] "
                   "and decreasing."))] = ",".join(map(str, DEFAULT_LODS)),
-              reach: Annotated[Literal["none", "cluster"], Query(description=(
-                  "cluster: levels edge collapse cannot bring down to their budget are made "
-                  "by vertex clustering (positions only)."))] = "none",
+              reach: Reach = DEFAULT_REACH,
               compress: Compress = "none",
               texture_scale: Annotated[Literal["none", "auto"], Query(description=(
                   "auto: each level's images scaled to its screen size, as lodserver "
@@ -191,13 +248,20 @@ def get_chain(mesh_id: MeshId, store: StoreDep, bodies: BodiesDep, request: Requ
     node 0 the finest level, ``MSFT_lod`` naming the others, with
     ``MSFT_screencoverage`` hints.
 
+    Levels edge collapse cannot bring within ``chains.REACH_SLACK`` of their
+    budget are made as ``reach`` says (``chains.lod_chain``: merged, by default,
+    into one baked material that the chain's materials list gains).
+
     The encoder holds the whole chain in memory while it builds it, so an
     uncached chain weighs the bytes of all its levels (``api/bodies.py``), and
-    one made with ``reach=cluster`` (which works on the full mesh) every heavy
-    slot; a large one is then written to a body file and streamed from it.
+    one with a level made by ``reach`` (which works on the full mesh) every heavy
+    slot; a large one is then written to a body file and streamed from it. A
+    chain whose levels edge collapse all reaches is the same whatever ``reach``
+    says, and so is its ETag.
 
     A scene's chain is the scene with ``MSFT_lod`` on every node placing a part,
-    level k of every part at scene ratio k (one budget over the parts)."""
+    level k of every part at scene ratio k (one budget over the parts), all made
+    by edge collapse (``reach`` applies to a scene's single levels)."""
     asset, digest, policy = load_versioned(store, mesh_id, v)
     ratios = parse_lods(lods)
     if len(ratios) > MAX_CHAIN_LEVELS:
@@ -214,10 +278,12 @@ def get_chain(mesh_id: MeshId, store: StoreDep, bodies: BodiesDep, request: Requ
         raise LevelError(f"a chain's levels hold at most {MAX_CHAIN_FACES} times the mesh's "
                          f"faces; these ratios add up to {faces / full:.2f} times")
     scaled = texture_scale if texture_scale != "none" else None
+    if not any(out_of_reach(pm, max(1, round(ratio * full))) for ratio in ratios):
+        reach = "none"
     etag = etag_for(digest, "chain", ",".join(map(repr, ratios)), reach,
                     *([compress] if compress != "none" else []),
                     *(["textures", scaled] if scaled else []))
-    # clustering (reach) works on the full mesh: it takes every slot
+    # a level made by reach works on the full mesh: it takes every slot
     return bodies.cached(
         request, etag, policy,
         lambda: encode_lod_chain(*_with_textures(*lod_chain(pm, ratios, reach=reach)[:2],
@@ -228,8 +294,10 @@ def get_chain(mesh_id: MeshId, store: StoreDep, bodies: BodiesDep, request: Requ
 
 
 def _with_textures(meshes: list, coverage: list, texture_scale) -> tuple[list, list]:
-    """A mesh's chain (its levels and coverage hints) with its texture levels."""
-    return chain_with_texture_levels(meshes, texture_scale, separate=False)[0], coverage
+    """A mesh's chain (its levels and coverage hints) with its texture levels, a
+    baked level's material joined to the rest (``chains.shared_materials``)."""
+    meshes = chain_with_texture_levels(meshes, texture_scale, separate=False)[0]
+    return shared_materials(meshes), coverage
 
 
 def _scene_levels(asset: SceneAsset, **criterion) -> dict:
@@ -241,7 +309,7 @@ def _scene_levels(asset: SceneAsset, **criterion) -> dict:
 
 def _scene_lod(asset: SceneAsset, digest: str, policy: str, request: Request, bodies, *,
                mesh_id: str, vertices, faces, ratio, error, format: str,
-               compress: str = "none") -> Response:
+               compress: str = "none", reach: str = "none") -> Response:
     """The whole scene at one level (``get_lod``), as GLB stored as ``compress`` says."""
     if format != "glb":
         raise LevelError(f"mesh {mesh_id} is a scene of {len(asset.parts)} parts: its levels "
@@ -251,6 +319,20 @@ def _scene_lod(asset: SceneAsset, digest: str, policy: str, request: Request, bo
         raise LevelError("a scene's level is chosen by exactly one of ratio (of the scene's "
                          "triangles) and error (a fraction of its bounding-box diagonal)")
     levels = _scene_levels(asset, ratio=ratio, error=error)
+    budget = scene_budget_beyond_reach(asset, ratio, levels) if ratio is not None \
+        and reach == "merge" else None
+    if budget is not None:
+        def make():
+            try:
+                return far_scene_glb(asset, ratio, levels, compress)
+            except MeshError:       # a scene of a few faces asked for fewer
+                return scene_glb(asset, levels, compress)
+        etag = etag_for(digest, "scene-lod-reach", reach, budget,
+                        *([compress] if compress != "none" else []))
+        # made from every part's full detail: every slot while it is made
+        return bodies.cached(request, etag, policy, make, media_type=_GLB,
+                             filename=f"{mesh_id}-scene.glb",
+                             estimate=lambda: bodies.heavy.budget)
     # named by the levels it holds: two criteria giving the same levels share a body
     etag = etag_for(digest, "scene-lod", *(levels[p] for p in sorted(levels)),
                     *([compress] if compress != "none" else []))
@@ -263,9 +345,10 @@ def _scene_lod(asset: SceneAsset, digest: str, policy: str, request: Request, bo
 def _scene_chain(asset: SceneAsset, digest: str, policy: str, request: Request, bodies, *,
                  mesh_id: str, ratios, reach: str, compress: str = "none",
                  texture_scale: str = "none") -> Response:
-    """The ``MSFT_lod`` scene (``get_chain``)."""
-    if reach != "none":
-        raise LevelError("a scene's chain is made by edge collapse only (reach=none)")
+    """The ``MSFT_lod`` scene (``get_chain``). Its levels are edge collapse's whatever
+    ``reach`` says: ``MSFT_lod`` links levels per node, each part's own, so a
+    scene merged into one mesh has no node to be a level of; a static scene's
+    merged far level is ``get_lod``'s (``reach=merge``)."""
     pms = asset.pms
     chain = [_scene_levels(asset, ratio=ratio) for ratio in ratios]
     faces = sum(pms[p].faces_at_level(level) for levels in chain for p, level in levels.items())

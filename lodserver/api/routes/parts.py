@@ -18,7 +18,8 @@ from ..caching import VersionQuery, load_versioned
 from ..deps import MeshId, StoreDep
 from ..models import Message
 from ...packets.served import DEFAULT_VERSION
-from .lods import Bits, LevelFormat, PacketVersion, level_response, splits_response
+from ...chains import DEFAULT_REACH
+from .lods import Bits, LevelFormat, PacketVersion, Reach, level_response, splits_response
 
 router = APIRouter(prefix="/meshes", tags=["parts"])
 
@@ -49,13 +50,15 @@ def get_part_lod(mesh_id: MeshId, index: PartIndex, store: StoreDep, bodies: Bod
                  ratio: Annotated[float | None, Query(gt=0, le=1)] = None,
                  error: Annotated[float | None, Query(ge=0)] = None,
                  format: LevelFormat = "json",
-                 bits: Bits = None, v: VersionQuery = None) -> Response:
+                 bits: Bits = None, reach: Reach = DEFAULT_REACH,
+                 v: VersionQuery = None) -> Response:
     """One level of part ``index``, as ``GET /meshes/{id}/lod`` gives a mesh's (the
-    part's glTF mesh in its own local space)."""
+    part's glTF mesh in its own local space), ``reach`` included."""
     pm, digest, policy, part = _part(store, mesh_id, index, v)
     return level_response(pm, digest, policy, request, bodies, mesh_id=mesh_id,
                           criterion={"vertices": vertices, "faces": faces, "ratio": ratio,
-                                     "error": error}, format=format, bits=bits, v=v, part=part)
+                                     "error": error}, format=format, bits=bits, v=v, part=part,
+                          reach=reach)
 
 
 @router.get("/{mesh_id}/parts/{index}/splits", responses={**_ERRORS, 200: {"content": {
