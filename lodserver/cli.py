@@ -145,6 +145,9 @@ def _cmd_build(args) -> int:
 
     options = options_from(args)
     source, output = _input_file(args.mesh), Path(args.output)
+    from .first_run import run_as_python, should_run_as_python
+    if should_run_as_python(source, options.method):
+        return run_as_python(args.argv)
     _announce_compile(options.method)
     progress = _Progress()
     start = time.perf_counter()
@@ -642,6 +645,7 @@ def _error_text(exc: OSError, args) -> str:
 def main(argv=None) -> int:
     parser = _parser()
     args = parser.parse_args(argv)
+    args.argv = sys.argv[1:] if argv is None else list(argv)     # for a run in a child process
     if args.command is None:
         parser.print_help(sys.stderr)
         print("\nlodserver: name a command, such as 'lodserver build MESH -o ASSET.pm'.",

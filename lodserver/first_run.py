@@ -1,0 +1,183 @@
+"""The first run on an empty numba cache: a small input's kernels run as Python
+while a background process compiles them for the next run.
+
+numba compiles a kernel the first time it is called with a new signature and
+keeps the machine code on disk (``cache=True``, ``numba_cache.py``); a later
+process loads it in milliseconds. On an empty cache, the first ``lodserver
+build`` of even a 3,000-vertex mesh compiles every kernel it runs (the
+decimation kernel and the ~90 functions under it: tens of seconds of CPU on a
+quiet 2-core machine, minutes under load), far longer than the work itself.
+
+What numba allows, and what it does not (numba 0.68):
+
+- it compiles under one lock per process (``global_compiler_lock``): threads
+  cannot compile in parallel; only processes can, each writing the on-disk
+  cache another then loads;
+- the optimisation level (``NUMBA_OPT``) is one setting for the process, read
+  when numba is imported; no per-function level but the debugging option
+  ``_dbg_optnone``;
+- ahead-of-time compilation (``numba.pycc``) is deprecated since 0.57 (still
+  importable, with a warning), needs explicit signatures and a C compiler at
+  install, and takes no namedtuple or ``parallel=True`` kernels: not an option;
+- ``NUMBA_DISABLE_JIT=1`` runs every kernel as its Python function, read once
+  at import (for the whole process, not per call). The kernels are plain
+  NumPy-on-scalars code, so as Python they give the same results (the same
+  IEEE float64 operations in the same order; integer arithmetic that wraps
+  stays on NumPy's fixed-width scalars), about a millisecond per vertex:
+  faster than compiling up to tens of thousands of vertices.
+  ``tests/test_first_run.py`` holds the artefacts equal, byte for byte, on
+  meshes with every kind of attribute.
+
+So on an empty cache, ``lodserver build`` of a file of at most
+``SMALL_INPUT_BYTES`` runs itself again in a child process with
+``NUMBA_DISABLE_JIT=1`` (:func:`run_as_python`), after starting one
+background process (``python -m lodserver.first_run``, lowest priority, in
+its own session so it outlives the command) that compiles the kernels an
+upload and a build run (``service.warm.warm_up``) into the cache. One lock
+file per cache folder keeps a second background compile from starting while
+one runs; a larger input on a cold cache compiles as before, with its moving
+line (``build.CompileTicker``).
+"""
+
+from __future__ import annotations
+
+import fcntl
+import hashlib
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+__all__ = ["SMALL_INPUT_BYTES", "run_as_python", "should_run_as_python", "compiling",
+           "start_background_compile", "wait_for_background_compile", "lock_path"]
+
+# The largest input file (bytes) whose first build runs its kernels as Python:
+# about 20,000 vertices of binary PLY or 6,000 of OBJ, which take less as
+# Python (a millisecond per vertex) than compiling the kernels does.
+SMALL_INPUT_BYTES = 1_000_000
+
+_PACKAGE = Path(__file__).resolve().parent
+
+
+def should_run_as_python(source, method: str = "qem") -> bool:
+    """True when this process compiles kernels (numba's JIT is on), ``method``
+    is edge collapse, the build's main kernel is not in the cache yet or a background compile is filling it,
+    and ``source`` is a file of at most ``SMALL_INPUT_BYTES`` (its own size: the
+    files it names, such as textures, do not count)."""
+    from numba.core import config
+
+    from .build import kernels_cold
+
+    if config.DISABLE_JIT or method != "qem":     # edge collapse is what the tests hold equal
+        return False
+    try:
+        size = Path(source).stat().st_size
+    except OSError:
+        return False        # the build reports the missing file in its own words
+    return size <= SMALL_INPUT_BYTES and (kernels_cold(method) or compiling())
+
+
+def run_as_python(argv: list[str]) -> int:
+    """Start the background compile, then run ``lodserver ARGV`` in a child
+    process with numba's JIT off; the child's exit code. Its output goes where
+    this process's goes."""
+    start_background_compile()
+    print("first run: numba has not compiled the kernels yet, so this build runs them as "
+          "Python (the same results) while they compile in the background for the next run",
+          file=sys.stderr, flush=True)
+    # The kernels' hashes wrap around on purpose (compiled, silently); as Python,
+    # NumPy's fixed-width scalars wrap the same way but say so each time.
+    warnings = "ignore:overflow encountered:RuntimeWarning"
+    if os.environ.get("PYTHONWARNINGS"):
+        warnings = f"{os.environ['PYTHONWARNINGS']},{warnings}"
+    env = {**os.environ, "NUMBA_DISABLE_JIT": "1", "PYTHONWARNINGS": warnings}
+    child = subprocess.Popen([sys.executable, "-m", "lodserver.cli", *argv], env=env)
+    try:
+        return child.wait()
+    except KeyboardInterrupt:       # the child got the terminal's SIGINT too
+        child.wait()
+        return 130
+
+
+def cache_location() -> str:
+    """The folder numba caches this package's kernels in: ``NUMBA_CACHE_DIR`` when
+    set (``numba_cache.ensure_writable_cache`` sets it for a read-only package),
+    else the package's own ``__pycache__`` folders (named by the package)."""
+    return os.environ.get("NUMBA_CACHE_DIR") or str(_PACKAGE)
+
+
+def lock_path(cache: str | None = None) -> Path:
+    """The lock file of the background compile into ``cache`` (default
+    :func:`cache_location`), in the temporary folder: one per user and cache."""
+    key = hashlib.sha1(os.path.abspath(cache or cache_location()).encode()).hexdigest()[:16]
+    return Path(tempfile.gettempdir()) / f"lodserver-compile-{os.getuid()}-{key}.lock"
+
+
+def compiling(cache: str | None = None) -> bool:
+    """True while a background compile into ``cache`` holds its lock."""
+    try:
+        with open(lock_path(cache), "a") as file:
+            try:
+                fcntl.flock(file, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except BlockingIOError:
+                return True
+            fcntl.flock(file, fcntl.LOCK_UN)
+    except OSError:     # no temporary folder to lock in: no background compile either
+        return False
+    return False
+
+
+def start_background_compile() -> subprocess.Popen | None:
+    """Start ``python -m lodserver.first_run`` detached (its own session, no
+    output), unless one is compiling into the same cache already; the process,
+    or None. It takes the lock itself, so two started at once compile once."""
+    if compiling():
+        return None
+    env = {key: value for key, value in os.environ.items() if key != "NUMBA_DISABLE_JIT"}
+    try:
+        return subprocess.Popen([sys.executable, "-m", "lodserver.first_run"], env=env,
+                                stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
+                                stderr=subprocess.DEVNULL, start_new_session=True)
+    except OSError:     # no process to spare: the next run compiles in the foreground
+        return None
+
+
+def wait_for_background_compile(cache: str | None = None, timeout: float | None = None,
+                                every: float = 0.5) -> bool:
+    """Wait until no background compile into ``cache`` holds its lock, polling
+    every ``every`` s; False if ``timeout`` s passed first."""
+    deadline = None if timeout is None else time.monotonic() + timeout
+    while compiling(cache):
+        if deadline is not None and time.monotonic() > deadline:
+            return False
+        time.sleep(every)
+    return True
+
+
+def _compile_in_background() -> int:
+    """The background process: under the lock, at the lowest priority, load or
+    compile every kernel an upload's build and its packets run
+    (``service.warm.warm_up``). Exits at once when another holds the lock."""
+    try:
+        file = open(lock_path(), "a")
+    except OSError:
+        return 1
+    with file:
+        try:
+            fcntl.flock(file, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            return 0
+        try:
+            os.nice(19)     # the foreground build, and whatever else runs, come first
+        except OSError:
+            pass
+        from .service.warm import warm_up
+
+        warm_up()
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(_compile_in_background())
