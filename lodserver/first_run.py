@@ -110,7 +110,8 @@ def cache_location() -> str:
 
 def lock_path(cache: str | None = None) -> Path:
     """The lock file of the background compile into ``cache`` (default
-    :func:`cache_location`), in the temporary folder: one per user and cache."""
+    :func:`cache_location`), in the temporary folder: one per user and cache.
+    While locked it holds the compiling process's id."""
     key = hashlib.sha1(os.path.abspath(cache or cache_location()).encode()).hexdigest()[:16]
     return Path(tempfile.gettempdir()) / f"lodserver-compile-{os.getuid()}-{key}.lock"
 
@@ -169,6 +170,9 @@ def _compile_in_background() -> int:
             fcntl.flock(file, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except BlockingIOError:
             return 0
+        file.truncate(0)
+        file.write(f"{os.getpid()}\n")      # who holds it, for whoever wonders
+        file.flush()
         try:
             os.nice(19)     # the foreground build, and whatever else runs, come first
         except OSError:
