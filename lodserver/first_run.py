@@ -3,10 +3,10 @@ while a background process compiles them for the next run.
 
 numba compiles a kernel the first time it is called with a new signature and
 keeps the machine code on disk (``cache=True``, ``numba_cache.py``); a later
-process loads it in milliseconds. On an empty cache, the first ``lodserver
-build`` of even a 3,000-vertex mesh compiles every kernel it runs (the
-decimation kernel and the ~90 functions under it: tens of seconds of CPU on a
-quiet 2-core machine, minutes under load), far longer than the work itself.
+process loads it at once. On an empty cache, the first ``lodserver build``
+of even a 3,000-vertex mesh compiles every kernel it runs (the decimation
+kernel and the ~90 functions under it), far longer than the work itself
+takes (bench/README.md, "The first run").
 
 What numba allows, and what it does not (numba 0.68):
 
@@ -21,12 +21,13 @@ What numba allows, and what it does not (numba 0.68):
   install, and takes no namedtuple or ``parallel=True`` kernels: not an option;
 - ``NUMBA_DISABLE_JIT=1`` runs every kernel as its Python function, read once
   at import (for the whole process, not per call). The kernels are plain
-  NumPy-on-scalars code, so as Python they give the same results (the same
-  IEEE float64 operations in the same order; integer arithmetic that wraps
-  stays on NumPy's fixed-width scalars), about a millisecond per vertex:
-  faster than compiling up to tens of thousands of vertices.
-  ``tests/test_first_run.py`` holds the artefacts equal, byte for byte, on
-  meshes with every kind of attribute.
+  NumPy-on-scalars code: as Python they do the same IEEE float64 operations
+  in the same order, and integer arithmetic that wraps stays on NumPy's
+  fixed-width scalars, so they write the same artefacts, and for a small
+  mesh sooner than compiling them would. A kernel calling a NumPy function
+  that numba implements in another order (``np.sum``'s pairwise sums) would
+  not: ``tests/test_first_run.py`` holds the artefacts equal, byte for byte,
+  on meshes with every kind of attribute.
 
 So on an empty cache, ``lodserver build`` of a file of at most
 ``SMALL_INPUT_BYTES`` runs itself again in a child process with
@@ -54,8 +55,8 @@ __all__ = ["SMALL_INPUT_BYTES", "run_as_python", "should_run_as_python", "compil
            "start_background_compile", "wait_for_background_compile", "lock_path"]
 
 # The largest input file (bytes) whose first build runs its kernels as Python:
-# about 20,000 vertices of binary PLY or 6,000 of OBJ, which take less as
-# Python (a millisecond per vertex) than compiling the kernels does.
+# about 20,000 vertices of binary PLY, 9,000-15,000 of OBJ, which run as
+# Python sooner than the kernels compile (bench/README.md, "The first run").
 SMALL_INPUT_BYTES = 1_000_000
 
 _PACKAGE = Path(__file__).resolve().parent
