@@ -145,9 +145,10 @@ def _cmd_build(args) -> int:
 
     options = options_from(args)
     source, output = _input_file(args.mesh), Path(args.output)
-    from .first_run import run_as_python, should_run_as_python
+    from .first_run import run_as_python, should_run_as_python, wait_for_background_compile
     if should_run_as_python(source, options.method):
         return run_as_python(args.argv)
+    wait_for_background_compile(stream=sys.stderr)      # its kernels, loaded, not compiled again
     _announce_compile(options.method)
     progress = _Progress()
     start = time.perf_counter()

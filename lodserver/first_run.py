@@ -36,13 +36,13 @@ background process (``python -m lodserver.first_run``, lowest priority, in
 its own session so it outlives the command) that compiles the kernels an
 upload and a build run (``service.warm.warm_up``) into the cache. One lock
 file per cache folder keeps a second background compile from starting while
-one runs; a larger input on a cold cache compiles as before, with its moving
-line (``build.CompileTicker``).
+one runs; a larger input waits for a running one (loading what it compiled
+rather than compiling it again beside it), and on a cold cache with none
+running it compiles as before, with its moving line (``build.CompileTicker``).
 """
 
 from __future__ import annotations
 
-import fcntl
 import hashlib
 import os
 import subprocess
@@ -50,6 +50,11 @@ import sys
 import tempfile
 import time
 from pathlib import Path
+
+try:
+    import fcntl
+except ImportError:     # not POSIX: no lock, so no background compile and no Python run
+    fcntl = None
 
 __all__ = ["SMALL_INPUT_BYTES", "run_as_python", "should_run_as_python", "compiling",
            "start_background_compile", "wait_for_background_compile", "lock_path"]
@@ -71,7 +76,7 @@ def should_run_as_python(source, method: str = "qem") -> bool:
 
     from .build import kernels_cold
 
-    if config.DISABLE_JIT or method != "qem":     # edge collapse is what the tests hold equal
+    if config.DISABLE_JIT or fcntl is None or method != "qem":  # edge collapse: what the tests hold equal
         return False
     try:
         size = Path(source).stat().st_size
@@ -119,16 +124,26 @@ def lock_path(cache: str | None = None) -> Path:
 
 def compiling(cache: str | None = None) -> bool:
     """True while a background compile into ``cache`` holds its lock."""
+    if fcntl is None:
+        return False
     try:
-        with open(lock_path(cache), "a") as file:
+        with _open_lock(lock_path(cache), os.O_RDONLY) as file:    # flock needs no write access
             try:
                 fcntl.flock(file, fcntl.LOCK_EX | fcntl.LOCK_NB)
             except BlockingIOError:
                 return True
             fcntl.flock(file, fcntl.LOCK_UN)
-    except OSError:     # no temporary folder to lock in: no background compile either
+    except OSError:     # no lock file (never compiled in the background here), or no folder
         return False
     return False
+
+
+def _open_lock(path: Path, flags: int):
+    """The lock file opened with ``flags``, never through a symbolic link (the
+    temporary folder is everyone's: a link planted there would have the
+    compile truncate the file it points at)."""
+    return os.fdopen(os.open(path, flags | os.O_NOFOLLOW, 0o600),
+                     "r+" if flags & os.O_RDWR else "r")
 
 
 def start_background_compile() -> subprocess.Popen | None:
@@ -147,14 +162,23 @@ def start_background_compile() -> subprocess.Popen | None:
 
 
 def wait_for_background_compile(cache: str | None = None, timeout: float | None = None,
-                                every: float = 0.5) -> bool:
+                                every: float = 0.5, stream=None) -> bool:
     """Wait until no background compile into ``cache`` holds its lock, polling
-    every ``every`` s; False if ``timeout`` s passed first."""
-    deadline = None if timeout is None else time.monotonic() + timeout
+    every ``every`` s; False if ``timeout`` s passed first. On a terminal
+    ``stream``, a line counting the seconds waited is rewritten at each poll."""
+    started = time.monotonic()
+    shown = stream is not None and getattr(stream, "isatty", lambda: False)()
     while compiling(cache):
-        if deadline is not None and time.monotonic() > deadline:
+        waited = time.monotonic() - started
+        if timeout is not None and waited > timeout:
             return False
+        if shown:
+            stream.write(f"\rwaiting for the kernels compiling in the background: {waited:.0f} s")
+            stream.flush()
         time.sleep(every)
+    if shown and time.monotonic() - started > every:
+        stream.write("\n")
+        stream.flush()
     return True
 
 
@@ -163,7 +187,7 @@ def _compile_in_background() -> int:
     compile every kernel an upload's build and its packets run
     (``service.warm.warm_up``). Exits at once when another holds the lock."""
     try:
-        file = open(lock_path(), "a")
+        file = _open_lock(lock_path(), os.O_RDWR | os.O_CREAT)
     except OSError:
         return 1
     with file:

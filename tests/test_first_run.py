@@ -15,7 +15,8 @@ import pytest
 
 from lodserver import build
 from lodserver.first_run import (SMALL_INPUT_BYTES, compiling, lock_path,
-                                 should_run_as_python, start_background_compile)
+                                 should_run_as_python, start_background_compile,
+                                 wait_for_background_compile)
 from lodserver.io import load_mesh
 from lodserver.service.warm import warm_meshes
 
@@ -127,4 +128,6 @@ def test_only_a_small_edge_collapse_build_on_a_cold_cache_runs_as_python(tmp_pat
         assert compiling()
         assert should_run_as_python(small)
         assert start_background_compile() is None      # one at a time
+        assert wait_for_background_compile(timeout=0.3, every=0.1) is False
     assert not compiling()
+    assert wait_for_background_compile(timeout=0.3, every=0.1) is True
