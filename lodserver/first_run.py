@@ -69,14 +69,15 @@ _PACKAGE = Path(__file__).resolve().parent
 
 def should_run_as_python(source, method: str = "qem") -> bool:
     """True when this process compiles kernels (numba's JIT is on), ``method``
-    is edge collapse, the build's main kernel is not in the cache yet or a background compile is filling it,
-    and ``source`` is a file of at most ``SMALL_INPUT_BYTES`` (its own size: the
+    is edge collapse (what the tests hold equal as Python), the build's main
+    kernel is not in the cache yet or a background compile is filling it, and
+    ``source`` is a file of at most ``SMALL_INPUT_BYTES`` (its own size: the
     files it names, such as textures, do not count)."""
     from numba.core import config
 
     from .build import kernels_cold
 
-    if config.DISABLE_JIT or fcntl is None or method != "qem":  # edge collapse: what the tests hold equal
+    if config.DISABLE_JIT or fcntl is None or method != "qem":
         return False
     try:
         size = Path(source).stat().st_size
