@@ -39,7 +39,10 @@ class _Progress:
 
     The bar appears with the first collapse, not before: while numba compiles
     the kernels the count stays at 0 for tens of seconds, and a bar frozen at
-    0% looks hung (``_announce_compile`` says what is going on instead).
+    0% looks hung (``_announce_compile`` says what is going on instead). With
+    the kernels run as Python (``first_run``) nothing compiles: the bar comes
+    at once and its clock is redrawn at every call, as the kernel reports its
+    count only every so many collapses.
     """
 
     def __init__(self, desc: str = "decimating"):
@@ -50,12 +53,16 @@ class _Progress:
         self.compiling = CompileTicker()    # a moving line while kernels compile
 
     def __call__(self, done: int, expected: int) -> None:
+        from numba.core import config
+
         if self.bar is None:
-            if done == 0:
+            if done == 0 and not config.DISABLE_JIT:
                 return
             from tqdm import tqdm
             self.bar = tqdm(total=expected, unit="collapse", disable=None, dynamic_ncols=True,
                             desc=self.desc, file=sys.stderr)
+        if done == self.bar.n and config.DISABLE_JIT:
+            self.bar.refresh()      # the count waits, the seconds move
         self.bar.update(done - self.bar.n)
 
     def close(self) -> None:

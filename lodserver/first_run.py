@@ -129,8 +129,8 @@ def compiling(cache: str | None = None) -> bool:
         return False
     try:
         with _open_lock(lock_path(cache), os.O_RDONLY) as file:    # flock needs no write access
-            try:
-                fcntl.flock(file, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            try:        # shared: two processes asking at once do not see each other as compiling
+                fcntl.flock(file, fcntl.LOCK_SH | fcntl.LOCK_NB)
             except BlockingIOError:
                 return True
             fcntl.flock(file, fcntl.LOCK_UN)
@@ -192,9 +192,7 @@ def _compile_in_background() -> int:
     except OSError:
         return 1
     with file:
-        try:
-            fcntl.flock(file, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except BlockingIOError:
+        if not _take(file):
             return 0
         file.truncate(0)
         file.write(f"{os.getpid()}\n")      # who holds it, for whoever wonders
@@ -207,6 +205,21 @@ def _compile_in_background() -> int:
 
         warm_up()
     return 0
+
+
+def _take(file, patience: float = 2.0) -> bool:
+    """Take the lock of ``file``, trying again for ``patience`` s: a process asking
+    whether a compile runs (:func:`compiling`) holds it for an instant, a compile
+    for as long as it compiles. False when another compile holds it."""
+    deadline = time.monotonic() + patience
+    while True:
+        try:
+            fcntl.flock(file, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            return True
+        except BlockingIOError:
+            if time.monotonic() > deadline:
+                return False
+            time.sleep(0.05)
 
 
 if __name__ == "__main__":
