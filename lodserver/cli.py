@@ -39,7 +39,10 @@ class _Progress:
 
     The bar appears with the first collapse, not before: while numba compiles
     the kernels the count stays at 0 for tens of seconds, and a bar frozen at
-    0% looks hung (``_announce_compile`` says what is going on instead).
+    0% looks hung (``_announce_compile`` says what is going on instead). With
+    the kernels run as Python (``first_run``) nothing compiles: the bar comes
+    at once and its clock is redrawn at every call, as the kernel reports its
+    count only every so many collapses.
     """
 
     def __init__(self, desc: str = "decimating"):
@@ -50,12 +53,16 @@ class _Progress:
         self.compiling = CompileTicker()    # a moving line while kernels compile
 
     def __call__(self, done: int, expected: int) -> None:
+        from numba.core import config
+
         if self.bar is None:
-            if done == 0:
+            if done == 0 and not config.DISABLE_JIT:
                 return
             from tqdm import tqdm
             self.bar = tqdm(total=expected, unit="collapse", disable=None, dynamic_ncols=True,
                             desc=self.desc, file=sys.stderr)
+        if done == self.bar.n and config.DISABLE_JIT:
+            self.bar.refresh()      # the count waits, the seconds move
         self.bar.update(done - self.bar.n)
 
     def close(self) -> None:
@@ -145,6 +152,10 @@ def _cmd_build(args) -> int:
 
     options = options_from(args)
     source, output = _input_file(args.mesh), Path(args.output)
+    from .first_run import run_as_python, should_run_as_python, wait_for_background_compile
+    if should_run_as_python(source, options.method):
+        return run_as_python(args.argv)
+    wait_for_background_compile(stream=sys.stderr)      # its kernels, loaded, not compiled again
     _announce_compile(options.method)
     progress = _Progress()
     start = time.perf_counter()
@@ -661,6 +672,7 @@ def _error_text(exc: OSError, args) -> str:
 def main(argv=None) -> int:
     parser = _parser()
     args = parser.parse_args(argv)
+    args.argv = sys.argv[1:] if argv is None else list(argv)     # for a run in a child process
     if args.command is None:
         parser.print_help(sys.stderr)
         print("\nlodserver: name a command, such as 'lodserver build MESH -o ASSET.pm'.",

@@ -35,7 +35,7 @@ LAYERS = [
     ("lodserver.service",),
     ("lodserver.pipeline",),
     ("lodserver.api",),
-    ("lodserver.cli",),
+    ("lodserver.cli", "lodserver.first_run"),
 ]
 # The package's own __init__ is its public face: it may import from any layer, and
 # only the last layer (the command line) may import it.

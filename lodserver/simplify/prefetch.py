@@ -12,12 +12,17 @@ candidate at the heap's root, the neighbours a collapse will re-rank),
 2-D array): it reads nothing, cannot fault, and changes no result; it only
 moves time. Compiled to one ``prefetcht0`` on x86 (LLVM's ``llvm.prefetch``,
 read, high locality); a target without such an instruction drops it.
+
+numba's intrinsics cannot run as Python, so where numba is told to run the
+kernels as Python (``NUMBA_DISABLE_JIT``, the first run of a small input,
+``lodserver.first_run``) both hints are plain functions that do nothing.
 """
 
 from __future__ import annotations
 
 from llvmlite import ir
 from numba import types
+from numba.core import config
 from numba.core import cgutils
 from numba.extending import intrinsic
 
@@ -70,3 +75,11 @@ def prefetch2(typingctx, array, row, column):
         return context.get_dummy_value()
 
     return types.void(array, row, column), codegen
+
+
+if config.DISABLE_JIT:
+    def prefetch(array, index):     # noqa: F811  (the kernels run as Python: no cache to hint)
+        """Nothing: a hint has no meaning to the Python interpreter."""
+
+    def prefetch2(array, row, column):      # noqa: F811
+        """Nothing: a hint has no meaning to the Python interpreter."""
