@@ -56,8 +56,14 @@ try:
 except ImportError:     # not POSIX: no lock, so no background compile and no Python run
     fcntl = None
 
-__all__ = ["SMALL_INPUT_BYTES", "run_as_python", "should_run_as_python", "compiling",
-           "start_background_compile", "wait_for_background_compile", "lock_path"]
+__all__ = ["MODE_VARIABLE", "SMALL_INPUT_BYTES", "run_as_python", "should_run_as_python",
+           "compiling", "start_background_compile", "wait_for_background_compile", "lock_path"]
+
+# The environment variable that turns the first run's Python mode off
+# (``compile``: every build compiles in the foreground, as a test suite or an
+# image build wants, to be the same from run to run); any other value, and
+# none, keeps it on.
+MODE_VARIABLE = "LODSERVER_FIRST_RUN"
 
 # The largest input file (bytes) whose first build runs its kernels as Python:
 # about 20,000 vertices of binary PLY, 9,000-15,000 of OBJ, which run as
@@ -68,7 +74,8 @@ _PACKAGE = Path(__file__).resolve().parent
 
 
 def should_run_as_python(source, method: str = "qem") -> bool:
-    """True when this process compiles kernels (numba's JIT is on), ``method``
+    """True when this process compiles kernels (numba's JIT is on), the mode is
+    not turned off (:data:`MODE_VARIABLE`), ``method``
     is edge collapse (what the tests hold equal as Python), the build's main
     kernel is not in the cache yet or a background compile is filling it, and
     ``source`` is a file of at most ``SMALL_INPUT_BYTES`` (its own size: the
@@ -78,6 +85,8 @@ def should_run_as_python(source, method: str = "qem") -> bool:
     from .build import kernels_cold
 
     if config.DISABLE_JIT or fcntl is None or method != "qem":
+        return False
+    if os.environ.get(MODE_VARIABLE, "python").strip().lower() == "compile":
         return False
     try:
         size = Path(source).stat().st_size

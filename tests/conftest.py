@@ -12,6 +12,10 @@ SHARED_MESHES = Path(__file__).resolve().parents[1].parent / "shared" / "meshes"
 # Under CI=true (as .ci/run is run) a test whose browser, tool or service is
 # missing fails instead of skipping: a green CI then proves those tests ran.
 IN_CI = os.environ.get("CI", "").lower() in ("1", "true", "yes")
+# Every build compiles in the foreground (lodserver/first_run.py): a test's
+# outcome and time must not depend on a background compile another test started.
+# tests/test_first_run.py turns the first run's Python mode back on where it tests it.
+os.environ["LODSERVER_FIRST_RUN"] = "compile"
 CHROMIUM_ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
                  "--disable-background-networking", "--disable-component-update",
                  "--disable-sync"]

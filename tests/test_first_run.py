@@ -69,7 +69,7 @@ def test_a_first_build_runs_as_python_and_starts_one_background_compile(tmp_path
     cache, temp = tmp_path / "numba", tmp_path / "tmp"
     temp.mkdir()
     env = {**os.environ, "PYTHONPATH": str(REPO), "NUMBA_CACHE_DIR": str(cache),
-           "TMPDIR": str(temp)}
+           "TMPDIR": str(temp), "LODSERVER_FIRST_RUN": "python"}
     env.pop("NUMBA_DISABLE_JIT", None)
     out = tmp_path / "spot.pm"
     done = subprocess.run([sys.executable, "-m", "lodserver.cli", "build",
@@ -112,6 +112,7 @@ def _background_compile(lock, patience: float = 600) -> int | None:
 
 def test_only_a_small_edge_collapse_build_on_a_cold_cache_runs_as_python(tmp_path,
                                                                         monkeypatch):
+    monkeypatch.setenv("LODSERVER_FIRST_RUN", "python")
     monkeypatch.setenv("TMPDIR", str(tmp_path))
     monkeypatch.setattr("tempfile.tempdir", None)
     small, large = tmp_path / "small.obj", tmp_path / "large.obj"
@@ -122,6 +123,9 @@ def test_only_a_small_edge_collapse_build_on_a_cold_cache_runs_as_python(tmp_pat
     assert not should_run_as_python(large)
     assert not should_run_as_python(small, "cluster")
     assert not should_run_as_python(tmp_path / "missing.obj")
+    monkeypatch.setenv("LODSERVER_FIRST_RUN", "compile")       # turned off: always compiled
+    assert not should_run_as_python(small)
+    monkeypatch.setenv("LODSERVER_FIRST_RUN", "python")
     monkeypatch.setattr(sys.modules["lodserver.build"], "kernels_cold", lambda method="qem": False)
     assert not should_run_as_python(small)
     # the cache filled, but a background compile still at it: as Python again
